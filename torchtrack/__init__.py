@@ -1,0 +1,3 @@
+"""torchtrack: model-free 3D rigid tracking from RGB-D video (Gedik & Alatan, FUSION 2013)."""
+
+__version__ = "0.1.0"

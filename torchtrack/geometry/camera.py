@@ -1,0 +1,64 @@
+"""Pinhole projection and back-projection, batched.
+
+Pixel convention (OpenCV's): x to the right, y down, the centre of pixel (u, v) is at integer
+coordinates (u, v). Camera frame: z forward, x right, y down. ``K`` is (B, 3, 3).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float, dtype=torch.float32) -> Tensor:
+    """(3, 3) pinhole matrix."""
+    return torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=dtype)
+
+
+def project(K: Tensor, points: Tensor) -> Tensor:
+    """Camera points (..., N, 3) -> pixels (..., N, 2) through K (..., 3, 3). No z check."""
+    fx, fy = K[..., 0, 0, None], K[..., 1, 1, None]
+    cx, cy = K[..., 0, 2, None], K[..., 1, 2, None]
+    z = points[..., 2]
+    return torch.stack([fx * points[..., 0] / z + cx, fy * points[..., 1] / z + cy], dim=-1)
+
+
+def backproject(K: Tensor, pixels: Tensor, depth: Tensor) -> Tensor:
+    """Pixels (..., N, 2) with depth (..., N) in metres -> camera points (..., N, 3)."""
+    fx, fy = K[..., 0, 0, None], K[..., 1, 1, None]
+    cx, cy = K[..., 0, 2, None], K[..., 1, 2, None]
+    x = (pixels[..., 0] - cx) / fx * depth
+    y = (pixels[..., 1] - cy) / fy * depth
+    return torch.stack([x, y, depth], dim=-1)
+
+
+def pixel_grid(H: int, W: int, dtype=torch.float32, device=None) -> Tensor:
+    """(H, W, 2) pixel coordinates (x, y)."""
+    ys, xs = torch.meshgrid(
+        torch.arange(H, dtype=dtype, device=device), torch.arange(W, dtype=dtype, device=device), indexing="ij"
+    )
+    return torch.stack([xs, ys], dim=-1)
+
+
+def backproject_depth(K: Tensor, depth: Tensor) -> Tensor:
+    """Depth image (B, 1, H, W) -> point image (B, H, W, 3) in the camera; 0 depth gives 0 points."""
+    if depth.dim() != 4 or depth.shape[1] != 1:
+        raise ValueError(f"depth must be (B, 1, H, W), got {tuple(depth.shape)}")
+    B, _, H, W = depth.shape
+    grid = pixel_grid(H, W, depth.dtype, depth.device).reshape(1, H * W, 2).expand(B, -1, -1)
+    pts = backproject(K, grid, depth.reshape(B, H * W))
+    return pts.reshape(B, H, W, 3)
+
+
+def sample_depth(depth: Tensor, pixels: Tensor) -> Tensor:
+    """Depth (B, 1, H, W) read at pixels (B, N, 2) by nearest neighbour -> (B, N); 0 outside.
+
+    Nearest (not bilinear) so that no depth is invented across depth edges or holes.
+    """
+    B, _, H, W = depth.shape
+    u = pixels[..., 0].round().long()
+    v = pixels[..., 1].round().long()
+    inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    idx = (v.clamp(0, H - 1) * W + u.clamp(0, W - 1)).reshape(B, -1)
+    z = depth.reshape(B, H * W).gather(1, idx).reshape(pixels.shape[:-1])
+    return torch.where(inside, z, torch.zeros_like(z))

@@ -1,0 +1,145 @@
+"""SO(3): exponential and logarithm, Euler angles, quaternions.
+
+Conventions (used everywhere in torchtrack):
+
+* Rotation matrices act on column vectors: ``p_target = R @ p_source``.
+* Euler angles are the paper's ``(rho, theta, phi)`` about the x, y and z axes, composed as
+  ``R = Rz(phi) @ Ry(theta) @ Rx(rho)`` (rotate about x first, all about fixed axes). Inverse
+  singular at ``|theta| = pi/2``.
+* Quaternions are ``quat_xyzw`` only at file IO (TUM order); ``matrix_to_quat_xyzw`` returns the
+  representative with ``w >= 0``.
+
+All functions take any leading batch shape ``(...)``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+_EPS = {torch.float32: 1e-4, torch.float64: 1e-8}
+
+
+def hat(v: Tensor) -> Tensor:
+    """Skew-symmetric matrix: (..., 3) -> (..., 3, 3) with ``hat(a) @ b == cross(a, b)``."""
+    x, y, z = v.unbind(-1)
+    o = torch.zeros_like(x)
+    return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).reshape(*v.shape[:-1], 3, 3)
+
+
+def vee(m: Tensor) -> Tensor:
+    """Inverse of :func:`hat`: (..., 3, 3) -> (..., 3)."""
+    return torch.stack([m[..., 2, 1], m[..., 0, 2], m[..., 1, 0]], dim=-1)
+
+
+def _sinc_terms(theta2: Tensor) -> tuple[Tensor, Tensor]:
+    """``a = sin(t)/t`` and ``b = (1 - cos(t))/t^2`` with Taylor series near 0."""
+    small = theta2 < _EPS.get(theta2.dtype, 1e-4)
+    t2 = torch.where(small, torch.ones_like(theta2), theta2)
+    t = t2.sqrt()
+    a = torch.where(small, 1 - theta2 / 6 + theta2**2 / 120, torch.sin(t) / t)
+    b = torch.where(small, 0.5 - theta2 / 24 + theta2**2 / 720, (1 - torch.cos(t)) / t2)
+    return a, b
+
+
+def so3_exp(omega: Tensor) -> Tensor:
+    """Rodrigues' formula: axis-angle (..., 3) -> rotation (..., 3, 3)."""
+    theta2 = (omega * omega).sum(-1)[..., None, None]
+    a, b = _sinc_terms(theta2)
+    W = hat(omega)
+    eye = torch.eye(3, dtype=omega.dtype, device=omega.device).expand_as(W)
+    return eye + a * W + b * (W @ W)
+
+
+def so3_log(R: Tensor) -> Tensor:
+    """Rotation (..., 3, 3) -> axis-angle (..., 3), angle in [0, pi].
+
+    Stable near 0 (first order) and near pi (axis from the symmetric part of R).
+    """
+    if R.shape[-2:] != (3, 3):
+        raise ValueError(f"so3_log expects (..., 3, 3), got {tuple(R.shape)}")
+    tr = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
+    cos = ((tr - 1) / 2).clamp(-1.0, 1.0)
+    theta = torch.acos(cos)
+    w = vee(R - R.transpose(-1, -2)) / 2  # sin(theta) * axis
+    sin = torch.sin(theta)
+    small = theta < 1e-3
+    scale = torch.where(small, 1 + theta**2 / 6, theta / torch.where(small, torch.ones_like(sin), sin))
+    out = w * scale[..., None]
+    # Near pi sin(theta) -> 0 and the antisymmetric part carries no axis: use R + I = 2 a a^T (1 - cos)
+    near_pi = theta > torch.pi - 1e-2
+    if near_pi.any():
+        B = (R + torch.eye(3, dtype=R.dtype, device=R.device)) / 2  # ~ a a^T
+        diag = torch.diagonal(B, dim1=-2, dim2=-1).clamp_min(0)
+        k = diag.argmax(-1, keepdim=True)
+        col = torch.take_along_dim(B, k[..., None, :].expand(*B.shape[:-2], 3, 1), dim=-1)[..., 0]
+        axis = col / col.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        # choose the sign consistent with the (small) antisymmetric part
+        sgn = torch.where((axis * w).sum(-1, keepdim=True) < 0, -1.0, 1.0).to(R.dtype)
+        out = torch.where(near_pi[..., None], axis * sgn * theta[..., None], out)
+    return out
+
+
+def _axis_rot(angle: Tensor, axis: int) -> Tensor:
+    c, s = torch.cos(angle), torch.sin(angle)
+    o, i = torch.zeros_like(angle), torch.ones_like(angle)
+    if axis == 0:
+        m = [i, o, o, o, c, -s, o, s, c]
+    elif axis == 1:
+        m = [c, o, s, o, i, o, -s, o, c]
+    else:
+        m = [c, -s, o, s, c, o, o, o, i]
+    return torch.stack(m, dim=-1).reshape(*angle.shape, 3, 3)
+
+
+def euler_to_matrix(angles: Tensor) -> Tensor:
+    """Paper's Euler angles (rho, theta, phi) about x, y, z: (..., 3) -> ``Rz @ Ry @ Rx``."""
+    rx, ry, rz = angles.unbind(-1)
+    return _axis_rot(rz, 2) @ _axis_rot(ry, 1) @ _axis_rot(rx, 0)
+
+
+def matrix_to_euler(R: Tensor) -> Tensor:
+    """Inverse of :func:`euler_to_matrix`: (..., 3, 3) -> (rho, theta, phi), theta in [-pi/2, pi/2]."""
+    theta = torch.asin((-R[..., 2, 0]).clamp(-1.0, 1.0))
+    rho = torch.atan2(R[..., 2, 1], R[..., 2, 2])
+    phi = torch.atan2(R[..., 1, 0], R[..., 0, 0])
+    return torch.stack([rho, theta, phi], dim=-1)
+
+
+def quat_xyzw_to_matrix(quat_xyzw: Tensor) -> Tensor:
+    """Unit quaternion (..., 4) in x, y, z, w order -> rotation (..., 3, 3). Normalises the input."""
+    if quat_xyzw.shape[-1] != 4:
+        raise ValueError(f"quaternion must be (..., 4) xyzw, got {tuple(quat_xyzw.shape)}")
+    q = quat_xyzw / quat_xyzw.norm(dim=-1, keepdim=True)
+    x, y, z, w = q.unbind(-1)
+    m = [
+        1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
+    ]  # fmt: skip
+    return torch.stack(m, dim=-1).reshape(*q.shape[:-1], 3, 3)
+
+
+def matrix_to_quat_xyzw(R: Tensor) -> Tensor:
+    """Rotation (..., 3, 3) -> unit quaternion (..., 4) xyzw with w >= 0 (Shepperd's method)."""
+    m = R
+    tr = m[..., 0, 0] + m[..., 1, 1] + m[..., 2, 2]
+    # four candidate (unnormalised) quaternions, pick the best-conditioned one per element
+    cands = torch.stack(
+        [
+            torch.stack([m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1], 1 + tr], -1),
+            torch.stack([1 + 2 * m[..., 0, 0] - tr, m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0], m[..., 2, 1] - m[..., 1, 2]], -1),
+            torch.stack([m[..., 0, 1] + m[..., 1, 0], 1 + 2 * m[..., 1, 1] - tr, m[..., 1, 2] + m[..., 2, 1], m[..., 0, 2] - m[..., 2, 0]], -1),
+            torch.stack([m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1], 1 + 2 * m[..., 2, 2] - tr, m[..., 1, 0] - m[..., 0, 1]], -1),
+        ],
+        dim=-2,
+    )  # ..., 4 candidates, 4 (xyzw)
+    key = torch.stack([tr, m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]], -1).argmax(-1)
+    q = torch.take_along_dim(cands, key[..., None, None].expand(*key.shape, 1, 4), dim=-2)[..., 0, :]
+    q = q / q.norm(dim=-1, keepdim=True)
+    return torch.where(q[..., 3:4] < 0, -q, q)
+
+
+def rotation_angle(R: Tensor) -> Tensor:
+    """Geodesic angle of a rotation (..., 3, 3) -> (...) radians, stable near 0 and pi."""
+    return so3_log(R).norm(dim=-1)

@@ -1,0 +1,64 @@
+"""SE(3) as 4x4 homogeneous matrices: construction, inverse, exp/log, point transforms.
+
+Transform names say both frames: ``T_cam_obj`` maps object coordinates into the camera,
+``p_cam = R @ p_obj + t``. The tangent vector is ``xi = (v, omega)``: translation part first.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchtrack.geometry.rotation import _sinc_terms, hat, so3_exp, so3_log
+
+
+def make_T(R: Tensor, t: Tensor) -> Tensor:
+    """(..., 3, 3), (..., 3) -> (..., 4, 4)."""
+    T = torch.zeros(*R.shape[:-2], 4, 4, dtype=R.dtype, device=R.device)
+    T[..., :3, :3] = R
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1
+    return T
+
+
+def T_inv(T: Tensor) -> Tensor:
+    """Inverse of rigid transforms (..., 4, 4), exact (no general matrix inverse)."""
+    Rt = T[..., :3, :3].transpose(-1, -2)
+    return make_T(Rt, -(Rt @ T[..., :3, 3:])[..., 0])
+
+
+def transform_points(T: Tensor, points: Tensor) -> Tensor:
+    """Apply T (..., 4, 4) to points (..., N, 3) -> (..., N, 3)."""
+    return points @ T[..., :3, :3].transpose(-1, -2) + T[..., None, :3, 3]
+
+
+def _V_matrix(omega: Tensor) -> Tensor:
+    theta2 = (omega * omega).sum(-1)[..., None, None]
+    _, b = _sinc_terms(theta2)
+    small = theta2 < 1e-4 if omega.dtype == torch.float32 else theta2 < 1e-8
+    t2 = torch.where(small, torch.ones_like(theta2), theta2)
+    t = t2.sqrt()
+    c = torch.where(small, 1 / 6 - theta2 / 120, (t - torch.sin(t)) / (t2 * t))
+    W = hat(omega)
+    eye = torch.eye(3, dtype=omega.dtype, device=omega.device).expand_as(W)
+    return eye + b * W + c * (W @ W)
+
+
+def se3_exp(xi: Tensor) -> Tensor:
+    """Twist (..., 6) = (v, omega) -> transform (..., 4, 4)."""
+    v, omega = xi[..., :3], xi[..., 3:]
+    return make_T(so3_exp(omega), (_V_matrix(omega) @ v[..., None])[..., 0])
+
+
+def se3_log(T: Tensor) -> Tensor:
+    """Transform (..., 4, 4) -> twist (..., 6) = (v, omega)."""
+    omega = so3_log(T[..., :3, :3])
+    v = torch.linalg.solve(_V_matrix(omega), T[..., :3, 3:])[..., 0]
+    return torch.cat([v, omega], dim=-1)
+
+
+def pose_from_euler(angles_t: Tensor) -> Tensor:
+    """Paper's 6-vector (rho, theta, phi, tx, ty, tz) (..., 6) -> (..., 4, 4)."""
+    from torchtrack.geometry.rotation import euler_to_matrix
+
+    return make_T(euler_to_matrix(angles_t[..., :3]), angles_t[..., 3:])
