@@ -69,7 +69,9 @@ def so3_log(R: Tensor) -> Tensor:
     # Near pi sin(theta) -> 0 and the antisymmetric part carries no axis: use R + I = 2 a a^T (1 - cos)
     near_pi = theta > torch.pi - 1e-2
     if near_pi.any():
-        B = (R + torch.eye(3, dtype=R.dtype, device=R.device)) / 2  # ~ a a^T
+        # symmetric part: (1 + cos) I + (1 - cos) a a^T; remove the isotropic term, keep a a^T
+        eye = torch.eye(3, dtype=R.dtype, device=R.device)
+        B = (R + R.transpose(-1, -2)) / 2 - cos[..., None, None] * eye
         diag = torch.diagonal(B, dim1=-2, dim2=-1).clamp_min(0)
         k = diag.argmax(-1, keepdim=True)
         col = torch.take_along_dim(B, k[..., None, :].expand(*B.shape[:-2], 3, 1), dim=-1)[..., 0]
