@@ -1,0 +1,131 @@
+"""Geometry: property tests (round trips, q == -q) and closed forms."""
+
+import math
+
+import pytest
+import torch
+
+from torchtrack.geometry import (
+    T_inv,
+    backproject,
+    backproject_depth,
+    euler_to_matrix,
+    hat,
+    intrinsics_matrix,
+    make_T,
+    matrix_to_euler,
+    matrix_to_quat_xyzw,
+    project,
+    quat_xyzw_to_matrix,
+    rotation_angle,
+    sample_depth,
+    se3_exp,
+    se3_log,
+    so3_exp,
+    so3_log,
+    transform_points,
+)
+
+TOL = {torch.float32: 1e-5, torch.float64: 1e-10}
+
+
+def random_axis_angle(n, max_angle=math.pi - 1e-3, dtype=torch.float64, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    axis = torch.randn(n, 3, generator=g, dtype=dtype)
+    axis = axis / axis.norm(dim=-1, keepdim=True)
+    return axis * torch.rand(n, 1, generator=g, dtype=dtype) * max_angle
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_so3_exp_log_round_trip(dtype):
+    w = random_axis_angle(200, dtype=dtype)
+    R = so3_exp(w)
+    assert R.shape == (200, 3, 3)
+    eye = torch.eye(3, dtype=dtype).expand_as(R)
+    torch.testing.assert_close(R @ R.transpose(-1, -2), eye, atol=TOL[dtype] * 10, rtol=0)
+    torch.testing.assert_close(so3_log(R), w, atol=TOL[dtype] * 100, rtol=0)
+
+
+def test_so3_log_near_pi_and_zero():
+    for angle in [1e-9, 1e-5, math.pi - 1e-2, math.pi - 1e-6]:
+        w = random_axis_angle(20, dtype=torch.float64, seed=1)
+        w = w / w.norm(dim=-1, keepdim=True) * angle
+        torch.testing.assert_close(so3_exp(so3_log(so3_exp(w))), so3_exp(w), atol=1e-9, rtol=0)
+
+
+def test_so3_exp_closed_form_about_z():
+    a = torch.tensor(0.3, dtype=torch.float64)
+    R = so3_exp(torch.tensor([0.0, 0.0, 0.3], dtype=torch.float64))
+    expected = torch.tensor([[a.cos(), -a.sin(), 0], [a.sin(), a.cos(), 0], [0, 0, 1]], dtype=torch.float64)
+    torch.testing.assert_close(R, expected)
+
+
+def test_hat_is_cross_product():
+    a, b = torch.randn(10, 3, dtype=torch.float64), torch.randn(10, 3, dtype=torch.float64)
+    torch.testing.assert_close((hat(a) @ b[..., None])[..., 0], torch.linalg.cross(a, b))
+
+
+def test_se3_round_trip_and_inverse():
+    xi = torch.cat([torch.randn(100, 3, dtype=torch.float64), random_axis_angle(100)], dim=-1)
+    T = se3_exp(xi)
+    torch.testing.assert_close(se3_log(T), xi, atol=1e-8, rtol=0)
+    torch.testing.assert_close(T @ T_inv(T), torch.eye(4, dtype=torch.float64).expand_as(T), atol=1e-12, rtol=0)
+    p = torch.randn(100, 7, 3, dtype=torch.float64)
+    back = transform_points(T_inv(T), transform_points(T, p))
+    torch.testing.assert_close(back, p)
+
+
+def test_euler_convention_and_round_trip():
+    angles = torch.tensor([0.1, -0.2, 0.3], dtype=torch.float64)
+    Rx = so3_exp(torch.tensor([0.1, 0, 0], dtype=torch.float64))
+    Ry = so3_exp(torch.tensor([0, -0.2, 0], dtype=torch.float64))
+    Rz = so3_exp(torch.tensor([0, 0, 0.3], dtype=torch.float64))
+    torch.testing.assert_close(euler_to_matrix(angles), Rz @ Ry @ Rx)
+    g = torch.Generator().manual_seed(3)
+    a = (torch.rand(500, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([6.2, 3.1, 6.2], dtype=torch.float64)
+    torch.testing.assert_close(matrix_to_euler(euler_to_matrix(a)), a, atol=1e-9, rtol=0)
+
+
+def test_quaternion_round_trip_and_sign_invariance():
+    R = so3_exp(random_axis_angle(300))
+    q = matrix_to_quat_xyzw(R)
+    assert (q[:, 3] >= 0).all()
+    torch.testing.assert_close(q.norm(dim=-1), torch.ones(300, dtype=torch.float64))
+    torch.testing.assert_close(quat_xyzw_to_matrix(q), R, atol=1e-12, rtol=0)
+    torch.testing.assert_close(quat_xyzw_to_matrix(-q), R, atol=1e-12, rtol=0)  # q == -q
+    # closed form: 90 degrees about x is (sin45, 0, 0, cos45) in xyzw
+    qx = matrix_to_quat_xyzw(so3_exp(torch.tensor([math.pi / 2, 0, 0], dtype=torch.float64)))
+    torch.testing.assert_close(qx, torch.tensor([math.sqrt(0.5), 0, 0, math.sqrt(0.5)], dtype=torch.float64))
+    with pytest.raises(ValueError, match="xyzw"):
+        quat_xyzw_to_matrix(torch.zeros(3))
+
+
+def test_rotation_angle_matches_axis_angle_norm():
+    w = random_axis_angle(50)
+    torch.testing.assert_close(rotation_angle(so3_exp(w)), w.norm(dim=-1), atol=1e-9, rtol=0)
+
+
+def test_project_backproject_round_trip_and_depth_image():
+    K = intrinsics_matrix(525.0, 520.0, 319.5, 239.5, dtype=torch.float64)[None].expand(2, 3, 3)
+    pix = torch.rand(2, 50, 2, dtype=torch.float64) * torch.tensor([639.0, 479.0], dtype=torch.float64)
+    z = 0.3 + 3 * torch.rand(2, 50, dtype=torch.float64)
+    pts = backproject(K, pix, z)
+    torch.testing.assert_close(project(K, pts), pix)
+    depth = torch.full((2, 1, 4, 5), 2.0, dtype=torch.float64)
+    img = backproject_depth(K, depth)
+    assert img.shape == (2, 4, 5, 3)
+    torch.testing.assert_close(img[0, 3, 4], torch.tensor([(4 - 319.5) / 525 * 2, (3 - 239.5) / 520 * 2, 2.0], dtype=torch.float64))
+    with pytest.raises(ValueError, match="depth must be"):
+        backproject_depth(K, depth[:, 0])
+
+
+def test_sample_depth_nearest_and_outside():
+    depth = torch.arange(12, dtype=torch.float32).reshape(1, 1, 3, 4)
+    pix = torch.tensor([[[1.2, 0.9], [3.0, 2.0], [-1.0, 0.0], [4.6, 1.0]]])
+    torch.testing.assert_close(sample_depth(depth, pix), torch.tensor([[5.0, 11.0, 0.0, 0.0]]))
+
+
+def test_make_T_layout():
+    R = so3_exp(torch.tensor([0.1, 0.2, 0.3]))
+    T = make_T(R, torch.tensor([1.0, 2.0, 3.0]))
+    assert T.shape == (4, 4) and T[3].tolist() == [0, 0, 0, 1]
