@@ -129,3 +129,18 @@ def test_make_T_layout():
     R = so3_exp(torch.tensor([0.1, 0.2, 0.3]))
     T = make_T(R, torch.tensor([1.0, 2.0, 3.0]))
     assert T.shape == (4, 4) and T[3].tolist() == [0, 0, 0, 1]
+
+
+def test_warp_depth_identity_and_known_shift():
+    from torchtrack.geometry import warp_depth
+
+    K = intrinsics_matrix(500.0, 500.0, 15.5, 11.5)[None]
+    depth = torch.full((1, 1, 24, 32), 2.0)
+    depth[..., 5:9, 5:9] = 1.0  # a nearer square
+    eye = torch.eye(4)[None]
+    torch.testing.assert_close(warp_depth(depth, K, K, eye, (24, 32)), depth)
+    # translating the camera by tx = -fx^-1 * 2 px * z shifts the far plane by exactly 2 px to the left
+    T = make_T(torch.eye(3), torch.tensor([-2.0 * 2.0 / 500.0, 0.0, 0.0]))[None]
+    out = warp_depth(depth, K, K, T, (24, 32))
+    torch.testing.assert_close(out[..., :, 12:28], depth[..., :, 14:30])
+    assert (out[..., :, 30:] == 0).all()  # nothing lands there

@@ -62,3 +62,27 @@ def sample_depth(depth: Tensor, pixels: Tensor) -> Tensor:
     idx = (v.clamp(0, H - 1) * W + u.clamp(0, W - 1)).reshape(B, -1)
     z = depth.reshape(B, H * W).gather(1, idx).reshape(pixels.shape[:-1])
     return torch.where(inside, z, torch.zeros_like(z))
+
+
+def warp_depth(depth: Tensor, K_src: Tensor, K_dst: Tensor, T_dst_src: Tensor, out_hw: tuple[int, int]) -> Tensor:
+    """Forward-warp a depth image into another camera with a z-buffer (nearest pixel).
+
+    Used to register depth to the colour camera: ``depth`` (B, 1, H, W) in the source (depth) camera,
+    ``T_dst_src`` (B, 4, 4) the depth-to-colour extrinsic -> depth (B, 1, H', W') in the destination
+    camera, 0 where nothing lands. Where several source pixels land on one pixel the nearest wins.
+    """
+    B = depth.shape[0]
+    H2, W2 = out_hw
+    pts = backproject_depth(K_src, depth).reshape(B, -1, 3)
+    src_valid = pts[..., 2] > 0
+    p = pts @ T_dst_src[:, :3, :3].transpose(-1, -2) + T_dst_src[:, None, :3, 3]
+    z = p[..., 2]
+    uv = project(K_dst, p).round()
+    ok = src_valid & (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < W2) & (uv[..., 1] >= 0) & (uv[..., 1] < H2)
+    idx = (uv[..., 1].clamp(0, H2 - 1) * W2 + uv[..., 0].clamp(0, W2 - 1)).long()
+    idx = idx + torch.arange(B, device=depth.device)[:, None] * (H2 * W2)
+    big = torch.finfo(depth.dtype).max
+    out = torch.full((B * H2 * W2,), big, dtype=depth.dtype, device=depth.device)
+    out.scatter_reduce_(0, idx[ok], z[ok], reduce="amin")
+    out = torch.where(out == big, torch.zeros_like(out), out)
+    return out.reshape(B, 1, H2, W2)
