@@ -1,0 +1,89 @@
+"""Pose back ends behind one interface, so that trackers differ only in how the pose is estimated.
+
+The fusion EKF (paper §III-A) and the registration baselines (Horn, ICP, CPD; paper §IV) all take
+the same per-frame :class:`Observation` of tracked features and return ``T_cam_obj`` (B, 4, 4).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import torch
+from torch import Tensor
+
+
+@dataclass
+class Observation:
+    """What the front end measured for the current frame.
+
+    Attributes:
+        dt: (B,) seconds since the previous frame.
+        points_obj: (B, N, 3) model points X_o in the (centroid-centred) object frame.
+        points_d: (B, N, 3) measured 3D points X_d in the depth camera, eq. (6).
+        pixels: (B, N, 2) measured pixels in the colour image, eq. (7).
+        valid: (B, N) bool.
+        var_xyz: (B, N) 3D noise variance per feature (m^2), eq. (14).
+        var_pix: (B, N) pixel noise variance per feature (px^2), eq. (11).
+        K: (B, 3, 3) colour intrinsics.
+        T_color_depth: (B, 4, 4) depth-to-colour extrinsic (R_dv, t_dv).
+    """
+
+    dt: Tensor
+    points_obj: Tensor
+    points_d: Tensor
+    pixels: Tensor
+    valid: Tensor
+    var_xyz: Tensor
+    var_pix: Tensor
+    K: Tensor
+    T_color_depth: Tensor
+
+
+class PoseBackend(Protocol):
+    def reset(self, T_cam_obj: Tensor, mask: Tensor) -> None:
+        """Start over at pose ``T_cam_obj`` (B, 4, 4) for the sequences where ``mask`` (B,) is True."""
+
+    def __call__(self, obs: Observation) -> Tensor:
+        """One frame: observation in, ``T_cam_obj`` (B, 4, 4) out."""
+
+
+class EKFBackend:
+    """The paper's fusion EKF: constant-velocity prediction, then the 5N-measurement update."""
+
+    def __init__(self, ekf) -> None:
+        self.ekf = ekf
+
+    def reset(self, T_cam_obj: Tensor, mask: Tensor) -> None:
+        self.ekf.reset(T_cam_obj, mask)
+
+    def __call__(self, obs: Observation) -> Tensor:
+        self.ekf.predict(obs.dt)  # eqs. (3)-(4)
+        est = self.ekf.update(  # eqs. (6)-(7), (15)
+            obs.points_obj, obs.points_d, obs.pixels, obs.valid, obs.var_xyz, obs.var_pix, obs.K, obs.T_color_depth
+        )
+        return est.T_cam_obj
+
+
+class RegistrationBackend:
+    """A 3D-3D registration baseline (Horn, ICP or CPD) started from the previous pose (paper §IV).
+
+    ``estimator(points_obj, points_d, valid, T_prev, weights)`` returns ``T_cam_obj`` (B, 4, 4).
+    With ``weighted`` the 3D variances of eq. (14) become weights ``1 / var_xyz``.
+    """
+
+    def __init__(self, estimator, weighted: bool = False) -> None:
+        self.estimator = estimator
+        self.weighted = weighted
+        self.T_prev: Tensor | None = None
+
+    def reset(self, T_cam_obj: Tensor, mask: Tensor) -> None:
+        if self.T_prev is None:
+            self.T_prev = T_cam_obj.clone()
+        self.T_prev = torch.where(mask[:, None, None], T_cam_obj, self.T_prev)
+
+    def __call__(self, obs: Observation) -> Tensor:
+        weights = 1.0 / obs.var_xyz.clamp_min(1e-12) if self.weighted else None
+        T = self.estimator(obs.points_obj, obs.points_d, obs.valid, self.T_prev, weights)
+        self.T_prev = T
+        return T

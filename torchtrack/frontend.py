@@ -1,0 +1,75 @@
+"""Per-frame preparation shared by every tracker, computed once per frame.
+
+Depth is registered to the colour camera first (z-buffered forward warp with the depth-to-colour
+extrinsic; a no-op for registered depth), so that intensity, depth and the Shape Index Map share one
+pixel grid: a feature tracked at colour pixel x reads its depth and its SIM at x.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from torchtrack.data.frame import FrameBatch
+from torchtrack.geometry import T_inv, backproject, sample_depth, transform_points, warp_depth
+from torchtrack.image.flow import FlowFrame, prepare_frame
+from torchtrack.image.shape_index import ShapeIndex, shape_index, sim_image
+
+
+@dataclass
+class PreparedFrame:
+    """Attributes: gray (B,1,H,W); depth (B,1,H,W) in the colour grid; sim (ShapeIndex); flow (pyramids)."""
+
+    gray: Tensor
+    depth: Tensor
+    sim: ShapeIndex
+    flow: FlowFrame
+
+
+def is_registered(frame: FrameBatch) -> bool:
+    eye = torch.eye(4, dtype=frame.T_color_depth.dtype)
+    return bool(torch.allclose(frame.T_color_depth, eye) and torch.allclose(frame.K_depth, frame.K))
+
+
+def depth_in_colour(frame: FrameBatch) -> Tensor:
+    """Depth (B, 1, H, W) seen from the colour camera; the input itself when depth is registered."""
+    if is_registered(frame):
+        return frame.depth
+    H, W = frame.rgb.shape[-2:]
+    return warp_depth(frame.depth, frame.K_depth, frame.K, frame.T_color_depth, (H, W))
+
+
+class FrontEnd:
+    """Builds a :class:`PreparedFrame`: gray, colour-registered depth, SIM (eq. 8) and LK pyramids.
+
+    Args:
+        levels: pyramid levels of the LK tracker.
+        use_sim: compute the SIM (needed by SIM-assisted tracking and lambda < 1 selection).
+        sim_kwargs: keyword arguments of :func:`torchtrack.image.shape_index`.
+    """
+
+    def __init__(self, *, levels: int = 3, use_sim: bool = True, sim_kwargs: dict | None = None) -> None:
+        self.levels = levels
+        self.use_sim = use_sim
+        self.sim_kwargs = dict(sim_kwargs or {})
+
+    def __call__(self, frame: FrameBatch) -> PreparedFrame:
+        gray = frame.gray
+        depth = depth_in_colour(frame)
+        sim = shape_index(depth, frame.K, **self.sim_kwargs) if self.use_sim else None
+        sim_img = sim_image(sim) if sim is not None else None
+        return PreparedFrame(gray, depth, sim, prepare_frame(gray, sim_img, self.levels))
+
+
+def measure_points(prepared: PreparedFrame, frame: FrameBatch, pixels: Tensor) -> tuple[Tensor, Tensor]:
+    """3D measurements X_d of eq. (6) at colour pixels (B, N, 2) -> (points (B, N, 3) in the depth camera, has_depth (B, N)).
+
+    The depth is read at the nearest pixel (no interpolation across depth edges); the point is
+    back-projected through the sub-pixel colour position and moved into the depth camera.
+    """
+    z = sample_depth(prepared.depth, pixels)
+    pts_color = backproject(frame.K, pixels, z)
+    pts_depth = transform_points(T_inv(frame.T_color_depth), pts_color)
+    return pts_depth, z > 0

@@ -1,0 +1,179 @@
+"""The torchtrack pipeline: select -> track -> weight -> update -> (re-select), batched over B sequences.
+
+Frames. ``cam`` is the depth camera. The object frame ``obj`` is the model frame's depth camera moved
+to the centroid of the selected features (so rotations about it stay well-conditioned); the model
+points X_o live in it. The tracker estimates ``T_cam_obj`` per frame; with the object static in the
+world (scene tracking, or a camera moving around an object), the camera pose follows as
+``T_world_cam = T_world_obj @ inv(T_cam_obj)``. A re-selection makes the current frame the new model
+frame and chains ``T_world_obj`` through the current estimate, so the trajectory stays continuous.
+
+References:
+    O. S. Gedik, A. A. Alatan, "Fusing 2D and 3D Clues for 3D Tracking Using Visual and Range Data",
+    FUSION 2013.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from torchtrack.data.frame import FrameBatch
+from torchtrack.estimation import Observation, PoseBackend
+from torchtrack.filter.weighting import WeightingInputs
+from torchtrack.frontend import FrontEnd, PreparedFrame, measure_points
+from torchtrack.geometry import T_inv, make_T, project, transform_points
+
+
+@dataclass
+class StepResult:
+    """Per-frame outputs, each batched over B.
+
+    Attributes:
+        T_cam_obj: (B, 4, 4) object pose in the depth camera.
+        T_world_cam: (B, 4, 4) float64 camera pose (camera-to-world) for a static object/scene.
+        pixels: (B, N, 2) tracked feature pixels in the colour image; valid (B, N).
+        winner: (B, N) 0 where the intensity tracker won, 1 where the SIM tracker won, -1 unknown.
+        points_obj: (B, N, 3) model points; reprojection_error (B,) eq. (16) in pixels.
+        n_features: (B,) surviving features; reselected (B,) bool: a new model was taken this frame.
+    """
+
+    T_cam_obj: Tensor
+    T_world_cam: Tensor
+    pixels: Tensor
+    valid: Tensor
+    winner: Tensor
+    points_obj: Tensor
+    reprojection_error: Tensor
+    n_features: Tensor
+    reselected: Tensor
+    d_tim: Tensor
+
+
+def masked_mean(x: Tensor, valid: Tensor) -> Tensor:
+    """x (B, N, D), valid (B, N) -> (B, D); zero where nothing is valid."""
+    w = valid.to(x.dtype)[..., None]
+    return (x * w).sum(1) / w.sum(1).clamp_min(1)
+
+
+def reprojection_error(K: Tensor, T_color_obj: Tensor, points_obj: Tensor, pixels: Tensor, valid: Tensor) -> Tensor:
+    """Mean reprojection error of eq. (16), (B,) pixels: mean_i || x_i - pi(K T X_o,i) || over valid features."""
+    proj = project(K, transform_points(T_color_obj, points_obj))
+    err = torch.where(valid, (proj - pixels).norm(dim=-1), torch.zeros_like(pixels[..., 0]))
+    return err.sum(1) / valid.sum(1).clamp_min(1)
+
+
+class Tracker:
+    """Model-free RGB-D rigid tracker (paper §III), batched over B sequences in lockstep.
+
+    Args:
+        frontend: per-frame preparation (registered depth, SIM, pyramids).
+        region: ``region(depth (B,1,H,W)) -> (B,1,H,W) bool`` region of interest of the model
+            (object by depth thresholding, or the whole frame).
+        select: ``select(gray, depth, K, roi=, sim=) -> Features``, spatio-textural selection (eq. 9).
+        flow: combined LK + TIM tracker (eq. 10), ``flow(prev, next, pixels, valid) -> TrackResult``.
+        weighting: per-feature noise variances (eqs. 11-14).
+        backend: the pose estimator (fusion EKF or a registration baseline).
+        reselect_fraction: take a new model when fewer than this fraction of the model's features survive.
+        min_features: ... or fewer than this many.
+    """
+
+    def __init__(
+        self,
+        *,
+        frontend: FrontEnd,
+        region: Callable,
+        select: Callable,
+        flow: Callable,
+        weighting: Callable,
+        backend: PoseBackend,
+        reselect_fraction: float = 0.5,
+        min_features: int = 12,
+    ) -> None:
+        if not 0.0 <= reselect_fraction < 1.0:
+            raise ValueError(f"reselect_fraction must be in [0, 1), got {reselect_fraction}")
+        self.frontend, self.region, self.select = frontend, region, select
+        self.flow, self.weighting, self.backend = flow, weighting, backend
+        self.reselect_fraction, self.min_features = reselect_fraction, min_features
+        self.prev: PreparedFrame | None = None
+
+    def step(self, frame: FrameBatch) -> StepResult:
+        """Process one frame of every sequence; reads like the paper's algorithm."""
+        cur = self.frontend(frame)
+        if self.prev is None:
+            return self._start(frame, cur)
+        track = self.flow(self.prev.flow, cur.flow, self.pixels, self.valid)  # §III-C, eq. (10)
+        points_d, has_depth = measure_points(cur, frame, track.points)  # eq. (6) measurements
+        valid = track.valid & has_depth & frame.active[:, None]
+        var = self.weighting(WeightingInputs(track.d_tim, points_d[..., 2], points_d, valid, frame.K_depth[:, 0, 0]))
+        dt = (frame.timestamp - self.timestamp).to(points_d.dtype).clamp_min(1e-3)  # eqs. (11)-(14) above
+        obs = Observation(dt, self.points_obj, points_d, track.points, valid, var.var_xyz, var.var_pix, frame.K, frame.T_color_depth)
+        T_cam_obj = self.backend(obs)  # eqs. (2)-(7), (15)
+        T_cam_obj = torch.where(frame.active[:, None, None], T_cam_obj, self.T_cam_obj)
+        self.pixels, self.valid, self.T_cam_obj, self.timestamp = track.points, valid, T_cam_obj, frame.timestamp
+        result = self._result(frame, track.winner, track.d_tim)
+        n = valid.sum(1)
+        reselect = frame.active & ((n < self.reselect_fraction * self.n_model) | (n < self.min_features))
+        if reselect.any():
+            self._new_model(frame, cur, reselect)  # §III model re-selection
+            result.reselected = reselect
+        self.prev = cur
+        return result
+
+    # ----------------------------------------------------------------------------------------------
+    def _start(self, frame: FrameBatch, cur: PreparedFrame) -> StepResult:
+        B = frame.rgb.shape[0]
+        self.T_world_cam0 = torch.where(
+            frame.gt_valid[:, None, None], frame.T_world_cam_gt, torch.eye(4, dtype=torch.float64).expand(B, 4, 4)
+        )
+        self.T_cam_obj = torch.eye(4).expand(B, 4, 4).clone()
+        self.T_world_obj = torch.eye(4, dtype=torch.float64).expand(B, 4, 4).clone()
+        self.timestamp = frame.timestamp
+        self.pixels = self.valid = self.points_obj = self.n_model = None
+        everyone = torch.ones(B, dtype=torch.bool)
+        self._new_model(frame, cur, everyone)
+        self.prev = cur
+        result = self._result(frame, None, None)
+        result.reselected = everyone
+        return result
+
+    def _new_model(self, frame: FrameBatch, cur: PreparedFrame, mask: Tensor) -> None:
+        """Take the current frame as the model of the sequences in ``mask`` (B,): PCM features, pose, chain."""
+        feats = self.select(cur.gray, cur.depth, frame.K, roi=self.region(cur.depth), sim=cur.sim)  # eq. (9)
+        points_d, has_depth = measure_points(cur, frame, feats.pixels)
+        valid = feats.valid & has_depth
+        centroid = masked_mean(points_d, valid)
+        points_obj = torch.where(valid[..., None], points_d - centroid[:, None], torch.zeros_like(points_d))
+        T_cam_obj = make_T(torch.eye(3).expand(len(mask), 3, 3), centroid)
+        if self.pixels is None:  # first frame: the world is where the first camera is
+            T_world_cam = self.T_world_cam0
+        else:
+            T_world_cam = self.T_world_obj @ T_inv(self.T_cam_obj.double())
+        m3, m2 = mask[:, None, None], mask[:, None]
+        self.T_world_obj = torch.where(m3, T_world_cam @ T_cam_obj.double(), self.T_world_obj)
+        self.T_cam_obj = torch.where(m3, T_cam_obj, self.T_cam_obj)
+        self.pixels = feats.pixels if self.pixels is None else torch.where(m2[..., None], feats.pixels, self.pixels)
+        self.valid = valid if self.valid is None else torch.where(m2, valid, self.valid)
+        self.points_obj = points_obj if self.points_obj is None else torch.where(m3, points_obj, self.points_obj)
+        n = valid.sum(1)
+        self.n_model = n if self.n_model is None else torch.where(mask, n, self.n_model)
+        self.backend.reset(self.T_cam_obj, mask)
+
+    def _result(self, frame: FrameBatch, winner: Tensor | None, d_tim: Tensor | None) -> StepResult:
+        B, N = self.valid.shape
+        T_color_obj = frame.T_color_depth @ self.T_cam_obj
+        err = reprojection_error(frame.K, T_color_obj, self.points_obj, self.pixels, self.valid)
+        return StepResult(
+            T_cam_obj=self.T_cam_obj,
+            T_world_cam=self.T_world_obj @ T_inv(self.T_cam_obj.double()),
+            pixels=self.pixels,
+            valid=self.valid,
+            winner=winner if winner is not None else torch.full((B, N), -1, dtype=torch.long),
+            points_obj=self.points_obj,
+            reprojection_error=err,
+            n_features=self.valid.sum(1),
+            reselected=torch.zeros(B, dtype=torch.bool),
+            d_tim=d_tim if d_tim is not None else torch.zeros(B, N),
+        )
