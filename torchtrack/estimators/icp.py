@@ -1,0 +1,136 @@
+"""Point-to-point ICP (Besl & McKay 1992), batched over B sequences with padding masks.
+
+Each iteration matches every valid source point to its nearest valid destination point (brute force
+``torch.cdist`` over the padded sets, fine for N ~ 300), drops matches farther than
+``max_corr_dist``, and solves the rigid transform in closed form with :func:`horn`. Sequences stop
+independently when the relative change of the mean squared matching error falls below ``tol``.
+
+References:
+    P. J. Besl and N. D. McKay, "A method for registration of 3-D shapes", IEEE TPAMI 14(2), 1992.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchtrack.estimators.base import check_mask, check_points, check_T, zero_invalid
+from torchtrack.estimators.horn import horn
+from torchtrack.geometry import transform_points
+
+
+class ICPResult(NamedTuple):
+    """T (B, 4, 4) = T_dst_src; rmse (B,) of the inlier matches at T; iterations (B,) pose updates made;
+    converged (B,) stopping criterion met before ``max_iters``; valid (B,) >= 3 points on each side and >= 3
+    inlier matches at T (T = T_init where not valid)."""
+
+    T: Tensor
+    rmse: Tensor
+    iterations: Tensor
+    converged: Tensor
+    valid: Tensor
+
+
+def nearest_neighbours(
+    src: Tensor, dst: Tensor, valid_src: Tensor, valid_dst: Tensor, max_corr_dist: float | None
+) -> tuple[Tensor, Tensor, Tensor]:
+    """For each src point (B, N, 3) its nearest valid dst point (B, M, 3).
+
+    Returns (index (B, N) into dst, squared distance (B, N), inlier (B, N) bool: valid src with a valid
+    match within ``max_corr_dist``).
+    """
+    d2 = torch.cdist(src, dst, compute_mode="donot_use_mm_for_euclid_dist").square()  # B,N,M
+    d2 = d2.masked_fill(~valid_dst[:, None, :], torch.inf)
+    d2min, idx = d2.min(-1)
+    inlier = valid_src & torch.isfinite(d2min)
+    if max_corr_dist is not None:
+        inlier = inlier & (d2min <= max_corr_dist**2)
+    return idx, torch.where(inlier, d2min, 0.0), inlier
+
+
+def icp(
+    src: Tensor,
+    dst: Tensor,
+    valid_src: Tensor,
+    valid_dst: Tensor,
+    T_init: Tensor,
+    *,
+    max_iters: int = 50,
+    tol: float = 1e-6,
+    max_corr_dist: float | None = None,
+) -> ICPResult:
+    """Align ``src`` (B, N, 3) onto ``dst`` (B, M, 3), unknown correspondences, starting at ``T_init`` (B, 4, 4).
+
+    Iteration k (Besl-McKay): match ``T_k src`` to ``dst`` by nearest neighbours, mse_k = mean squared inlier
+    distance; stop if |mse_{k-1} - mse_k| <= tol * mse_{k-1} (or mse_k is at rounding level), else
+    ``T_{k+1} = horn(src, matched dst)``. Each sequence has its own convergence mask; finished ones are frozen.
+    """
+    check_points("src", src, "icp")
+    B, N, _ = src.shape
+    check_points("dst", dst, "icp", B)
+    check_mask("valid_src", valid_src, (B, N), "icp")
+    check_mask("valid_dst", valid_dst, (B, dst.shape[1]), "icp")
+    check_T("T_init", T_init, B, src.dtype, "icp")
+    if max_iters < 0 or tol < 0 or (max_corr_dist is not None and max_corr_dist <= 0):
+        raise ValueError(
+            f"icp: need max_iters >= 0, tol >= 0, max_corr_dist > 0 (got {max_iters}, {tol}, {max_corr_dist})"
+        )
+    src, dst = zero_invalid(src, valid_src), zero_invalid(dst, valid_dst)
+    ok = (valid_src.sum(-1) >= 3) & (valid_dst.sum(-1) >= 3)
+    # rounding-level floor on the mse, relative to the coordinates' magnitude
+    n_dst = valid_dst.sum(-1).clamp_min(1)
+    spread2 = (dst.square().sum(-1).sum(-1) / n_dst).clamp_min(torch.finfo(src.dtype).tiny)
+    mse_floor = (1e3 * torch.finfo(src.dtype).eps) ** 2 * spread2
+
+    T = T_init.clone()
+    active, converged = ok.clone(), torch.zeros_like(ok)
+    iterations = torch.zeros(B, dtype=torch.long, device=src.device)
+    mse_prev = torch.full((B,), torch.inf, dtype=src.dtype, device=src.device)
+    for k in range(max_iters + 1):
+        idx, d2, inlier = nearest_neighbours(transform_points(T, src), dst, valid_src, valid_dst, max_corr_dist)
+        n_in = inlier.sum(-1)
+        mse = d2.sum(-1) / n_in.clamp_min(1)
+        done = (torch.isfinite(mse_prev) & ((mse_prev - mse).abs() <= tol * mse_prev)) | (mse <= mse_floor)
+        converged |= active & done
+        active &= ~done
+        if k == max_iters or not active.any():
+            break
+        matched = torch.take_along_dim(dst, idx[..., None], dim=1)  # B,N,3
+        est = horn(src, matched, inlier)
+        active &= est.valid  # too few inlier matches: stop where we are
+        T = torch.where(active[:, None, None], est.T, T)
+        iterations += active.long()
+        mse_prev = torch.where(active, mse, mse_prev)
+    valid = ok & (n_in >= 3)
+    T = torch.where(valid[:, None, None], T, T_init)
+    return ICPResult(T, mse.sqrt(), iterations, converged & valid, valid)
+
+
+class ICPEstimator:
+    """ICP baseline behind the common estimator interface (paper §IV, [31]).
+
+    The model points and the measured points are handed over as two unordered sets (the known
+    correspondences are not used) and aligned starting from ``T_prev``, as in the paper. Weights are
+    ignored. Sequences where ICP is not valid keep ``T_prev``.
+    """
+
+    def __init__(self, max_iters: int = 50, tol: float = 1e-6, max_corr_dist: float | None = None) -> None:
+        self.max_iters, self.tol, self.max_corr_dist = max_iters, tol, max_corr_dist
+
+    def __call__(
+        self, points_obj: Tensor, points_d: Tensor, valid: Tensor, T_prev: Tensor, weights: Tensor | None = None
+    ) -> Tensor:
+        """points_obj (B, N, 3) model, points_d (B, N, 3) depth camera, valid (B, N), T_prev (B, 4, 4) -> T_cam_obj."""
+        res = icp(
+            points_obj,
+            points_d,
+            valid,
+            valid,
+            T_prev,
+            max_iters=self.max_iters,
+            tol=self.tol,
+            max_corr_dist=self.max_corr_dist,
+        )
+        return res.T
