@@ -1,0 +1,243 @@
+"""EKF fusion of 2D (colour pixel) and 3D (depth point) measurements: the paper's tracker core (§III-A).
+
+:func:`fuse` is the pure batched update (eqs. (6)–(7), (15)); :class:`FusionEKF` is the thin stateful
+wrapper that the tracker calls once per frame: ``predict(dt)`` then ``update(...)``.
+
+Frames: ``cam`` is the DEPTH camera (the paper's ``d``); ``T_cam_obj`` = ``(R_do, t_do)``. The object frame
+is expected to be centred at the model's centroid (the tracker passes ``points_obj`` already centred,
+with axes of the model camera): the Euler angles then start near 0 and rotations about the object
+centre are well-conditioned (decoupled from translation). The filter does not check this.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Literal, NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchtrack.filter import ekf
+from torchtrack.filter.models import (
+    STATE_SIZE,
+    constant_velocity,
+    measure_analytic,
+    measure_single,
+    pose_to_state,
+    state_to_pose,
+)
+
+log = logging.getLogger(__name__)
+
+JacobianMode = Literal["forward", "reverse", "analytic"]
+
+
+class PoseEstimate(NamedTuple):
+    """Filter output after an update.
+
+    Attributes:
+        T_cam_obj: (B, 4, 4) object pose in the depth camera (posterior mean).
+        covariance: (B, 12, 12) posterior state covariance.
+        state: (B, 12) posterior state (angles, translation, their velocities).
+        innovation: (B, N, 5) ``z - h(predicted state)``: 3D (m) then pixel (px) residuals; 0 where invalid.
+        num_valid: (B,) number of valid features used.
+        updated: (B,) bool, False where no valid feature was given (the prediction was kept).
+    """
+
+    T_cam_obj: Tensor
+    covariance: Tensor
+    state: Tensor
+    innovation: Tensor
+    num_valid: Tensor
+    updated: Tensor
+
+
+def fuse(
+    mean: Tensor,
+    cov: Tensor,
+    points_obj: Tensor,
+    points_d: Tensor,
+    pixels: Tensor,
+    valid: Tensor,
+    var_xyz: Tensor,
+    var_pix: Tensor,
+    K: Tensor,
+    T_color_depth: Tensor,
+    *,
+    valid_xyz: Tensor | None = None,
+    form: Literal["information", "gain"] = "information",
+    iterations: int = 1,
+    jacobian: JacobianMode = "forward",
+) -> ekf.Update:
+    """One EKF update with N features of 5 measurements each, eqs. (6)–(7), (15).
+
+    Args:
+        mean: (B, 12) predicted state; cov: (B, 12, 12).
+        points_obj: (B, N, 3) model points X_o (object frame, centred at the model centroid).
+        points_d: (B, N, 3) measured 3D points X_d in the depth camera (eq. (6)).
+        pixels: (B, N, 2) measured pixels in the colour image (eq. (7)).
+        valid: (B, N) bool; valid_xyz: optional (B, N) bool that additionally masks only the 3D part.
+        var_xyz, var_pix: (B, N) per-feature variances (m^2, px^2), e.g. from eqs. (11)–(14).
+        K: (B, 3, 3) colour intrinsics; T_color_depth: (B, 4, 4) depth -> colour extrinsic (R_dv, t_dv).
+        form, iterations, jacobian: see :func:`torchtrack.filter.ekf.update`; jacobian="analytic" uses
+            :func:`~torchtrack.filter.models.measure_analytic` instead of autograd.
+    """
+    B, N = valid.shape
+    if points_obj.shape != (B, N, 3) or points_d.shape != (B, N, 3) or pixels.shape != (B, N, 2):
+        raise ValueError(
+            f"fuse: expected points_obj, points_d (B, N, 3), pixels (B, N, 2) with (B, N) = {(B, N)}; got "
+            f"{tuple(points_obj.shape)}, {tuple(points_d.shape)}, {tuple(pixels.shape)}"
+        )
+    if var_xyz.shape != (B, N) or var_pix.shape != (B, N) or K.shape != (B, 3, 3) or T_color_depth.shape != (B, 4, 4):
+        raise ValueError("fuse: var_xyz, var_pix must be (B, N), K (B, 3, 3), T_color_depth (B, 4, 4)")
+    dt = mean.dtype
+    z = torch.cat([points_d, pixels], -1).to(dt)  # B,N,5
+    var = torch.cat([var_xyz[..., None].expand(B, N, 3), var_pix[..., None].expand(B, N, 2)], -1).to(dt)
+    v3 = valid if valid_xyz is None else valid & valid_xyz
+    valid5 = torch.cat([v3[..., None].expand(B, N, 3), valid[..., None].expand(B, N, 2)], -1)
+    lin = None
+    if jacobian == "analytic":
+
+        def lin(x, fi, si):
+            return measure_analytic(x, fi[0], *si)
+
+    return ekf.update(
+        mean,
+        cov,
+        z,
+        var,
+        valid5,
+        measure_single,
+        (points_obj.to(dt),),
+        (K.to(dt), T_color_depth.to(dt)),
+        form=form,
+        iterations=iterations,
+        jacobian="reverse" if jacobian == "reverse" else "forward",
+        linearizer=lin,
+    )
+
+
+class FusionEKF:
+    """Stateful 12-state EKF over B sequences: constant-velocity prediction, 2D+3D fusion update.
+
+    Args:
+        sigma2_pix: default pixel variance (px^2), used when update() gets no var_pix.
+        sigma2_xyz: default 3D variance (m^2), used when update() gets no var_xyz.
+        sigma_ang_acc: Euler-angle acceleration noise std (rad/s^2) of eqs. (3)–(4).
+        sigma_lin_acc: linear acceleration noise std (m/s^2).
+        init_sigma_angle, init_sigma_trans: initial pose std (rad, m) after :meth:`reset`.
+        init_sigma_ang_vel, init_sigma_lin_vel: initial velocity std (rad/s, m/s) after :meth:`reset`.
+        iterations: 1 = EKF (paper); > 1 = iterated EKF.
+        form: "information" (fast, default) or "gain" (paper's eq. (15), O((5N)^3)).
+        jacobian: "forward" (autograd jacfwd, default), "reverse" (jacrev) or "analytic".
+        dtype: filter state dtype (float64 default: the 12 x 12 algebra is cheap and well-conditioned).
+
+    Poses and covariances are returned in ``dtype``.
+    """
+
+    def __init__(
+        self,
+        sigma2_pix: float = 1.0,
+        sigma2_xyz: float = 1e-4,
+        sigma_ang_acc: float = 3.0,
+        sigma_lin_acc: float = 2.0,
+        init_sigma_angle: float = 1e-3,
+        init_sigma_trans: float = 1e-3,
+        init_sigma_ang_vel: float = 1.0,
+        init_sigma_lin_vel: float = 0.5,
+        iterations: int = 1,
+        form: Literal["information", "gain"] = "information",
+        jacobian: JacobianMode = "forward",
+        dtype: torch.dtype = torch.float64,
+    ) -> None:
+        if form not in ("information", "gain") or jacobian not in ("forward", "reverse", "analytic"):
+            raise ValueError(f"FusionEKF: bad form={form!r} or jacobian={jacobian!r}")
+        if iterations < 1 or min(sigma2_pix, sigma2_xyz) <= 0:
+            raise ValueError("FusionEKF: iterations must be >= 1 and variances > 0")
+        self.sigma2_pix, self.sigma2_xyz = sigma2_pix, sigma2_xyz
+        self.sigma_ang_acc, self.sigma_lin_acc = sigma_ang_acc, sigma_lin_acc
+        init_std = [init_sigma_angle] * 3 + [init_sigma_trans] * 3 + [init_sigma_ang_vel] * 3 + [init_sigma_lin_vel] * 3
+        self.init_var = torch.tensor(init_std, dtype=dtype) ** 2
+        self.iterations, self.form, self.jacobian, self.dtype = iterations, form, jacobian, dtype
+        self.mean: Tensor | None = None  # (B, 12)
+        self.cov: Tensor | None = None  # (B, 12, 12)
+
+    @property
+    def T_cam_obj(self) -> Tensor:
+        """(B, 4, 4) current object pose in the depth camera (the latest mean)."""
+        return state_to_pose(self._state()[0])
+
+    def reset(self, T_cam_obj: Tensor, mask: Tensor | None = None, velocity: Tensor | None = None) -> None:
+        """Set pose to ``T_cam_obj``, velocity to ``velocity`` (zero by default), covariance to the initial one.
+
+        Args:
+            T_cam_obj: (B, 4, 4) object pose in the depth camera.
+            mask: (B,) bool, sequences to reset (default all; the first reset must cover all). The tracker
+                re-selects models per sequence.
+            velocity: optional (B, 6) state velocity expressed for the NEW object frame (e.g.
+                :func:`~torchtrack.filter.models.euler_velocity` of two poses of that frame).
+        """
+        B = T_cam_obj.shape[0]
+        if T_cam_obj.shape != (B, 4, 4) or (mask is not None and mask.shape != (B,)):
+            raise ValueError(f"reset: T_cam_obj must be (B, 4, 4) and mask (B,), got {tuple(T_cam_obj.shape)}")
+        mask = torch.ones(B, dtype=torch.bool) if mask is None else mask.to(torch.bool)
+        x0 = pose_to_state(T_cam_obj.to(self.dtype), None if velocity is None else velocity.to(self.dtype))
+        P0 = torch.diag_embed(self.init_var.to(x0.device).expand(B, STATE_SIZE))
+        if self.mean is None or self.mean.shape[0] != B:
+            if not bool(mask.all()):
+                raise ValueError(f"reset: first reset (or a new batch size {B}) must cover every sequence")
+            self.mean, self.cov = x0, P0
+            return
+        mask = mask.to(x0.device)
+        self.mean = torch.where(mask[:, None], x0, self.mean)
+        self.cov = torch.where(mask[:, None, None], P0, self.cov)
+
+    def predict(self, dt: Tensor) -> Tensor:
+        """Constant-velocity prediction, eqs. (3)–(4), over ``dt`` (B,) seconds. Returns T_cam_obj (B, 4, 4)."""
+        mean, cov = self._state()
+        if dt.shape != (mean.shape[0],):
+            raise ValueError(f"predict: dt must be ({mean.shape[0]},), got {tuple(dt.shape)}")
+        F, Q = constant_velocity(dt.to(self.dtype), self.sigma_ang_acc, self.sigma_lin_acc)
+        self.mean, self.cov = ekf.predict(mean, cov, F, Q)
+        return self.T_cam_obj
+
+    def update(
+        self,
+        points_obj: Tensor,
+        points_d: Tensor,
+        pixels: Tensor,
+        valid: Tensor,
+        var_xyz: Tensor | None = None,
+        var_pix: Tensor | None = None,
+        K: Tensor | None = None,
+        T_color_depth: Tensor | None = None,
+        valid_xyz: Tensor | None = None,
+    ) -> PoseEstimate:
+        """Fuse one frame's features (see :func:`fuse` for shapes). K is required; T_color_depth defaults to I.
+
+        ``var_xyz``/``var_pix`` default to the constant ``sigma2_xyz``/``sigma2_pix``. Sequences with no valid
+        feature keep the prediction.
+        """
+        mean, cov = self._state()
+        if K is None:
+            raise ValueError("update: K (B, 3, 3) colour intrinsics is required")
+        B, N = valid.shape
+        like = torch.zeros(B, N, dtype=self.dtype, device=mean.device)
+        var_xyz = like + self.sigma2_xyz if var_xyz is None else var_xyz
+        var_pix = like + self.sigma2_pix if var_pix is None else var_pix
+        if T_color_depth is None:
+            T_color_depth = torch.eye(4, dtype=self.dtype, device=mean.device).expand(B, 4, 4)
+        out = fuse(
+            mean, cov, points_obj, points_d, pixels, valid, var_xyz, var_pix, K, T_color_depth,
+            valid_xyz=valid_xyz, form=self.form, iterations=self.iterations, jacobian=self.jacobian,
+        )  # fmt: skip
+        self.mean, self.cov = out.mean, out.cov
+        theta = self.mean[:, 1].abs()
+        if bool((theta > 1.4).any()):
+            log.warning("FusionEKF: |theta| > 80 deg, near the Euler singularity; re-select the model frame")
+        return PoseEstimate(self.T_cam_obj, self.cov, self.mean, out.innovation, valid.sum(-1), out.num_valid > 0)
+
+    def _state(self) -> tuple[Tensor, Tensor]:
+        if self.mean is None or self.cov is None:
+            raise ValueError("FusionEKF: call reset(T_cam_obj) before predict/update")
+        return self.mean, self.cov

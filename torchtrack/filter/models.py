@@ -1,0 +1,162 @@
+"""The paper's motion and measurement models for the 12-state EKF (Gedik & Alatan 2013, §III-A).
+
+State ``x`` (S = 12), as in the paper::
+
+    x = [rho, theta, phi, tx, ty, tz, d(rho)/dt, d(theta)/dt, d(phi)/dt, d(tx)/dt, d(ty)/dt, d(tz)/dt]
+
+``(rho, theta, phi)`` are the Euler angles of ``R_do`` (object -> depth camera) in the
+:func:`torchtrack.geometry.euler_to_matrix` convention (``R = Rz(phi) @ Ry(theta) @ Rx(rho)``), ``t_do``
+the translation in metres; velocities are per second (real time steps, not per frame). The
+parameterisation is singular at ``|theta| = pi/2``; the object frame is centred at the model's
+centroid with axes of the model camera, so angles start at 0 after each model (re-)selection.
+
+Measurement of one feature (M = 5): ``[X_d (3), x_pix (2)]`` — the point in the depth camera (eq. 6)
+and its pixel in the colour image (eq. 7).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchtrack.geometry import euler_to_matrix, hat, make_T, matrix_to_euler, project
+
+STATE_SIZE = 12
+MEAS_SIZE = 5
+
+
+class MotionModel(NamedTuple):
+    """Linear transition ``x_t = F x_{t-1} + noise`` with noise covariance ``Q``.
+
+    Attributes:
+        F: (B, 12, 12) transition matrix.
+        Q: (B, 12, 12) process-noise covariance (PSD).
+    """
+
+    F: Tensor
+    Q: Tensor
+
+
+def constant_velocity(dt: Tensor, sigma_ang_acc: float, sigma_lin_acc: float) -> MotionModel:
+    """Constant-velocity model, eqs. (3)–(4), with real time steps.
+
+    ``pose_t = pose_{t-1} + v_{t-1} dt`` (3), ``v_t = v_{t-1}`` (4), driven by white acceleration that is
+    constant within a step (Bar-Shalom's piecewise-constant white-acceleration model): per axis with
+    acceleration std ``sigma``, ``Q = sigma^2 [[dt^4/4, dt^3/2], [dt^3/2, dt^2]]`` on (pose, velocity).
+
+    Args:
+        dt: (B,) time steps in seconds (>= 0).
+        sigma_ang_acc: std of the Euler-angle accelerations, rad/s^2.
+        sigma_lin_acc: std of the linear accelerations, m/s^2.
+
+    Returns:
+        :class:`MotionModel` with F, Q of shape (B, 12, 12) in dt's dtype.
+    """
+    if dt.dim() != 1:
+        raise ValueError(f"constant_velocity: dt must be (B,), got {tuple(dt.shape)}")
+    if bool((dt < 0).any()):
+        raise ValueError("constant_velocity: dt must be >= 0 (timestamps must increase)")
+    B = dt.shape[0]
+    eye6 = torch.eye(6, dtype=dt.dtype, device=dt.device)
+    d = dt[:, None, None]
+    F = torch.eye(STATE_SIZE, dtype=dt.dtype, device=dt.device).repeat(B, 1, 1)
+    F[:, :6, 6:] = d * eye6  # eq. (3)
+    sig2 = torch.tensor([sigma_ang_acc**2] * 3 + [sigma_lin_acc**2] * 3, dtype=dt.dtype, device=dt.device)
+    s = torch.diag_embed(sig2.expand(B, 6))  # B,6,6
+    Q = torch.cat([torch.cat([s * d**4 / 4, s * d**3 / 2], -1), torch.cat([s * d**3 / 2, s * d**2], -1)], -2)  # B,12,12
+    return MotionModel(F, Q)
+
+
+def measure_single(x: Tensor, point_obj: Tensor, K: Tensor, T_color_depth: Tensor) -> Tensor:
+    """Measurement model of ONE feature, eqs. (6)–(7): ``(12,), (3,), (3,3), (4,4) -> (5,)``.
+
+    ``X_d = R_do X_o + t_do`` (6), ``x = pi(K (R_dv X_d + t_dv))`` (7) with ``(R_dv, t_dv)`` taken from
+    ``T_color_depth`` (depth -> colour). Written for one feature so that ``torch.func.vmap(jacfwd(...))``
+    gives per-feature Jacobians (STYLE.md #4). Skew of K is ignored, as in :func:`torchtrack.geometry.project`.
+    """
+    R = euler_to_matrix(x[:3])
+    X_d = R @ point_obj + x[3:6]  # eq. (6)
+    X_c = T_color_depth[:3, :3] @ X_d + T_color_depth[:3, 3]
+    pix = project(K, X_c[None])[0]  # eq. (7)
+    return torch.cat([X_d, pix])
+
+
+class Linearization(NamedTuple):
+    """Measurement prediction and its Jacobian at a state.
+
+    Attributes:
+        h: (B, N, M) predicted measurements.
+        H: (B, N, M, S) Jacobian dh/dx per feature.
+    """
+
+    h: Tensor
+    H: Tensor
+
+
+def measure_analytic(x: Tensor, points_obj: Tensor, K: Tensor, T_color_depth: Tensor) -> Linearization:
+    """Batched eqs. (6)–(7) with the closed-form Jacobian (fast path and test oracle).
+
+    With ``R = Rz Ry Rx``: ``dR/dphi = hat(e_z) R``, ``dR/dtheta = hat(Rz e_y) R``, ``dR/drho = hat(Rz Ry e_x) R``,
+    so ``dX_d/d(angle_k) = u_k x (R X_o)``; the pixel part chains through ``R_dv`` and the pinhole.
+
+    Args:
+        x: (B, 12) state; points_obj: (B, N, 3) model points; K: (B, 3, 3) colour intrinsics;
+        T_color_depth: (B, 4, 4) depth -> colour.
+
+    Returns:
+        :class:`Linearization` with h (B, N, 5), H (B, N, 5, 12); velocity columns are zero.
+    """
+    B, N, _ = points_obj.shape
+    angles = x[:, :3]
+    R = euler_to_matrix(angles)  # B,3,3
+    rho, theta, phi = angles.unbind(-1)
+    c_t, s_t, c_p, s_p = torch.cos(theta), torch.sin(theta), torch.cos(phi), torch.sin(phi)
+    z = torch.zeros_like(phi)
+    u_rho = torch.stack([c_p * c_t, s_p * c_t, -s_t], -1)  # Rz Ry e_x
+    u_theta = torch.stack([-s_p, c_p, z], -1)  # Rz e_y
+    u_phi = torch.stack([z, z, torch.ones_like(phi)], -1)  # e_z
+    U = torch.stack([u_rho, u_theta, u_phi], -1)  # B,3,3 (columns u_k)
+    RX = points_obj @ R.transpose(-1, -2)  # B,N,3
+    X_d = RX + x[:, None, 3:6]  # eq. (6)
+    dXd_da = -hat(RX) @ U[:, None]  # B,N,3,3: u_k x RX = -hat(RX) u_k
+    eye = torch.eye(3, dtype=x.dtype, device=x.device).expand(B, N, 3, 3)
+    dXd = torch.cat([dXd_da, eye], -1)  # B,N,3,6
+    R_cd = T_color_depth[:, None, :3, :3]
+    X_c = X_d @ T_color_depth[:, :3, :3].transpose(-1, -2) + T_color_depth[:, None, :3, 3]  # B,N,3
+    pix = project(K, X_c)  # eq. (7)
+    fx, fy = K[:, None, 0, 0], K[:, None, 1, 1]
+    qx, qy, qz = X_c.unbind(-1)
+    zeros = torch.zeros_like(qz)
+    dpix_dq = torch.stack(
+        [torch.stack([fx / qz, zeros, -fx * qx / qz**2], -1), torch.stack([zeros, fy / qz, -fy * qy / qz**2], -1)],
+        -2,
+    )  # B,N,2,3
+    dpix = dpix_dq @ R_cd @ dXd  # B,N,2,6
+    H = torch.zeros(B, N, MEAS_SIZE, STATE_SIZE, dtype=x.dtype, device=x.device)
+    H[..., :3, :6] = dXd
+    H[..., 3:, :6] = dpix
+    return Linearization(torch.cat([X_d, pix], -1), H)
+
+
+def state_to_pose(x: Tensor) -> Tensor:
+    """State (..., 12) -> ``T_cam_obj`` (..., 4, 4) (cam = depth camera)."""
+    return make_T(euler_to_matrix(x[..., :3]), x[..., 3:6])
+
+
+def pose_to_state(T_cam_obj: Tensor, velocity: Tensor | None = None) -> Tensor:
+    """``T_cam_obj`` (..., 4, 4) and optional velocity (..., 6) -> state (..., 12); zero velocity by default."""
+    pose = torch.cat([matrix_to_euler(T_cam_obj[..., :3, :3]), T_cam_obj[..., :3, 3]], -1)
+    vel = torch.zeros_like(pose) if velocity is None else velocity
+    return torch.cat([pose, vel], -1)
+
+
+def euler_velocity(T_prev: Tensor, T_curr: Tensor, dt: Tensor) -> Tensor:
+    """Finite-difference state velocity (B, 6) between two poses (B, 4, 4) ``dt`` (B,) seconds apart.
+
+    Angle differences are wrapped to (-pi, pi]. Useful to carry motion over a model re-selection.
+    """
+    d = pose_to_state(T_curr)[..., :6] - pose_to_state(T_prev)[..., :6]
+    ang = torch.remainder(d[..., :3] + torch.pi, 2 * torch.pi) - torch.pi
+    return torch.cat([ang, d[..., 3:]], -1) / dt.clamp_min(1e-9)[..., None]
