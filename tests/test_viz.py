@@ -1,0 +1,144 @@
+"""Plots: files are valid PNGs of the promised size, written atomically, and draw exactly the given data."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+import torchtrack.viz.plots as plots
+from torchtrack.geometry import make_T, so3_exp, transform_points
+from torchtrack.metrics import ate, per_axis_errors
+from torchtrack.viz import plot_errors, plot_per_axis_errors, plot_trajectory
+
+F64 = torch.float64
+
+
+def _trajectory(F: int = 60, plane: str = "xz") -> np.ndarray:
+    """A loop in the given world plane with a small wobble on the third axis, (F, 4, 4) T_world_cam."""
+    s = torch.linspace(0, 2 * math.pi, F, dtype=F64)
+    p = torch.zeros(F, 3, dtype=F64)
+    a, b = ("xyz".index(plane[0]), "xyz".index(plane[1]))
+    p[:, a], p[:, b] = 2 * torch.cos(s), torch.sin(2 * s)
+    p[:, 3 - a - b] = 0.05 * torch.sin(3 * s)
+    omega = 0.3 * torch.stack([torch.sin(s), torch.cos(s), 0.5 * s], -1)
+    return make_T(so3_exp(omega), p).numpy()
+
+
+def _estimate(T_gt: np.ndarray, seed: int = 1) -> np.ndarray:
+    g = torch.Generator().manual_seed(seed)
+    T = torch.as_tensor(T_gt).clone()
+    T[:, :3, 3] += 0.03 * torch.randn(T.shape[0], 3, generator=g, dtype=F64)
+    offset = make_T(so3_exp(torch.tensor([0.0, 0.0, 0.4], dtype=F64)), torch.tensor([1.0, -0.5, 0.2], dtype=F64))
+    return (offset @ T).numpy()
+
+
+@pytest.fixture
+def captured(monkeypatch):
+    """Keep the figure handed to the saver (and still save it) so tests can read the drawn lines."""
+    figs = []
+    save = plots._save_atomic
+
+    def keep(fig, path, dpi):
+        figs.append(fig)
+        return save(fig, path, dpi)
+
+    monkeypatch.setattr(plots, "_save_atomic", keep)
+    return figs
+
+
+def _png_shape(path) -> tuple[int, ...]:
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    assert img is not None, f"{path} is not a readable PNG"
+    return img.shape
+
+
+def test_plot_trajectory_with_gt_draws_aligned_estimate_and_ate(tmp_path, captured):
+    T_gt = _trajectory()
+    T_est = _estimate(T_gt)
+    valid = np.arange(60) % 5 != 0
+    T_gt_holes = T_gt.copy()
+    T_gt_holes[~valid] = np.nan  # rows without ground truth must not be read
+    out = plot_trajectory(
+        tmp_path / "sub" / "traj.png", T_est, T_gt_holes, gt_valid=valid, timestamps=np.arange(60) / 30
+    )
+    assert out == tmp_path / "sub" / "traj.png"
+    assert _png_shape(out)[:2] == (800, 1200)  # figsize (12, 8) at 100 dpi
+    assert [p.name for p in out.parent.iterdir()] == ["traj.png"]  # no temporary left behind
+    top, *_, err_ax = captured[0].axes
+    res = ate(T_est[valid], T_gt[valid])
+    p_aligned = transform_points(res.T_align, torch.as_tensor(T_est[:, :3, 3])).numpy()
+    gt_line, est_line = top.lines[0], top.lines[1]
+    assert "xz" in top.get_title()
+    np.testing.assert_allclose(gt_line.get_xydata(), T_gt[valid][:, [0, 2], 3])
+    np.testing.assert_allclose(est_line.get_xydata(), p_aligned[:, [0, 2]])
+    np.testing.assert_allclose(err_ax.lines[0].get_ydata(), res.errors.numpy())
+    np.testing.assert_allclose(err_ax.lines[0].get_xdata(), np.arange(60)[valid] / 30)
+    assert f"{res.rmse_m:.4f}" in captured[0].get_suptitle()
+
+
+def test_plot_trajectory_without_gt_and_plane_choice(tmp_path, captured):
+    T = _trajectory(plane="xy")
+    out = plot_trajectory(tmp_path / "traj.png", T, title="raw")
+    assert _png_shape(out)[:2] == (600, 1200)
+    top = captured[0].axes[0]
+    assert "xy" in top.get_title() and len(captured[0].axes) == 4  # top view + x, y, z; no ATE panel
+    np.testing.assert_allclose(top.lines[0].get_xydata(), T[:, :2, 3])  # drawn unaligned
+
+
+def test_plot_trajectory_all_gt_invalid_falls_back_to_estimate_only(tmp_path, captured):
+    T = _trajectory()
+    plot_trajectory(tmp_path / "t.png", T, np.full_like(T, np.nan), gt_valid=np.zeros(60, bool))
+    assert len(captured[0].axes) == 4
+
+
+def test_atomic_save_replaces_and_keeps_old_file_on_failure(tmp_path, monkeypatch):
+    path = tmp_path / "e.png"
+    plot_errors(path, {"a": np.ones(10)})
+    first = path.read_bytes()
+    plot_errors(path, {"a": np.arange(10.0), "b": np.full(10, np.nan)})
+    assert path.read_bytes() != first
+    second = path.read_bytes()
+
+    def boom(self, *args, **kwargs):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(plots.Figure, "savefig", boom)
+    with pytest.raises(RuntimeError, match="disk full"):
+        plot_errors(path, {"a": np.zeros(10)})
+    assert path.read_bytes() == second and [p.name for p in tmp_path.iterdir()] == ["e.png"]
+
+
+def test_plot_errors_and_per_axis_draw_the_data(tmp_path, captured):
+    y = {"proposed": torch.linspace(0, 1, 20), "ICP": np.linspace(1, 3, 20)}
+    plot_errors(tmp_path / "e.png", y, ylabel="reprojection error [px]")
+    ax = captured[0].axes[0]
+    np.testing.assert_allclose(ax.lines[1].get_ydata(), y["ICP"])
+    assert "mean 2" in ax.get_legend().get_texts()[1].get_text()
+    T_gt = _trajectory()
+    errs = per_axis_errors(_estimate(T_gt), T_gt)
+    out = plot_per_axis_errors(tmp_path / "a.png", errs)
+    assert _png_shape(out)[:2] == (600, 1000)
+    rot_ax, trans_ax = captured[1].axes
+    np.testing.assert_allclose(rot_ax.lines[2].get_ydata(), errs.rot_deg[:, 2].numpy())
+    np.testing.assert_allclose(trans_ax.lines[0].get_ydata(), 1000 * errs.trans_m[:, 0].numpy())
+
+
+def test_bad_input_raises(tmp_path):
+    T = _trajectory()
+    with pytest.raises(ValueError, match="T_est"):
+        plot_trajectory(tmp_path / "x.png", T[:, :3])
+    with pytest.raises(ValueError, match="T_gt"):
+        plot_trajectory(tmp_path / "x.png", T, T[:10])
+    with pytest.raises(ValueError, match="timestamps"):
+        plot_trajectory(tmp_path / "x.png", T, timestamps=np.arange(5.0))
+    with pytest.raises(ValueError, match="gt_valid"):
+        plot_trajectory(tmp_path / "x.png", T, T, gt_valid=np.ones(3, bool))
+    with pytest.raises(ValueError, match="one length"):
+        plot_errors(tmp_path / "x.png", {"a": np.ones(3), "b": np.ones(4)})
+    with pytest.raises(ValueError, match="no series"):
+        plot_errors(tmp_path / "x.png", {})
+    assert not list(tmp_path.iterdir())
