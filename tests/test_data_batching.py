@@ -1,0 +1,99 @@
+"""Lockstep batching of B sequences: active mask, repeated last frames, batched == per-sequence, errors."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from torchtrack.data import DataError, FrameBatch, SequenceBatch, TumSequence, iterate_batched, write_tum_trajectory
+from torchtrack.geometry import make_T, so3_exp
+
+
+def write_sequence(root: Path, n: int, *, H: int = 6, W: int = 8, seed: int = 0, t0: float = 0.0) -> Path:
+    """Small TUM folder of n random frames with ground truth and intrinsics.txt (fx = 100 + seed)."""
+    rng = np.random.default_rng(seed)
+    t = t0 + np.arange(n) / 30.0
+    (root / "rgb").mkdir(parents=True)
+    (root / "depth").mkdir()
+    for kind in ("rgb", "depth"):
+        lines = []
+        for ti in t:
+            name = f"{kind}/{ti:.6f}.png"
+            shape, lo, hi, dtype = ((H, W, 3), 0, 256, np.uint8) if kind == "rgb" else ((H, W), 1, 9000, np.uint16)
+            assert cv2.imwrite(str(root / name), rng.integers(lo, hi, shape, dtype=dtype))
+            lines.append(f"{ti:.6f} {name}")
+        (root / f"{kind}.txt").write_text("\n".join(lines) + "\n")
+    R = so3_exp(torch.tensor(rng.normal(size=(n, 3))))
+    write_tum_trajectory(root / "groundtruth.txt", t, make_T(R, torch.tensor(rng.normal(size=(n, 3)))))
+    (root / "intrinsics.txt").write_text(f"{100 + seed} {100 + seed} 4 3 5000\n")
+    return root
+
+
+@pytest.fixture
+def three_sequences(tmp_path) -> list[TumSequence]:
+    return [TumSequence(write_sequence(tmp_path / f"s{n}", n, seed=n, t0=n)) for n in (2, 4, 3)]
+
+
+@pytest.mark.parametrize("prefetch", [True, False])
+def test_lockstep_equals_per_sequence_frames(three_sequences, prefetch):
+    seqs = three_sequences
+    batches = list(iterate_batched(seqs, prefetch=prefetch))
+    assert len(batches) == 4 and all(isinstance(b, FrameBatch) for b in batches)
+    assert [b.active.tolist() for b in batches] == [[True] * 3, [True] * 3, [False, True, True], [False, True, False]]
+    for t, b in enumerate(batches):
+        assert b.rgb.shape == (3, 3, 6, 8) and b.depth.shape == (3, 1, 6, 8) and b.K.shape == (3, 3, 3)
+        assert b.rgb.dtype == b.depth.dtype == b.K.dtype == b.T_color_depth.dtype == torch.float32
+        assert b.timestamp.dtype == b.T_world_cam_gt.dtype == torch.float64 and b.index.dtype == torch.int64
+        for k, s in enumerate(seqs):
+            i = min(t, len(s) - 1)  # ended sequences repeat their last frame
+            f = s[i]
+            assert b.index[k] == i and b.timestamp[k] == f.timestamp and bool(b.gt_valid[k]) == f.gt_valid
+            assert torch.equal(b.rgb[k], f.rgb) and torch.equal(b.depth[k], f.depth)
+            assert torch.equal(b.T_world_cam_gt[k], f.T_world_cam_gt)
+            assert torch.equal(b.K[k], s.K) and torch.equal(b.K_depth[k], s.K_depth)
+            assert torch.equal(b.T_color_depth[k], s.T_color_depth)
+    assert batches[0].K[:, 0, 0].tolist() == [102.0, 104.0, 103.0]
+
+
+def test_ended_sequence_is_not_reloaded(three_sequences, monkeypatch):
+    calls, original = [], TumSequence.__getitem__
+    monkeypatch.setattr(TumSequence, "__getitem__", lambda self, i: calls.append((self.name, i)) or original(self, i))
+    for prefetch in (True, False):
+        calls.clear()
+        list(iterate_batched(three_sequences, prefetch=prefetch))
+        assert sorted(calls) == sorted((s.name, i) for s in three_sequences for i in range(len(s)))
+
+
+def test_sequence_batch_helper(three_sequences):
+    sb = SequenceBatch(three_sequences, prefetch=False)
+    assert sb.names == ["s2", "s4", "s3"] and sb.lengths == [2, 4, 3] and len(sb) == 4
+    assert [int(b.active.sum()) for b in sb] == [3, 3, 2, 1]
+
+
+def test_mismatched_image_sizes_raise(tmp_path):
+    a = TumSequence(write_sequence(tmp_path / "a", 2))
+    b = TumSequence(write_sequence(tmp_path / "b", 2, H=5))
+    for prefetch in (True, False):
+        with pytest.raises(DataError, match=r"share the image size.*a: \(6, 8\), b: \(5, 8\)"):
+            next(iterate_batched([a, b], prefetch=prefetch))
+
+
+def test_load_error_surfaces_at_its_step(three_sequences):
+    bad = three_sequences[1].rgb_paths[2]
+    bad.write_bytes(b"corrupt")
+    it = iterate_batched(three_sequences, prefetch=True)
+    assert [int(next(it).index.max()) for _ in range(2)] == [0, 1]
+    with pytest.raises(DataError, match=f"^{bad}.*corrupt colour image"):
+        next(it)
+
+
+def test_early_stop_and_bad_input(three_sequences):
+    it = iterate_batched(three_sequences, prefetch=True)
+    next(it)
+    it.close()  # must not hang on the pending prefetch
+    with pytest.raises(ValueError, match="at least one sequence"):
+        next(iterate_batched([]))
