@@ -84,7 +84,7 @@ class Recorder:
             "mean_features": float(np.mean([r["features"] for r in self.rows])),
         }
         gt_valid = np.asarray(seq.gt_valid[:n])
-        if gt_valid.sum() >= 2:
+        if gt_valid.sum() >= 3:
             metrics.update(trajectory_metrics(ts, T_est, np.asarray(seq.groundtruth[:n]), gt_valid))
         write_json(out / "metrics.json", metrics)
         self._write_csv(out / "frames.csv")
@@ -103,8 +103,9 @@ class Recorder:
     def _plots(self, T_est: np.ndarray, gt_valid: np.ndarray) -> None:
         from torchtrack.viz.plots import plot_trajectory
 
-        gt = np.asarray(self.sequence.groundtruth[: len(T_est)]) if gt_valid.all() else None
-        plot_trajectory(self.out_dir / "trajectory.png", T_est, gt, title=self.sequence.name)
+        ts = np.array([r["timestamp"] for r in self.rows])
+        gt = np.asarray(self.sequence.groundtruth[: len(T_est)]) if gt_valid.any() else None
+        plot_trajectory(self.out_dir / "trajectory.png", T_est, gt, title=self.sequence.name, timestamps=ts, gt_valid=gt_valid)
         save_strip(self.out_dir / "features.png", self.tiles)
 
 

@@ -19,7 +19,14 @@ MODEL_BGR = (255, 160, 0)  # blue-ish: model points reprojected with the estimat
 
 
 def draw_frame(
-    rgb: Tensor, pixels: Tensor, valid: Tensor, winner: Tensor, K: Tensor, T_color_obj: Tensor, points_obj: Tensor, label: str
+    rgb: Tensor,
+    pixels: Tensor,
+    valid: Tensor,
+    winner: Tensor,
+    K: Tensor,
+    T_color_obj: Tensor,
+    points_obj: Tensor,
+    label: str,
 ) -> np.ndarray:
     """One sequence's frame: rgb (3,H,W), pixels (N,2), valid (N,), winner (N,), K (3,3), T (4,4), points (N,3) -> BGR uint8."""
     img = (rgb.permute(1, 2, 0).clamp(0, 1).numpy()[..., ::-1] * 255).astype(np.uint8).copy()
@@ -38,7 +45,12 @@ def draw_frame(
 
 def legend(width: int) -> np.ndarray:
     bar = np.full((28, width, 3), 255, np.uint8)
-    items = [("intensity LK", INTENSITY_BGR), ("SIM LK", SIM_BGR), ("new model", NEW_BGR), ("model reprojected", MODEL_BGR)]
+    items = [
+        ("intensity LK", INTENSITY_BGR),
+        ("SIM LK", SIM_BGR),
+        ("new model", NEW_BGR),
+        ("model reprojected", MODEL_BGR),
+    ]
     x = 8
     for text, colour in items:
         cv2.circle(bar, (x + 5, 14), 5, colour, -1)
