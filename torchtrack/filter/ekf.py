@@ -60,14 +60,12 @@ class Update(NamedTuple):
         mean: (B, S) posterior mean.
         cov: (B, S, S) posterior covariance (symmetric PD).
         innovation: (B, N, M) ``z - h(mu-)`` at the predicted mean; 0 where invalid.
-        jacobian: (B, N, M, S) dh/dx at the last linearisation point; 0 where invalid.
         num_valid: (B,) number of valid measurement components used.
     """
 
     mean: Tensor
     cov: Tensor
     innovation: Tensor
-    jacobian: Tensor
     num_valid: Tensor
 
 
@@ -165,7 +163,9 @@ def update(
     """
     _check_state(mean, cov, "update")
     if z.dim() != 3 or z.shape[0] != mean.shape[0] or var.shape != z.shape:
-        raise ValueError(f"update: z and var must be (B, N, M), got {tuple(z.shape)} and {tuple(var.shape)}")
+        raise ValueError(
+            f"update: z and var must be (B, N, M) with B = {mean.shape[0]}, got {tuple(z.shape)} and {tuple(var.shape)}"
+        )
     if valid.shape not in (z.shape, z.shape[:2]):
         raise ValueError(f"update: valid must be (B, N) or (B, N, M), got {tuple(valid.shape)}")
     if form not in ("information", "gain") or iterations < 1:
@@ -184,48 +184,65 @@ def update(
         def linearizer(x, fi, si):
             return linearize(h_single, x, fi, si, mode=jacobian)
 
-    step = _information_step if form == "information" else _gain_step
+    sw = w.sqrt()  # 1/sigma, 0 where invalid
     x = mean
     for it in range(iterations):
         h, H = linearizer(x, feature_inputs, sequence_inputs)
-        H = torch.where(valid[..., None], H, torch.zeros_like(H))
         r = torch.where(valid, z_safe - h, torch.zeros_like(h))
         if it == 0:
             innovation = r
-        if it > 0:  # iterated EKF: residual of the model linearised at x, evaluated at the prior mean
-            r = r - (H @ (mean - x)[:, None, :, None])[..., 0]
-        x, new_cov = step(mean, cov, H, w, var_safe, r)
-    return Update(x, new_cov, innovation, H, valid.sum((1, 2)))
+        if form == "information":  # whitened rows: H_i / sigma_i, one pass over the big (B,N,M,S) tensor
+            Hs = torch.where(valid[..., None], H * sw[..., None], torch.zeros_like(H))
+            rs = r * sw
+            if it > 0:  # iterated EKF: model linearised at x, evaluated at the prior mean
+                rs = rs - (Hs @ (mean - x)[:, None, :, None])[..., 0]
+            x, new_cov = _information_step(mean, cov, Hs, rs)
+        else:
+            Hm = torch.where(valid[..., None], H, torch.zeros_like(H))
+            if it > 0:
+                r = r - (Hm @ (mean - x)[:, None, :, None])[..., 0]
+            x, new_cov = _gain_step(mean, cov, Hm, var_safe, r)
+    return Update(x, new_cov, innovation, valid.sum((1, 2)))
 
 
-def _information_step(mean: Tensor, cov: Tensor, H: Tensor, w: Tensor, var: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
-    """Information form, O(N S^2): ``Sigma+ = L (I + L^T J L)^-1 L^T``, ``mu+ = mu- + Sigma+ H^T W r``."""
-    B, N, M, S = H.shape
-    Hw = (H * w.sqrt()[..., None]).reshape(B, N * M, S)  # B,NM,S rows scaled by 1/sigma
-    J = Hw.transpose(-1, -2) @ Hw  # B,S,S = sum_i H_i^T W_i H_i
-    g = ((H * (w * r)[..., None]).sum((1, 2)))[..., None]  # B,S,1 = H^T W r
+def _information_step(mean: Tensor, cov: Tensor, Hs: Tensor, rs: Tensor) -> tuple[Tensor, Tensor]:
+    """Information form, O(N S^2), on whitened rows ``Hs = W^1/2 H``, ``rs = W^1/2 r``.
+
+    ``J = Hs^T Hs = sum_i H_i^T W_i H_i``; ``Sigma+ = L (I + L^T J L)^-1 L^T = A A^T``; ``mu+ = mu- + Sigma+ Hs^T rs``.
+    """
+    B, N, M, S = Hs.shape
+    Hf = Hs.reshape(B, N * M, S)
+    HfT = Hf.transpose(-1, -2)
+    J = HfT @ Hf  # B,S,S
+    g = HfT @ rs.reshape(B, N * M, 1)  # B,S,1 = H^T W r
     L = _cholesky(cov)
     eye = torch.eye(S, dtype=cov.dtype, device=cov.device)
     C = torch.linalg.cholesky(symmetrize(eye + L.transpose(-1, -2) @ J @ L))
     At = torch.linalg.solve_triangular(C, L.transpose(-1, -2), upper=False)  # A^T = C^-1 L^T
-    new_cov = At.transpose(-1, -2) @ At
+    new_cov = symmetrize(At.transpose(-1, -2) @ At)
     new_mean = mean + (At.transpose(-1, -2) @ (At @ g))[..., 0]
     return new_mean, new_cov
 
 
-def _gain_step(mean: Tensor, cov: Tensor, H: Tensor, w: Tensor, var: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
-    """Paper's gain form, eq. (15), with Joseph's covariance update. Masked rows: H = 0, r = 0, var = 1."""
+def _gain_step(mean: Tensor, cov: Tensor, H: Tensor, var: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
+    """Paper's gain form, eq. (15), with Joseph's covariance update. Masked rows: H = 0, r = 0, var = 1.
+
+    Computed in float64 whatever the input dtype: a float32 Cholesky of the (MN x MN) innovation
+    covariance fails at realistic variances (pixel rows ~1e2, 3D rows ~1e-6).
+    """
+    dtype = mean.dtype
+    mean, cov, H, var, r = (t.double() for t in (mean, cov, H, var, r))
     B, N, M, S = H.shape
     Hf = H.reshape(B, N * M, S)
     var = var.reshape(B, N * M)  # masked entries hold 1 (any positive value decouples them)
     innov_cov = symmetrize(Hf @ cov @ Hf.transpose(-1, -2)) + torch.diag_embed(var)  # B,NM,NM
     Lc = torch.linalg.cholesky(innov_cov)
-    Kt = torch.cholesky_solve(Hf @ cov, Lc)  # K^T = (H S H^T + Q)^-1 H Sigma, B,NM,S
+    Kt = torch.cholesky_solve(Hf @ cov, Lc)  # K^T = (H Sigma H^T + Q)^-1 H Sigma, B,NM,S
     K = Kt.transpose(-1, -2)  # eq. (15)
     new_mean = mean + (K @ r.reshape(B, N * M, 1))[..., 0]
     I_KH = torch.eye(S, dtype=cov.dtype, device=cov.device) - K @ Hf
     new_cov = I_KH @ cov @ I_KH.transpose(-1, -2) + (K * var[:, None, :]) @ Kt
-    return new_mean, symmetrize(new_cov)
+    return new_mean.to(dtype), symmetrize(new_cov).to(dtype)
 
 
 def _with_value(fn: Callable[..., Tensor]) -> Callable[..., tuple[Tensor, Tensor]]:

@@ -21,7 +21,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.geometry import euler_to_matrix, hat, make_T, matrix_to_euler, project
+from torchtrack.geometry import euler_to_matrix, hat, make_T, matrix_to_euler
 
 STATE_SIZE = 12
 MEAS_SIZE = 5
@@ -72,15 +72,13 @@ def constant_velocity(dt: Tensor, sigma_ang_acc: float, sigma_lin_acc: float) ->
 def measure_single(x: Tensor, point_obj: Tensor, K: Tensor, T_color_depth: Tensor) -> Tensor:
     """Measurement model of ONE feature, eqs. (6)–(7): ``(12,), (3,), (3,3), (4,4) -> (5,)``.
 
-    ``X_d = R_do X_o + t_do`` (6), ``x = pi(K (R_dv X_d + t_dv))`` (7) with ``(R_dv, t_dv)`` taken from
+    ``X_d = R_do X_o + t_do`` (6), ``alpha [x, 1] = K (R_dv X_d + t_dv)`` (7) with ``(R_dv, t_dv)`` from
     ``T_color_depth`` (depth -> colour). Written for one feature so that ``torch.func.vmap(jacfwd(...))``
-    gives per-feature Jacobians (STYLE.md #4). Skew of K is ignored, as in :func:`torchtrack.geometry.project`.
+    gives per-feature Jacobians (STYLE.md #4); kept to few ops because functorch's per-op cost dominates.
     """
-    R = euler_to_matrix(x[:3])
-    X_d = R @ point_obj + x[3:6]  # eq. (6)
-    X_c = T_color_depth[:3, :3] @ X_d + T_color_depth[:3, 3]
-    pix = project(K, X_c[None])[0]  # eq. (7)
-    return torch.cat([X_d, pix])
+    X_d = euler_to_matrix(x[:3]) @ point_obj + x[3:6]  # eq. (6)
+    u = K @ (T_color_depth[:3, :3] @ X_d + T_color_depth[:3, 3])  # eq. (7), u = alpha [x, y, 1]
+    return torch.cat([X_d, u[:2] / u[2]])
 
 
 class Linearization(NamedTuple):
@@ -99,7 +97,8 @@ def measure_analytic(x: Tensor, points_obj: Tensor, K: Tensor, T_color_depth: Te
     """Batched eqs. (6)–(7) with the closed-form Jacobian (fast path and test oracle).
 
     With ``R = Rz Ry Rx``: ``dR/dphi = hat(e_z) R``, ``dR/dtheta = hat(Rz e_y) R``, ``dR/drho = hat(Rz Ry e_x) R``,
-    so ``dX_d/d(angle_k) = u_k x (R X_o)``; the pixel part chains through ``R_dv`` and the pinhole.
+    so ``dX_d/d(angle_k) = u_k x (R X_o)``. Pixel part: ``u = K X_c``, ``pix = u[:2] / u[2]``,
+    ``dpix/dX_c = (K[:2] - pix K[2]) / u[2]``, ``dX_c/dX_d = R_dv``.
 
     Args:
         x: (B, 12) state; points_obj: (B, N, 3) model points; K: (B, 3, 3) colour intrinsics;
@@ -111,32 +110,26 @@ def measure_analytic(x: Tensor, points_obj: Tensor, K: Tensor, T_color_depth: Te
     B, N, _ = points_obj.shape
     angles = x[:, :3]
     R = euler_to_matrix(angles)  # B,3,3
-    rho, theta, phi = angles.unbind(-1)
+    theta, phi = angles[:, 1], angles[:, 2]
     c_t, s_t, c_p, s_p = torch.cos(theta), torch.sin(theta), torch.cos(phi), torch.sin(phi)
-    z = torch.zeros_like(phi)
-    u_rho = torch.stack([c_p * c_t, s_p * c_t, -s_t], -1)  # Rz Ry e_x
-    u_theta = torch.stack([-s_p, c_p, z], -1)  # Rz e_y
-    u_phi = torch.stack([z, z, torch.ones_like(phi)], -1)  # e_z
-    U = torch.stack([u_rho, u_theta, u_phi], -1)  # B,3,3 (columns u_k)
+    zero, one = torch.zeros_like(phi), torch.ones_like(phi)
+    U = torch.stack([c_p * c_t, -s_p, zero, s_p * c_t, c_p, zero, -s_t, zero, one], -1).reshape(B, 1, 3, 3)
     RX = points_obj @ R.transpose(-1, -2)  # B,N,3
     X_d = RX + x[:, None, 3:6]  # eq. (6)
-    dXd_da = -hat(RX) @ U[:, None]  # B,N,3,3: u_k x RX = -hat(RX) u_k
-    eye = torch.eye(3, dtype=x.dtype, device=x.device).expand(B, N, 3, 3)
-    dXd = torch.cat([dXd_da, eye], -1)  # B,N,3,6
-    R_cd = T_color_depth[:, None, :3, :3]
-    X_c = X_d @ T_color_depth[:, :3, :3].transpose(-1, -2) + T_color_depth[:, None, :3, 3]  # B,N,3
-    pix = project(K, X_c)  # eq. (7)
-    fx, fy = K[:, None, 0, 0], K[:, None, 1, 1]
-    qx, qy, qz = X_c.unbind(-1)
-    zeros = torch.zeros_like(qz)
-    dpix_dq = torch.stack(
-        [torch.stack([fx / qz, zeros, -fx * qx / qz**2], -1), torch.stack([zeros, fy / qz, -fy * qy / qz**2], -1)],
-        -2,
-    )  # B,N,2,3
-    dpix = dpix_dq @ R_cd @ dXd  # B,N,2,6
-    H = torch.zeros(B, N, MEAS_SIZE, STATE_SIZE, dtype=x.dtype, device=x.device)
-    H[..., :3, :6] = dXd
-    H[..., 3:, :6] = dpix
+    dXd_da = -hat(RX) @ U  # B,N,3,3: columns u_k x RX, u = (Rz Ry e_x, Rz e_y, e_z)
+    A = K @ T_color_depth[:, :3, :3]  # B,3,3: u = A X_d + b
+    u = X_d @ A.transpose(-1, -2) + (K @ T_color_depth[:, :3, 3:])[:, None, :, 0]  # B,N,3
+    pix = u[..., :2] / u[..., 2:]  # eq. (7)
+    dpix_dXd = (A[:, None, :2, :] - pix[..., None] * A[:, None, 2:, :]) / u[..., 2:, None]  # B,N,2,3
+    dpix_da = dpix_dXd @ dXd_da  # B,N,2,3
+    pose_cols = torch.cat(
+        [
+            torch.cat([dXd_da, dpix_da], -2),
+            torch.cat([torch.eye(3, dtype=x.dtype, device=x.device).expand(B, N, 3, 3), dpix_dXd], -2),
+        ],
+        -1,
+    )  # B,N,5,6
+    H = torch.cat([pose_cols, torch.zeros_like(pose_cols)], -1)  # velocities do not enter h
     return Linearization(torch.cat([X_d, pix], -1), H)
 
 

@@ -1,0 +1,119 @@
+"""Paper models: constant velocity (eqs. 3-4), measurement model (eqs. 6-7), Jacobians vs finite differences."""
+
+import math
+
+import pytest
+import torch
+
+from torchtrack.filter import ekf
+from torchtrack.filter.models import (
+    constant_velocity,
+    euler_velocity,
+    measure_analytic,
+    measure_single,
+    pose_to_state,
+    state_to_pose,
+)
+from torchtrack.geometry import euler_to_matrix, intrinsics_matrix, make_T, project, so3_exp, transform_points
+
+F64 = torch.float64
+
+
+def scene(B=2, N=6, seed=0, skew=0.0):
+    g = torch.Generator().manual_seed(seed)
+    x = torch.cat([0.4 * torch.randn(B, 3, generator=g, dtype=F64), 0.1 * torch.randn(B, 3, generator=g, dtype=F64), torch.randn(B, 6, generator=g, dtype=F64)], -1)  # fmt: skip
+    x[:, 5] += 1.2
+    X = 0.15 * torch.randn(B, N, 3, generator=g, dtype=F64)
+    K = intrinsics_matrix(525.0, 530.0, 319.5, 239.5, dtype=F64).repeat(B, 1, 1)
+    K[:, 0, 1] = skew
+    T = make_T(
+        so3_exp(0.05 * torch.randn(B, 3, generator=g, dtype=F64)), 0.03 * torch.randn(B, 3, generator=g, dtype=F64)
+    )
+    return x, X, K, T
+
+
+def finite_difference_jacobian(x, X, K, T, eps=1e-6):
+    """Central differences of the batched analytic value: (B, N, 5, 12)."""
+    cols = []
+    for k in range(12):
+        d = torch.zeros_like(x)
+        d[:, k] = eps
+        cols.append((measure_analytic(x + d, X, K, T).h - measure_analytic(x - d, X, K, T).h) / (2 * eps))
+    return torch.stack(cols, -1)
+
+
+def test_constant_velocity_matrices():
+    dt = torch.tensor([0.0, 0.033, 0.5], dtype=F64)
+    F, Q = constant_velocity(dt, sigma_ang_acc=2.0, sigma_lin_acc=3.0)
+    assert F.shape == (3, 12, 12) and Q.shape == (3, 12, 12)
+    torch.testing.assert_close(F[0], torch.eye(12, dtype=F64))
+    assert torch.equal(Q[0], torch.zeros(12, 12, dtype=F64))
+    x = torch.arange(12, dtype=F64)
+    torch.testing.assert_close(F[2] @ x, torch.cat([x[:6] + 0.5 * x[6:], x[6:]]))  # eq. (3)-(4)
+    # piecewise-constant white acceleration per axis: sigma^2 [[dt^4/4, dt^3/2], [dt^3/2, dt^2]]
+    t, s2 = 0.5, 9.0
+    axis = Q[2][[4, 10]][:, [4, 10]]
+    torch.testing.assert_close(axis, s2 * torch.tensor([[t**4 / 4, t**3 / 2], [t**3 / 2, t**2]], dtype=F64))
+    assert Q[2, 0, 0] == 4.0 * t**4 / 4 and Q[2, 0, 1] == 0 and Q[2, 0, 4] == 0
+    assert torch.linalg.eigvalsh(Q).min() > -1e-12
+
+
+def test_constant_velocity_bad_input():
+    with pytest.raises(ValueError, match="dt must be >= 0"):
+        constant_velocity(torch.tensor([-0.1]), 1.0, 1.0)
+    with pytest.raises(ValueError, match="dt must be"):
+        constant_velocity(torch.tensor(0.1), 1.0, 1.0)
+
+
+def test_measure_single_against_geometry():
+    """Eqs. (6)-(7) against torchtrack.geometry's transform_points and project on the same input."""
+    x, X, K, T = scene()
+    h, _ = ekf.linearize(measure_single, x, (X,), (K, T))
+    assert h.shape == (2, 6, 5)
+    X_d = transform_points(state_to_pose(x), X)
+    pix = project(K, transform_points(T, X_d))
+    torch.testing.assert_close(h, torch.cat([X_d, pix], -1))
+    torch.testing.assert_close(measure_analytic(x, X, K, T).h, h)
+
+
+@pytest.mark.parametrize("skew", [0.0, 2.0])
+def test_autograd_and_analytic_jacobians_equal_finite_differences(skew):
+    x, X, K, T = scene(skew=skew)
+    fd = finite_difference_jacobian(x, X, K, T)
+    _, H_fwd = ekf.linearize(measure_single, x, (X,), (K, T), mode="forward")
+    _, H_rev = ekf.linearize(measure_single, x, (X,), (K, T), mode="reverse")
+    lin = measure_analytic(x, X, K, T)
+    assert lin.H.shape == (2, 6, 5, 12)
+    scale = fd.abs().amax((-1, -2), keepdim=True)  # pixel rows ~1e3, metric rows ~1
+    for H in (H_fwd, H_rev, lin.H):
+        assert ((H - fd).abs() / scale).max() < 1e-7
+    torch.testing.assert_close(lin.H, H_fwd, atol=1e-10, rtol=1e-10)
+    assert torch.equal(lin.H[..., 6:], torch.zeros_like(lin.H[..., 6:]))  # velocities do not enter h
+
+
+def test_analytic_batched_equals_looped():
+    x, X, K, T = scene(B=3)
+    lin = measure_analytic(x, X, K, T)
+    for b in range(3):
+        one = measure_analytic(x[b : b + 1], X[b : b + 1], K[b : b + 1], T[b : b + 1])
+        torch.testing.assert_close(one.h[0], lin.h[b])
+        torch.testing.assert_close(one.H[0], lin.H[b])
+
+
+def test_pose_state_round_trip_and_euler_velocity():
+    x, *_ = scene(B=4)
+    T = state_to_pose(x)
+    torch.testing.assert_close(T[:, :3, :3], euler_to_matrix(x[:, :3]))
+    torch.testing.assert_close(state_to_pose(pose_to_state(T)), T)
+    assert torch.equal(pose_to_state(T)[:, 6:], torch.zeros(4, 6, dtype=F64))
+    dt = torch.full((4,), 0.1, dtype=F64)
+    v = torch.tensor([0.3, -0.2, 0.5, 0.1, 0.0, -0.3], dtype=F64).expand(4, 6)
+    x0 = pose_to_state(T)
+    x1 = x0.clone()
+    x1[:, :6] += v * dt[:, None]
+    torch.testing.assert_close(euler_velocity(T, state_to_pose(x1), dt), v)
+    # wrapping: phi from pi - 0.01 to -pi + 0.01 is +0.02 rad, not -2 pi + 0.02
+    a = torch.tensor([[0.0, 0.0, math.pi - 0.01, 0, 0, 1]], dtype=F64)
+    b = torch.tensor([[0.0, 0.0, -math.pi + 0.01, 0, 0, 1]], dtype=F64)
+    w = euler_velocity(state_to_pose(a), state_to_pose(b), torch.tensor([1.0], dtype=F64))
+    torch.testing.assert_close(w, torch.tensor([[0.0, 0.0, 0.02, 0, 0, 0]], dtype=F64))
