@@ -1,0 +1,156 @@
+"""Integration tests of the ``torchtrack`` CLI contract (README, "What a run writes"), run as a user runs it.
+
+The console script runs in a subprocess (its exit code and its error output are part of the contract) on a
+10-frame synthetic sequence (exact ground truth, rendered into a temporary ``TORCHTRACK_CACHE``) and on 10
+frames of ``../shared/data/visp_castle_simu`` (skipped when absent). Files are read back with independent
+parsers (numpy + scipy's quaternion convention), and metrics.json is re-computed from the written files.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from torchtrack.metrics import trajectory_metrics
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+CASTLE = DATA / "visp_castle_simu"
+FRAMES = 10
+METRIC_KEYS = ("ate_rmse_m", "rpe_trans_m", "rpe_rot_deg", "frames", "fps")
+# Synthetic sequence (Kinect-like depth noise, 1 cm / 1 deg RMS motion per frame), 10 frames: measured ATE
+# SYNTH_ATE_MEASURED_M; the bound leaves a wide margin for platform differences (see the module's report).
+SYNTH_ATE_MEASURED_M = None
+SYNTH_ATE_BOUND_M = 0.01
+
+
+def cli_command() -> list[str]:
+    script = Path(sys.executable).with_name("torchtrack")
+    return [str(script)] if script.is_file() else [sys.executable, "-m", "torchtrack.cli"]
+
+
+def run_cli(args: list[str], cache: Path, cwd: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "TORCHTRACK_CACHE": str(cache)}
+    env.pop("HYDRA_FULL_ERROR", None)  # the one-line error is what a user sees by default
+    return subprocess.run(cli_command() + args, capture_output=True, text=True, env=env, cwd=cwd, timeout=300)
+
+
+def read_tum_strict(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """TUM trajectory -> (timestamps (F,), T_world_cam (F, 4, 4)); asserts 8 numbers a line and unit quaternions."""
+    rows = [line.split() for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")]
+    assert all(len(r) == 8 for r in rows), f"{path}: every line must have 8 fields"
+    v = np.array(rows, dtype=np.float64)
+    np.testing.assert_allclose(np.linalg.norm(v[:, 4:8], axis=1), 1.0, atol=1e-6)
+    T = np.tile(np.eye(4), (len(v), 1, 1))
+    T[:, :3, :3] = Rotation.from_quat(v[:, 4:8]).as_matrix()  # scipy: (x, y, z, w), as TUM
+    T[:, :3, 3] = v[:, 1:4]
+    return v[:, 0], T
+
+
+def sequence_dirs(out: Path) -> list[Path]:
+    return sorted(p for p in out.iterdir() if p.is_dir() and not p.name.startswith("."))
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture(scope="module")
+def synthetic_run(tmp_path_factory, cache):
+    """(process, run folder, ground-truth file): the default CLI on a 10-frame synthetic sequence."""
+    out = tmp_path_factory.mktemp("synthetic") / "run"
+    proc = run_cli([f"data.scene.frames={FRAMES}", f"hydra.run.dir={out}"], cache, out.parent)
+    gt = sorted(cache.rglob("groundtruth.txt"))
+    return proc, out, gt[0] if len(gt) == 1 else None
+
+
+@pytest.fixture(scope="module")
+def castle_run(tmp_path_factory, cache):
+    if not (CASTLE / "rgb.txt").is_file():
+        pytest.skip(f"{CASTLE} not available")
+    out = tmp_path_factory.mktemp("castle") / "run"
+    args = ["data=tum", f"data.root={CASTLE}", f"data.max_frames={FRAMES}", "plots=false", f"hydra.run.dir={out}"]
+    return run_cli(args, cache, out.parent), out, CASTLE / "groundtruth.txt"
+
+
+@pytest.fixture(params=["synthetic", "castle"])
+def any_run(request):
+    return request.getfixturevalue(f"{request.param}_run")
+
+
+def test_run_succeeds_and_writes_the_contract(any_run):
+    proc, out, gt = any_run
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    (seq,) = sequence_dirs(out)
+    for name in ("trajectory.txt", "metrics.json", "frames.csv"):
+        assert (seq / name).is_file(), f"{seq / name} missing"
+    assert (out / ".hydra" / "config.yaml").is_file()
+    assert gt is not None and gt.is_file()
+
+
+def test_trajectory_is_tum_and_starts_at_ground_truth(any_run):
+    _, out, gt = any_run
+    (seq,) = sequence_dirs(out)
+    ts, T = read_tum_strict(seq / "trajectory.txt")
+    ts_gt, T_gt = read_tum_strict(gt)
+    assert len(ts) == FRAMES
+    np.testing.assert_allclose(ts, ts_gt[:FRAMES], atol=1e-6)  # one pose per frame, the frames' timestamps
+    np.testing.assert_allclose(T[0], T_gt[0], atol=1e-6)
+    np.testing.assert_allclose(T[:, :3, :3] @ T[:, :3, :3].transpose(0, 2, 1), np.broadcast_to(np.eye(3), (FRAMES, 3, 3)), atol=1e-6)
+
+
+def test_metrics_json_equals_metrics_of_the_written_files(any_run):
+    _, out, gt = any_run
+    (seq,) = sequence_dirs(out)
+    metrics = json.loads((seq / "metrics.json").read_text())
+    assert set(METRIC_KEYS) <= set(metrics)
+    assert metrics["frames"] == FRAMES and metrics["fps"] > 0
+    ts, T = read_tum_strict(seq / "trajectory.txt")
+    _, T_gt = read_tum_strict(gt)
+    expect = trajectory_metrics(ts, T, T_gt[:FRAMES])  # the file has 9 decimals: agreement to ~1e-8
+    for k in ("ate_rmse_m", "rpe_trans_m", "rpe_rot_deg"):
+        assert metrics[k] == pytest.approx(expect[k], rel=1e-4, abs=1e-7), k
+
+
+def test_synthetic_run_writes_pictures_and_resolved_config(synthetic_run):
+    _, out, _ = synthetic_run
+    (seq,) = sequence_dirs(out)
+    assert (seq / "trajectory.png").stat().st_size > 0 and (seq / "features.png").stat().st_size > 0
+    config = (out / ".hydra" / "config.yaml").read_text()
+    assert f"frames: {FRAMES}" in config
+
+
+def test_synthetic_ate_is_small(synthetic_run):
+    _, out, _ = synthetic_run
+    (seq,) = sequence_dirs(out)
+    metrics = json.loads((seq / "metrics.json").read_text())
+    assert metrics["ate_rmse_m"] < SYNTH_ATE_BOUND_M
+
+
+@pytest.mark.parametrize("kind", ["missing", "empty"])
+def test_bad_root_fails_with_one_line_error(kind, tmp_path, cache):
+    root = tmp_path / "no_such_sequence" if kind == "missing" else tmp_path
+    proc = run_cli(["data=tum", f"data.root={root}", f"hydra.run.dir={tmp_path / 'run'}"], cache, tmp_path)
+    text = (proc.stdout + proc.stderr).strip()
+    assert proc.returncode != 0
+    assert "Traceback" not in text, text
+    lines = [line for line in text.splitlines() if line.strip()]
+    assert len(lines) == 1, text
+    assert str(root) in lines[0]
+
+
+@pytest.mark.parametrize("override", ["data.no_such_key=1", "tracker=no_such_tracker"])
+def test_unknown_config_key_fails_clearly(override, tmp_path, cache):
+    proc = run_cli([override, f"hydra.run.dir={tmp_path / 'run'}"], cache, tmp_path)
+    text = proc.stdout + proc.stderr
+    assert proc.returncode != 0
+    assert "Traceback" not in text, text
+    assert "no_such" in text
+    assert not (tmp_path / "run").exists()  # nothing ran
