@@ -1,0 +1,269 @@
+"""Shape Index Map (SIM) of a depth image, paper §III-B, eq. (8).
+
+``SI = 1/2 - (1/pi) * atan((k1 + k2) / (k1 - k2))`` with ``k1 >= k2`` the principal curvatures of the
+depth surface, SI in [0, 1].
+
+Sign convention (Dorai & Jain's): curvatures are taken with the surface normal pointing towards the
+camera, so a surface bulging towards the camera has negative curvatures. Hence
+
+    convex cap (sphere seen from outside)     -> 1.0     concave cup (inside of a bowl) -> 0.0
+    convex ridge (cylinder seen from outside) -> 0.75    concave rut (inside of a pipe) -> 0.25
+    saddle (k1 = -k2)                         -> 0.5
+
+Curvatures are metric and exact for a pinhole camera. The depth surface is the parametric surface
+``P(s, t) = Z(s, t) * (x, y, 1)`` with ``s = u / fx``, ``t = v / fy`` and ``(x, y) = (s - cx/fx, t - cy/fy)``
+the pixel's normalised ray. With the inverse depth ``w = 1 / Z`` (subscripts are derivatives)
+``P_s x P_t`` is parallel to ``q = (w_s, w_t, w - x w_s - y w_t)`` and the second fundamental form is
+``(w_ss, w_st, w_tt) / (w |q|)``, which gives
+
+    a = (w - x w_s, -y w_s, -w_s),   b = (-x w_t, w - y w_t, -w_t)       (w^2 P_s = a, w^2 P_t = b)
+    K = w^4 (w_ss w_tt - w_st^2) / |q|^4
+    H = w (|a|^2 w_tt - 2 a.b w_st + |b|^2 w_ss) / (2 |q|^3)
+
+Planes are linear in ``w`` and so have exactly zero curvature; this is also why the smoothing acts on
+inverse depth (a Gaussian keeps a linear function linear). ``SI = 1/2 - atan2(H, sqrt(H^2 - K)) / pi``
+is eq. (8) without the division by ``k1 - k2`` (``k1 - k2 = 2 sqrt(H^2 - K)``, ``k1 + k2 = 2 H``).
+
+Speed: the map is computed on every ``decimate``-th pixel (default 2; Kinect-class depth has no
+finer detail) and upsampled back linearly, so it costs a few milliseconds per 640x480 frame.
+
+Invalid pixels: the smoothing is a normalised convolution over valid pixels only (0-depth never
+bleeds in). Masked are: pixels whose smoothing window has less than ``min_support`` valid weight
+or reaches a depth discontinuity (a neighbour step above ``max_step`` times the depth per pixel);
+grazing pixels (normal more than ``max_incidence`` from the viewing ray); near-planar pixels
+(curvedness ``sqrt((k1^2 + k2^2) / 2)`` below ``min_curvature``, in 1/m), where SI is undefined. Masked pixels carry ``fill`` (0.5, the middle of the range: the smallest possible step
+to any neighbour in the SIM image).
+
+References:
+    C. Dorai, A. K. Jain, "COSMOS - A representation scheme for 3D free-form objects", PAMI 1997.
+    J. J. Koenderink, A. J. van Doorn, "Surface shape and curvature scales", IVC 1992.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+
+class ShapeIndex(NamedTuple):
+    """Shape index map of a depth batch (all (B, 1, H, W), the input's grid).
+
+    Attributes:
+        si: float32 shape index in [0, 1] (eq. (8)); ``fill`` where not ``valid``.
+        valid: bool, SI defined: depth valid, away from depth edges and holes, not near-planar.
+        curvedness: float32 ``sqrt((k1^2 + k2^2) / 2)`` in 1/m (nearest-upsampled when decimated); 0 where
+            depth or support is missing.
+    """
+
+    si: Tensor
+    valid: Tensor
+    curvedness: Tensor
+
+
+class SIM(NamedTuple):
+    """What the per-frame pipeline needs from the depth: SI, its mask and its 8-bit-like image."""
+
+    si: Tensor  # (B, 1, H, W) float32 in [0, 1]
+    valid: Tensor  # (B, 1, H, W) bool
+    image: Tensor  # (B, 1, H, W) float32 in [0, 1], multiples of 1/255, for LK and Harris
+
+
+def _check(depth: Tensor, K: Tensor) -> None:
+    if depth.dim() != 4 or depth.shape[1] != 1:
+        raise ValueError(f"shape_index: depth must be (B, 1, H, W), got {tuple(depth.shape)}")
+    if K.shape != (depth.shape[0], 3, 3):
+        raise ValueError(f"shape_index: K must be ({depth.shape[0]}, 3, 3), got {tuple(K.shape)}")
+
+
+def _binomial(x: Tensor, passes: int) -> Tensor:
+    """Blur (..., h, w) by ``passes`` [1, 2, 1] / 4 filters along each axis (variance passes / 2), zero padding."""
+    for _ in range(passes):
+        p = F.pad(x, (1, 1))
+        x = 0.25 * (p[..., :-2] + p[..., 2:]) + 0.5 * x
+    for _ in range(passes):
+        p = F.pad(x, (0, 0, 1, 1))
+        x = 0.25 * (p[..., :-2, :] + p[..., 2:, :]) + 0.5 * x
+    return x
+
+
+def _grow(mask: Tensor, radius: int) -> Tensor:
+    """Dilate a float {0, 1} mask (..., h, w) by a (2 radius + 1)^2 square, separable maxima of shifts."""
+    for _ in range(radius):
+        p = F.pad(mask, (1, 1))
+        mask = torch.maximum(torch.maximum(p[..., :-2], p[..., 2:]), mask)
+    for _ in range(radius):
+        p = F.pad(mask, (0, 0, 1, 1))
+        mask = torch.maximum(torch.maximum(p[..., :-2, :], p[..., 2:, :]), mask)
+    return mask
+
+
+def _depth_edges(z: Tensor, has: Tensor, max_step: float) -> Tensor:
+    """Float {0, 1} (..., h, w): pixels with a valid 4-neighbour more than ``max_step * depth`` away."""
+    dx = (z[..., 1:] - z[..., :-1]).abs() - max_step * torch.minimum(z[..., 1:], z[..., :-1])
+    jx = (dx > 0).to(z.dtype) * has[..., 1:] * has[..., :-1]
+    dy = (z[..., 1:, :] - z[..., :-1, :]).abs() - max_step * torch.minimum(z[..., 1:, :], z[..., :-1, :])
+    jy = (dy > 0).to(z.dtype) * has[..., 1:, :] * has[..., :-1, :]
+    jx, jy = F.pad(jx, (0, 1)), F.pad(jy, (0, 0, 0, 1))
+    e = torch.maximum(jx, F.pad(jx, (1, 0))[..., :-1])
+    return torch.maximum(e, torch.maximum(jy, F.pad(jy, (0, 0, 1, 0))[..., :-1, :]))
+
+
+def _upsample(x: Tensor, d: int, H: int, W: int) -> Tensor:
+    """Linear upsampling of samples taken at pixels (d i, d j) back to the (H, W) grid (edge-clamped)."""
+    if d == 1:
+        return x
+    h, w = x.shape[-2:]
+    t = torch.arange(d, dtype=x.dtype, device=x.device) / d  # fractional offsets 0, 1/d, ...
+    step = F.pad(x[..., 1:] - x[..., :-1], (0, 1))  # along w; 0 past the edge
+    x = torch.addcmul(x.unsqueeze(-1), step.unsqueeze(-1), t).reshape(*x.shape[:-1], w * d)
+    step = F.pad(x[..., 1:, :] - x[..., :-1, :], (0, 0, 0, 1))  # along h
+    x = torch.addcmul(x.unsqueeze(-2), step.unsqueeze(-2), t[:, None]).reshape(*x.shape[:-2], h * d, w * d)
+    return x[..., :H, :W]
+
+
+def _curvatures(ws: Tensor, K: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Mean curvature H (1/m), Gaussian curvature K (1/m^2) and the cosine of the angle between the
+    viewing ray and the normal, from smoothed inverse depth (B, h, w) on its grid with K (B, 3, 3)."""
+    B, h, w = ws.shape
+    p = F.pad(ws.unsqueeze(1), (1, 1, 1, 1), mode="replicate")[:, 0]
+    c = p[:, 1:-1, 1:-1]
+    l, r, up, dn = p[:, 1:-1, :-2], p[:, 1:-1, 2:], p[:, :-2, 1:-1], p[:, 2:, 1:-1]
+    fx, fy = K[:, 0, 0].view(B, 1, 1), K[:, 1, 1].view(B, 1, 1)
+    cx, cy = K[:, 0, 2].view(B, 1, 1), K[:, 1, 2].view(B, 1, 1)
+    w_s, w_t = 0.5 * fx * (r - l), 0.5 * fy * (dn - up)  # d/ds = fx d/du
+    w_ss, w_tt = fx * fx * (r + l - 2 * c), fy * fy * (dn + up - 2 * c)
+    w_st = 0.25 * fx * fy * (p[:, 2:, 2:] - p[:, 2:, :-2] - p[:, :-2, 2:] + p[:, :-2, :-2])
+    x = (torch.arange(w, dtype=ws.dtype, device=ws.device).view(1, 1, w) - cx) / fx
+    y = (torch.arange(h, dtype=ws.dtype, device=ws.device).view(1, h, 1) - cy) / fy
+    xs, ys, xt, yt = x * w_s, y * w_s, x * w_t, y * w_t
+    ax, by = c - xs, c - yt
+    q2 = w_s * w_s + w_t * w_t + (ax - yt) ** 2
+    aa = ax * ax + ys * ys + w_s * w_s
+    bb = xt * xt + by * by + w_t * w_t
+    ab = w_s * w_t - ax * xt - ys * by
+    q = q2.sqrt()
+    mean_c = c * (aa * w_tt - 2.0 * ab * w_st + bb * w_ss) / (2.0 * q2 * q)
+    c2 = c * c
+    gauss_c = c2 * c2 * (w_ss * w_tt - w_st * w_st) / (q2 * q2)
+    cos_incidence = c / (q * (1.0 + x * x + y * y).sqrt())  # q . (x, y, 1) = w
+    return mean_c, gauss_c, cos_incidence
+
+
+def shape_index(
+    depth: Tensor,
+    K: Tensor,
+    *,
+    smooth_sigma: float = 2.0,
+    min_curvature: float = 2.0,
+    max_step: float = 0.05,
+    min_support: float = 0.95,
+    max_incidence: float = 70.0,
+    decimate: int = 2,
+    fill: float = 0.5,
+) -> ShapeIndex:
+    """Shape index map of a depth batch, eq. (8). Conventions in the module docstring.
+
+    Args:
+        depth: (B, 1, H, W) metres, 0 = no measurement.
+        K: (B, 3, 3) intrinsics of the depth image.
+        smooth_sigma: Gaussian sigma (input pixels) of the normalised smoothing of inverse depth
+            (a binomial filter with this variance); 0 = none.
+        min_curvature: curvedness in 1/m below which a pixel is near-planar and masked
+            (2 /m: flatter than a sphere of 0.5 m radius).
+        max_step: a neighbour depth step above ``max_step * depth`` per input pixel is a
+            discontinuity; pixels whose smoothing window reaches one are masked.
+        min_support: masked where the smoothing window's valid weight is below this fraction.
+        max_incidence: masked where the angle (degrees) between viewing ray and normal is larger
+            (grazing surfaces: depth there is unreliable and the SI estimate breaks down).
+        decimate: compute on every ``decimate``-th pixel and upsample linearly (1 = full resolution).
+        fill: SI given to masked pixels.
+
+    Returns:
+        ShapeIndex(si, valid, curvedness), each (B, 1, H, W).
+    """
+    _check(depth, K)
+    if decimate < 1:
+        raise ValueError(f"shape_index: decimate must be >= 1, got {decimate}")
+    B, _, H, W = depth.shape
+    d = decimate
+    z = depth[:, 0, ::d, ::d].float().contiguous()  # B,h,w samples at input pixels (d i, d j)
+    Kd = K.to(z).clone()
+    Kd[:, :2] /= d
+    has = (z > 0).to(z.dtype)
+    w = has / (z + (1.0 - has))  # inverse depth, 0 where missing
+
+    passes = round(2.0 * (smooth_sigma / d) ** 2)
+    support = _binomial(has, passes) if passes else has
+    ws = (_binomial(w, passes) if passes else w) / support.clamp_min(1e-6)
+    edges = _grow(_depth_edges(z, has, max_step * d), math.ceil(2.0 * smooth_sigma / d) + 1)  # ~95% of the weight
+    ok = has * (support >= min_support).to(z.dtype) * (1.0 - edges)
+    ok = F.pad(ok[:, 1:-1, 1:-1], (1, 1, 1, 1))  # the derivative stencils need both neighbours
+
+    mean_c, gauss_c, cos_inc = _curvatures(ws, Kd)
+    disc = (mean_c * mean_c - gauss_c).clamp_min(0.0).sqrt()  # (k1 - k2) / 2
+    si = 0.5 - torch.atan2(mean_c, disc) / math.pi  # eq. (8)
+    curv = (2.0 * mean_c * mean_c - gauss_c).clamp_min(0.0).sqrt().nan_to_num(0.0) * ok
+    ok = ok * (curv >= min_curvature).to(z.dtype) * (cos_inc >= math.cos(math.radians(max_incidence))).to(z.dtype)
+    si = (si.nan_to_num(fill) - fill) * ok + fill
+
+    if d > 1:  # upsample; a pixel between samples is valid when all the samples it mixes are
+        si, ok = _upsample(torch.stack([si - fill, ok], dim=1), d, H, W).unbind(1)
+        ok = (ok > 0.999).to(ok.dtype)
+        si = si * ok + fill
+        curv = curv.repeat_interleave(d, dim=-2).repeat_interleave(d, dim=-1)[..., :H, :W]  # nearest
+    return ShapeIndex(si=si.unsqueeze(1), valid=ok.unsqueeze(1) > 0, curvedness=curv.unsqueeze(1))
+
+
+def sim_image(sim: ShapeIndex | Tensor, valid: Tensor | None = None, *, fill: float = 0.5) -> Tensor:
+    """SIM as an 8-bit-like image for LK and Harris: (B, 1, H, W) float32 in [0, 1], multiples of 1/255.
+
+    Args:
+        sim: a ShapeIndex, or an SI tensor (B, 1, H, W) in [0, 1] (then ``valid`` may be given).
+        valid: (B, 1, H, W) bool; pixels outside it get ``fill`` (quantised as well).
+    """
+    if isinstance(sim, ShapeIndex):
+        si, valid = sim.si, sim.valid
+    else:
+        si = sim
+    if si.dim() != 4 or si.shape[1] != 1:
+        raise ValueError(f"sim_image: SI must be (B, 1, H, W), got {tuple(si.shape)}")
+    if valid is not None:
+        si = (si - fill) * valid + fill
+    return (si.clamp(0.0, 1.0) * 255.0).round() / 255.0
+
+
+def compute_sim(depth: Tensor, K: Tensor, **kwargs) -> SIM:
+    """One call for the per-frame pipeline: ``shape_index(depth, K, **kwargs)`` and its ``sim_image``."""
+    s = shape_index(depth, K, **kwargs)
+    return SIM(si=s.si, valid=s.valid, image=sim_image(s.si))
+
+
+class ShapeIndexMap:
+    """Holds the SIM parameters; ``__call__(depth, K) -> SIM`` delegates to ``compute_sim``."""
+
+    def __init__(
+        self,
+        smooth_sigma: float = 2.0,
+        min_curvature: float = 2.0,
+        max_step: float = 0.05,
+        min_support: float = 0.95,
+        max_incidence: float = 70.0,
+        decimate: int = 2,
+        fill: float = 0.5,
+    ) -> None:
+        self.kwargs = dict(
+            smooth_sigma=smooth_sigma,
+            min_curvature=min_curvature,
+            max_step=max_step,
+            min_support=min_support,
+            max_incidence=max_incidence,
+            decimate=decimate,
+            fill=fill,
+        )
+
+    def __call__(self, depth: Tensor, K: Tensor) -> SIM:
+        return compute_sim(depth, K, **self.kwargs)
