@@ -65,7 +65,7 @@ def run(filt, steps, X, K, T_cd, valid=None, start=None):
     return est, errs
 
 
-@pytest.mark.parametrize("jacobian", ["forward", "analytic"])
+@pytest.mark.parametrize("jacobian", ["forward", "reverse", "analytic"])
 def test_converges_to_true_pose_on_noise_free_synthetic_motion(jacobian):
     """Start 2 cm / 2 deg off; noise-free 2D+3D measurements (small variances): < 1e-4 m and < 0.01 deg."""
     X, K, T_cd = body()
