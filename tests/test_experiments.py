@@ -233,3 +233,43 @@ def test_report_includes_table_scripts_and_plots(tmp_path):
 def test_report_without_runs_raises(tmp_path):
     with pytest.raises(FileNotFoundError, match="no run under"):
         report.build_report(tmp_path)
+
+
+# ----------------------------------------------------------------------------------------------- Table I
+
+
+table1 = _load("table1_spread")
+
+
+def test_table1_exact_measurements_recover_the_artificial_motion():
+    """Noise-free eq. (6)/(7) measurements, near-zero variances, iterated EKF: the motion is recovered exactly."""
+    from torchtrack.geometry import intrinsics_matrix
+    from torchtrack.metrics import per_axis_errors
+
+    g = torch.Generator().manual_seed(0)
+    X = (torch.rand(2, 12, 3, generator=g, dtype=torch.float64) - 0.5) * 0.2
+    K = intrinsics_matrix(525.0, 525.0, 320.0, 240.0).double()
+    T = table1.artificial_motion(8, 30.0, math.radians(10), 0.03, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+    assert torch.allclose(T[0], make_T(torch.eye(3, dtype=torch.float64), torch.tensor([0.0, 0.0, 1.0]).double()))
+    points_d, pixels = table1.measurements(T, X, K, 0.0, 0.0, g)
+    T_est = table1.track(X, points_d, pixels, K, T[0], 30.0, sigma2_pix=1e-10, sigma2_xyz=1e-14, iterations=4,
+                         jacobian="analytic")  # fmt: skip
+    assert T_est.shape == (8, 2, 4, 4)
+    for b in range(2):
+        e = per_axis_errors(T_est[:, b], T)
+        assert float(e.rot_mean_deg.max()) < 1e-6 and float(e.trans_mean_m.max()) < 1e-9
+
+
+def test_table1_subsets_grow_in_spread():
+    g = torch.Generator().manual_seed(1)
+    P = torch.randn(2000, 3, generator=g, dtype=torch.float64) * torch.tensor([0.05, 0.03, 0.02]).double()
+    assert float(table1.spread(P)) == pytest.approx(float(np.linalg.norm(P.numpy().std(0))), rel=1e-12)
+    idx = table1.spread_subsets(P, 40, [0.2, 0.5, 1.0], 5, g)
+    assert idx.shape == (15, 40)
+    assert all(len(set(row.tolist())) == 40 for row in idx)  # no point twice in a subset
+    d = P.norm(dim=-1)
+    assert float(d[idx[:5]].max()) <= float(torch.quantile(d, 0.2))  # drawn from the 20 % pool
+    s = table1.spread(P[idx]).reshape(3, 5).mean(1)
+    assert bool((s[1:] > s[:-1]).all())
+    with pytest.raises(ValueError, match="only"):
+        table1.spread_subsets(P[:50], 40, [0.2], 1, g)
