@@ -99,12 +99,18 @@ def discover_sequences(data: Path) -> list[str]:
 def job_overrides(method: Method, seq: str, data: Path, extra: list[str]) -> list[str]:
     """The task overrides of one job, as Hydra records them in ``.hydra/overrides.yaml`` (up to escaping).
 
-    ``seq`` may be a comma list (a Hydra sweep). The peer keeps only the ``data.*`` overrides (it reads
-    frames, it has no tracker)."""
+    ``seq`` may be a comma list (a Hydra sweep). ``hydra.*`` overrides (launcher settings) are not task
+    overrides: Hydra does not record them, and they do not change results. The peer keeps only the
+    ``data.*`` overrides (it reads frames, it has no tracker)."""
     common = [f"+seq={seq}", "data=tum", f"data.root={Path(data).resolve()}/${{seq}}"]
+    task = [o for o in extra if not _is_hydra(o)]
     if method.peer:
-        return common + [o for o in extra if o.lstrip("+~").startswith("data.")]
-    return common + list(method.overrides) + list(extra)
+        return common + [o for o in task if o.lstrip("+~").startswith("data.")]
+    return common + list(method.overrides) + task
+
+
+def _is_hydra(override: str) -> bool:
+    return override.lstrip("+~").startswith(("hydra.", "hydra/"))
 
 
 def recorded_overrides(out: Path, method: str, seq: str) -> list[str] | None:
@@ -184,7 +190,7 @@ def hydra_command(
     """One multirun of ``program`` (``python -m torchtrack.cli``) over ``seqs`` for ``method``."""
     if method.peer:
         raise ValueError(f"{method.name} is a peer: it runs in-process, not through Hydra")
-    task = job_overrides(method, ",".join(seqs), data, extra)
+    task = job_overrides(method, ",".join(seqs), data, extra) + [o for o in extra if _is_hydra(o)]
     hydra = [f"hydra.sweep.dir={Path(out).resolve() / method.name}", "hydra.sweep.subdir=${seq}"]
     return [*program, "-m", *task, *hydra, *launcher_overrides(launcher, jobs)]
 

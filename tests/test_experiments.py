@@ -117,8 +117,11 @@ def test_plan_rejects_unknown_method(tmp_path):
 
 
 def test_hydra_command_sweeps_sequences_and_composes_ablations(tmp_path):
-    cmd = sweep.hydra_command(sweep.METHODS["ekf3"], ["a", "b"], tmp_path, tmp_path / "d", ["plots=false"],
-                              "joblib", 3, ["torchtrack"])  # fmt: skip
+    extra = ["plots=false", "hydra.launcher.timeout_min=5"]  # launcher settings: passed, not part of the job's identity
+    cmd = sweep.hydra_command(sweep.METHODS["ekf3"], ["a", "b"], tmp_path, tmp_path / "d", extra, "joblib", 3,
+                              ["torchtrack"])  # fmt: skip
+    assert "hydra.launcher.timeout_min=5" in cmd
+    assert "hydra.launcher.timeout_min=5" not in sweep.job_overrides(sweep.METHODS["ekf3"], "a", tmp_path, extra)
     assert cmd[:3] == ["torchtrack", "-m", "+seq=a,b"]
     assert f"data.root={(tmp_path / 'd').resolve()}/${{seq}}" in cmd
     assert "+experiment=[ekf1,ekf2,ekf3]" in cmd and "tracker=fusion_ekf" in cmd and "plots=false" in cmd
