@@ -4,7 +4,7 @@
     python experiments/table1_spread.py --sequence sun3d_fragment1 --features 100 --out /tmp/t1
 
 As in the paper (§III-B, on its Face sequence): the point-cloud model (PCM) of a real frame is taken (the
-object by depth: every pixel with depth in [near, far]), a smooth artificial motion is defined, the exact
+object by depth: the pixels with depth in [near, far], automatic by default), a smooth artificial motion is defined, the exact
 2D pixels (eq. 7) and 3D points (eq. 6) of subsets of the PCM are generated with Gaussian noise and fed to
 the fusion EKF (:class:`torchtrack.filter.fusion.FusionEKF`, fixed variances = the noise), and the per-axis
 pose errors (:func:`torchtrack.metrics.per_axis_errors`, mrad and mm, frames after the first) are reported
@@ -29,7 +29,8 @@ import torch
 from torch import Tensor
 
 from torchtrack.filter.fusion import FusionEKF
-from torchtrack.geometry import backproject_depth, euler_to_matrix, make_T, project, transform_points
+from torchtrack.geometry import euler_to_matrix, make_T, project, transform_points
+from torchtrack.image.object_model import feature_spread, object_mask, point_cloud_model
 from torchtrack.metrics import per_axis_errors
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -45,25 +46,26 @@ class Model(NamedTuple):
     K: Tensor
 
 
-def load_model(root: Path, frame: int = 0, near: float = 0.1, far: float = 10.0) -> Model:
-    """The PCM of one frame: back-projected pixels with depth in [near, far] metres."""
+def load_model(root: Path, frame: int = 0, near: float | None = None, far: float | None = None) -> Model:
+    """The PCM of one frame: the object by depth (:func:`~torchtrack.image.object_model.object_mask`, [near, far]
+    in metres, automatic where None) back-projected (:func:`~torchtrack.image.object_model.point_cloud_model`)."""
     from torchtrack.data.tum import TumSequence
 
     seq = TumSequence(root, max_frames=frame + 1)
-    depth = seq[frame].depth[None].double()  # 1,1,H,W
-    K = seq.K.double()
-    pts = backproject_depth(K[None], depth)[0]  # H,W,3
-    mask = (depth[0, 0] >= near) & (depth[0, 0] <= far)
-    if int(mask.sum()) < 10:
-        raise ValueError(f"{root} frame {frame}: fewer than 10 pixels with depth in [{near}, {far}] m")
-    cloud = pts[mask]
+    f = seq[frame]
+    depth, K = f.depth[None].double(), seq.K.double()[None]  # 1,1,H,W and 1,3,3
+    mask = object_mask(depth, near=near, far=far)
+    pcm = point_cloud_model(f.rgb[None].double(), depth, K, mask)
+    cloud = pcm.points_colors[0, pcm.valid[0], :3]
+    if len(cloud) < 10:
+        raise ValueError(f"{root} frame {frame}: fewer than 10 object pixels with depth in [{near}, {far}] m")
     centroid = cloud.mean(0)
-    return Model(cloud - centroid, centroid, K)
+    return Model(cloud - centroid, centroid, K[0])
 
 
 def spread(points: Tensor) -> Tensor:
-    """|| sigma_XYZ ||: norm of the per-axis standard deviations of (..., N, 3) points -> (...)."""
-    return points.std(dim=-2, unbiased=False).norm(dim=-1)
+    """|| sigma_XYZ || (m) of (..., N, 3) points -> (...): :func:`~torchtrack.image.object_model.feature_spread`."""
+    return feature_spread(points.reshape(-1, *points.shape[-2:])).reshape(points.shape[:-2])
 
 
 def spread_subsets(points_obj: Tensor, n: int, fractions: list[float], trials: int, gen: torch.Generator) -> Tensor:
@@ -171,8 +173,8 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--data", type=Path, default=DATA)
     p.add_argument("--sequence", default="visp_castle_simu")
     p.add_argument("--frame", type=int, default=0)
-    p.add_argument("--near", type=float, default=0.1, help="object by depth: metres")
-    p.add_argument("--far", type=float, default=10.0)
+    p.add_argument("--near", type=float, default=None, help="object by depth, metres (default: automatic)")
+    p.add_argument("--far", type=float, default=None)
     p.add_argument("--features", type=int, default=50, help="points per subset")
     p.add_argument("--fractions", default="0.2,0.4,0.7,1.0", help="distance quantiles of the subsets' pools")
     p.add_argument("--trials", type=int, default=20)

@@ -266,7 +266,7 @@ def test_table1_exact_measurements_recover_the_artificial_motion():
 def test_table1_subsets_grow_in_spread():
     g = torch.Generator().manual_seed(1)
     P = torch.randn(2000, 3, generator=g, dtype=torch.float64) * torch.tensor([0.05, 0.03, 0.02]).double()
-    assert float(table1.spread(P)) == pytest.approx(float(np.linalg.norm(P.numpy().std(0))), rel=1e-12)
+    assert float(table1.spread(P)) == pytest.approx(float(np.linalg.norm(P.numpy().std(0, ddof=1))), rel=1e-12)
     idx = table1.spread_subsets(P, 40, [0.2, 0.5, 1.0], 5, g)
     assert idx.shape == (15, 40)
     assert all(len(set(row.tolist())) == 40 for row in idx)  # no point twice in a subset
