@@ -1,0 +1,263 @@
+"""Analytic ray casting of a :class:`Scene`: exact depth and textured colour for every pixel.
+
+Rays leave the camera centre along ``d = ((u - cx)/fx, (v - cy)/fy, 1)``, so the ray parameter of a
+hit is its z-depth. Each primitive is intersected in its local frame (rigid transforms keep the ray
+parameter), vectorised over all rays of the primitive's screen-space bounding box; a z-buffer keeps
+the nearest hit. Colour is evaluated once per pixel, for the primitive it sees (a Python loop over
+primitives, never over pixels).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchtrack.data.synthetic.scene import Primitive, Scene, pixel_rays
+from torchtrack.data.synthetic.texture import batch_textures, plane_rgb, shade, surface_uv_normal, texture_rgb
+from torchtrack.geometry import T_inv
+
+_EPS = 1e-6
+_INF = float("inf")
+
+
+class RGBD(NamedTuple):
+    """rgb: (3, H, W) or (B, 3, H, W) in [0, 1]; depth: (1, H, W) or (B, 1, H, W) metres, 0 = no surface."""
+
+    rgb: Tensor
+    depth: Tensor
+
+
+class RayHits(NamedTuple):
+    """Nearest hit per ray: depth (...) metres (0 = none) and primitive index (...) (-1 = none)."""
+
+    depth: Tensor
+    prim: Tensor
+
+
+def _hit_plane(o: list[float], d: tuple[Tensor, Tensor, Tensor], s: tuple[float, ...]) -> Tensor:
+    dx, dy, dz = d
+    t = dz.reciprocal_().mul_(-o[2])  # dz is a temporary of the caller: reuse its memory
+    hit = t > _EPS
+    for oi, di, si in ((o[0], dx, s[0]), (o[1], dy, s[1])):
+        w = di.mul_(t)  # |o + t d| <= s on both in-plane axes
+        hit &= (w >= -si - oi) & (w <= si - oi)
+    return t.masked_fill_(~hit, _INF)
+
+
+def _hit_sphere(o: list[float], d: tuple[Tensor, Tensor, Tensor], s: tuple[float, ...]) -> Tensor:
+    dx, dy, dz = d
+    a = dx * dx + dy * dy + dz * dz
+    b = o[0] * dx + o[1] * dy + o[2] * dz
+    c = o[0] ** 2 + o[1] ** 2 + o[2] ** 2 - s[0] ** 2
+    disc = b * b - a * c
+    t = (-b - disc.clamp_min(0).sqrt()) / a
+    return torch.where((disc >= 0) & (t > _EPS), t, _INF)
+
+
+def _hit_box(o: list[float], d: tuple[Tensor, Tensor, Tensor], s: tuple[float, ...]) -> Tensor:
+    t_near, t_far = None, None
+    for oi, di, hi in zip(o, d, s, strict=True):  # slab method, one axis at a time
+        inv = 1.0 / di
+        t1, t2 = (-hi - oi) * inv, (hi - oi) * inv
+        lo, hi_ = torch.minimum(t1, t2), torch.maximum(t1, t2)
+        t_near = lo if t_near is None else torch.maximum(t_near, lo)
+        t_far = hi_ if t_far is None else torch.minimum(t_far, hi_)
+    return torch.where((t_near <= t_far) & (t_near > _EPS), t_near, _INF)
+
+
+def _hit_cylinder(o: list[float], d: tuple[Tensor, Tensor, Tensor], s: tuple[float, ...]) -> Tensor:
+    r, hh = s
+    dx, dy, dz = d
+    a = dx * dx + dy * dy
+    b = o[0] * dx + o[1] * dy
+    c = o[0] ** 2 + o[1] ** 2 - r * r
+    disc = b * b - a * c
+    ts = (-b - disc.clamp_min(0).sqrt()) / a
+    side = (disc >= 0) & (ts > _EPS) & ((o[2] + ts * dz).abs() <= hh)
+    t = torch.where(side, ts, _INF)
+    cap_z = hh if o[2] > 0 else -hh  # the only cap visible from outside
+    tc = (cap_z - o[2]) / dz
+    cap = (tc > _EPS) & ((o[0] + tc * dx) ** 2 + (o[1] + tc * dy) ** 2 <= r * r) & (tc < t)
+    return torch.where(cap, tc, t)
+
+
+_HIT = {"plane": _hit_plane, "sphere": _hit_sphere, "box": _hit_box, "cylinder": _hit_cylinder}
+
+
+def _T_prim_cam(scene: Scene, T_world_cam: Tensor, T_world_obj: Tensor | None) -> list[Tensor]:
+    """Per primitive (4, 4) float64 camera-to-primitive transforms."""
+    if T_world_obj is None and any(p.group == 1 for p in scene.primitives):
+        raise ValueError("render: the scene has a moving object (group 1) but T_world_obj was not given")
+    T_cam_world = T_inv(T_world_cam.double())
+    T_world_group1 = torch.eye(4, dtype=torch.float64) if T_world_obj is None else T_world_obj.double()
+    T_cam_group = [T_cam_world, T_cam_world @ T_world_group1]
+    return [T_inv(T_cam_group[p.group] @ p.T_group_prim) for p in scene.primitives]
+
+
+_NEAR = 1e-3
+
+
+def _screen_box(scene: Scene, prim: Primitive, T_prim_cam: Tensor) -> tuple[int, int, int, int] | None:
+    """Conservative pixel rectangle (v0, v1, u0, u1) covering the primitive; None if it cannot be seen.
+
+    The primitive's local bounding box is clipped against the plane z = _NEAR in the camera (the clipped
+    convex hull is spanned by the corners in front and the crossings of all corner pairs), then projected.
+    Planes are one-sided: seen from behind (camera at local z <= 0) they are culled.
+    """
+    if prim.kind == "plane" and float(T_prim_cam[2, 3]) <= 0:
+        return None
+    half = torch.tensor(prim.size * 3 if prim.kind == "sphere" else prim.size, dtype=torch.float64)
+    if prim.kind == "cylinder":
+        half = torch.stack([half[0], half[0], half[1]])
+    elif prim.kind == "plane":
+        half = torch.cat([half, half.new_zeros(1)])
+    signs = torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=torch.float64)
+    T_cam_prim = T_inv(T_prim_cam)
+    pts = (signs * half) @ T_cam_prim[:3, :3].T + T_cam_prim[:3, 3]  # 8,3 corners in the camera
+    front = pts[:, 2] > _NEAR
+    if not bool(front.any()):
+        return None
+    a, b = pts[:, None], pts[None, :]  # crossings of every corner pair with z = _NEAR
+    w = ((_NEAR - a[..., 2]) / (b[..., 2] - a[..., 2])).nan_to_num(-1.0)
+    cross = (a + w[..., None] * (b - a))[(w > 0) & (w < 1)]
+    pts = torch.cat([pts[front], cross])
+    K = scene.K.double()
+    u = K[0, 0] * pts[:, 0] / pts[:, 2] + K[0, 2]
+    v = K[1, 1] * pts[:, 1] / pts[:, 2] + K[1, 2]
+    u0, u1 = max(0, int(u.min().clamp(-1e6, 1e6)) - 1), min(scene.width, int(u.max().clamp(-1e6, 1e6)) + 2)
+    v0, v1 = max(0, int(v.min().clamp(-1e6, 1e6)) - 1), min(scene.height, int(v.max().clamp(-1e6, 1e6)) + 2)
+    return (v0, v1, u0, u1) if u0 < u1 and v0 < v1 else None
+
+
+def _local_dirs(scene: Scene, R: Tensor, box: tuple[int, int, int, int]) -> tuple[Tensor, Tensor, Tensor]:
+    """Rays of the pixel rectangle box rotated by R (3, 3): three (h, w) components.
+
+    Separable: R @ (x_u, y_v, 1) = (R[:, 0] x_u + R[:, 2]) + R[:, 1] y_v, one broadcast add per component.
+    """
+    v0, v1, u0, u1 = box
+    xs, ys = scene.ray_xy()
+    xs, ys, R_ = xs[u0:u1], ys[v0:v1], R.tolist()
+    return tuple((xs * R_[i][0] + R_[i][2])[None, :] + (ys * R_[i][1])[:, None] for i in range(3))
+
+
+def _cast(scene: Scene, T_pc: list[Tensor], dirs: Tensor | None) -> tuple[Tensor, Tensor]:
+    """Z-buffer over primitives -> t (h, w) (inf = miss), prim index (h, w) (-1 = miss).
+
+    dirs None: the full image grid, each primitive restricted to its screen box. Else rays (1, n, 3).
+    """
+    h, w = (scene.height, scene.width) if dirs is None else dirs.shape[:2]
+    zbuf = torch.full((h, w), _INF)
+    ids = torch.full((h, w), -1, dtype=torch.int16)  # small ints: cheaper z-buffer writes
+    for k, (prim, T) in enumerate(zip(scene.primitives, T_pc, strict=True)):
+        R = T[:3, :3].float()
+        if dirs is None:
+            box = _screen_box(scene, prim, T)
+            if box is None:
+                continue
+            d_local = _local_dirs(scene, R, box)
+        else:
+            box = (0, h, 0, w)
+            d_local = tuple(c.contiguous() for c in (dirs @ R.T).unbind(-1))
+        v0, v1, u0, u1 = box
+        t = _HIT[prim.kind](T[:3, 3].tolist(), d_local, prim.size)
+        zc, ic = zbuf[v0:v1, u0:u1], ids[v0:v1, u0:u1]
+        closer = t < zc
+        torch.minimum(zc, t, out=zc)
+        ic.masked_fill_(closer, k)
+    return zbuf, ids.long()
+
+
+def _colour(scene: Scene, T_pc: list[Tensor], dx: Tensor, dy: Tensor, t: Tensor, ids: Tensor) -> Tensor:
+    """Shaded texture colour (3, n) of hits at depth t (n,) on primitives ids (n,) along rays (dx, dy, 1).
+
+    Planes read their baked atlas; all other primitives are textured together in one call.
+    """
+    rgb = torch.tensor(scene.background_rgb)[:, None].repeat(1, t.shape[0])
+    small = torch.int8 if len(scene.primitives) < 127 else torch.int32  # small ints sort fastest
+    order = torch.sort(ids.to(small), stable=True).indices  # pixels grouped by primitive, one pass
+    counts = torch.bincount(ids + 1, minlength=len(scene.primitives) + 1).tolist()
+    groups = order.split(counts)
+    solids: list[tuple[int, Tensor, Tensor, Tensor, Tensor | float]] = []
+    for k, (prim, T) in enumerate(zip(scene.primitives, T_pc, strict=True)):
+        idx = groups[k + 1]
+        if idx.numel() == 0:
+            continue
+        z = t.index_select(0, idx)
+        x, y = dx.index_select(0, idx).mul_(z), dy.index_select(0, idx).mul_(z)  # hit in the camera
+        R, o = T[:3, :3].tolist(), T[:3, 3].tolist()
+        p_local = [R[i][0] * x + R[i][1] * y + R[i][2] * z + o[i] for i in range(2 if prim.kind == "plane" else 3)]
+        if prim.kind == "plane":
+            lit = shade(scene, (0.0, 0.0, 1.0), prim.T_group_prim[:3, :3])
+            rgb.index_copy_(1, idx, plane_rgb(scene, k, *p_local) * lit)
+        else:
+            (u, v), n_local = surface_uv_normal(prim, tuple(p_local))
+            solids.append((k, idx, u, v, shade(scene, n_local, prim.T_group_prim[:3, :3])))
+    if solids:
+        ks, idx, u, v, lit = zip(*solids, strict=True)
+        which = torch.repeat_interleave(torch.tensor(ks), torch.tensor([len(i) for i in idx]))
+        tex = batch_textures([p.texture for p in scene.primitives], which)
+        albedo = texture_rgb(scene, tex, torch.cat(u), torch.cat(v))
+        lit = torch.cat([torch.as_tensor(x).expand(len(i)) for x, i in zip(lit, idx, strict=True)])
+        rgb.index_copy_(1, torch.cat(idx), torch.stack(albedo) * lit)
+    return rgb.clamp_(0, 1)
+
+
+def _render_one(scene: Scene, T_world_cam: Tensor, T_world_obj: Tensor | None, pixels: Tensor | None):
+    """-> rgb (3, h, w), depth (h, w), prim index (h, w); (h, w) = (H, W) or (1, N) for given pixels (N, 2)."""
+    T_pc = _T_prim_cam(scene, T_world_cam, T_world_obj)
+    dirs = None if pixels is None else pixel_rays(scene.K, pixels.float())[None]
+    t, ids = _cast(scene, T_pc, dirs)
+    h, w = t.shape
+    if pixels is None:
+        xs, ys = scene.ray_xy()
+        dx, dy = xs.repeat(h), ys.repeat_interleave(w)
+    else:
+        dx, dy = dirs[0, :, 0], dirs[0, :, 1]
+    rgb = _colour(scene, T_pc, dx, dy, t.reshape(-1), ids.reshape(-1))
+    depth = torch.where(ids >= 0, t, torch.zeros_like(t))
+    return rgb.reshape(3, h, w), depth, ids
+
+
+def _check_pose(name: str, T: Tensor | None) -> None:
+    if T is not None and (T.shape[-2:] != (4, 4) or T.dim() not in (2, 3)):
+        raise ValueError(f"render: {name} must be (4, 4) or (B, 4, 4), got {tuple(T.shape)}")
+
+
+def render_frame(scene: Scene, T_world_cam: Tensor, T_world_obj: Tensor | None = None) -> RGBD:
+    """Noise-free colour and depth of the scene seen from T_world_cam.
+
+    Args:
+        scene: primitives and intrinsics (``default_scene(cfg)``).
+        T_world_cam: (4, 4) or (B, 4, 4) camera-to-world pose(s).
+        T_world_obj: pose(s) of the moving group (object mode), same batch shape; None for static scenes.
+    Returns:
+        RGBD with rgb (3, H, W) / (B, 3, H, W) in [0, 1] and depth (1, H, W) / (B, 1, H, W) exact z-depth
+        in metres, 0 where no surface is hit. Batches loop over B (each frame is already vectorised).
+    """
+    _check_pose("T_world_cam", T_world_cam)
+    _check_pose("T_world_obj", T_world_obj)
+    if T_world_cam.dim() == 3:
+        objs = [None] * len(T_world_cam) if T_world_obj is None else list(T_world_obj)
+        outs = [render_frame(scene, Tc, To) for Tc, To in zip(T_world_cam, objs, strict=True)]
+        return RGBD(torch.stack([o.rgb for o in outs]), torch.stack([o.depth for o in outs]))
+    rgb, depth, _ = _render_one(scene, T_world_cam, T_world_obj, None)
+    return RGBD(rgb, depth[None])
+
+
+def render_pixels(
+    scene: Scene, T_world_cam: Tensor, pixels: Tensor, T_world_obj: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
+    """Colour (N, 3) and depth (N,) along the rays of arbitrary sub-pixel positions pixels (N, 2) (x, y)."""
+    if pixels.dim() != 2 or pixels.shape[-1] != 2:
+        raise ValueError(f"render_pixels: pixels must be (N, 2), got {tuple(pixels.shape)}")
+    rgb, depth, _ = _render_one(scene, T_world_cam, T_world_obj, pixels)
+    return rgb[:, 0].T, depth[0]
+
+
+def raycast(scene: Scene, T_world_cam: Tensor, T_world_obj: Tensor | None = None) -> RayHits:
+    """Depth (H, W) and primitive index (H, W) of the nearest surface, without shading."""
+    T_pc = _T_prim_cam(scene, T_world_cam, T_world_obj)
+    t, ids = _cast(scene, T_pc, None)
+    return RayHits(torch.where(ids >= 0, t, torch.zeros_like(t)), ids)
