@@ -52,39 +52,43 @@ def problem(B: int, N: int, dtype=F64, seed=0):
     return x, cov, X, K, T, lin, z, var
 
 
+def bench_batch(B: int, N: int, reps: int) -> dict:
+    """Timings at one batch size: Jacobians, update algebra (both forms), FusionEKF per-frame step."""
+    x, cov, X, K, T, lin, z, var = problem(B, N)
+    valid = torch.ones(B, N, dtype=torch.bool)
+
+    def fixed(*_):  # isolates the update algebra from the Jacobian
+        return lin
+
+    res = timeit(
+        {
+            "jacobian jacfwd (autograd)": lambda: ekf.linearize(measure_single, x, (X,), (K, T), "forward"),
+            "jacobian jacrev (autograd)": lambda: ekf.linearize(measure_single, x, (X,), (K, T), "reverse"),
+            "jacobian analytic": lambda: measure_analytic(x, X, K, T),
+            "update algebra, information form": lambda: ekf.update(x, cov, z, var, valid, linearizer=fixed),
+            "update algebra, gain form eq. (15)": lambda: ekf.update(
+                x, cov, z, var, valid, linearizer=fixed, form="gain"
+            ),
+        },
+        max(3, reps // 4) if B == 4 else reps // 2,
+    )
+    dt = torch.full((B,), 1 / 30, dtype=F64)
+    steps = {}
+    for jac in ("forward", "analytic"):
+        filt = FusionEKF(jacobian=jac)
+        filt.reset(make_T(torch.eye(3, dtype=F64).expand(B, 3, 3), x[:, 3:6]))
+
+        def step(filt=filt):
+            filt.predict(dt)
+            filt.update(X, z[..., :3], z[..., 3:], valid, K=K, T_color_depth=T)
+
+        steps[f"FusionEKF predict+update, jacobian={jac}"] = step
+    res.update(timeit(steps, reps))
+    return res
+
+
 def bench_speed(N: int, reps: int) -> dict:
-    out = {}
-    for B in (1, 4):
-        x, cov, X, K, T, lin, z, var = problem(B, N)
-        valid = torch.ones(B, N, dtype=torch.bool)
-        fixed = lambda *_: lin  # noqa: E731  (isolates the update algebra from the Jacobian)
-        res = timeit(
-            {
-                "jacobian jacfwd (autograd)": lambda: ekf.linearize(measure_single, x, (X,), (K, T), "forward"),
-                "jacobian jacrev (autograd)": lambda: ekf.linearize(measure_single, x, (X,), (K, T), "reverse"),
-                "jacobian analytic": lambda: measure_analytic(x, X, K, T),
-                "update algebra, information form": lambda: ekf.update(x, cov, z, var, valid, linearizer=fixed),
-                "update algebra, gain form eq. (15)": lambda: ekf.update(
-                    x, cov, z, var, valid, linearizer=fixed, form="gain"
-                ),
-            },
-            max(3, reps // 4) if B == 4 else reps // 2,
-        )
-        frame = {}
-        for jac in ("forward", "analytic"):
-            filt = FusionEKF(jacobian=jac)
-            filt.reset(make_T(torch.eye(3, dtype=F64).expand(B, 3, 3), x[:, 3:6]))
-            dt = torch.full((B,), 1 / 30, dtype=F64)
-            pd, px = z[..., :3], z[..., 3:]
-
-            def step(filt=filt, dt=dt, pd=pd, px=px):
-                filt.predict(dt)
-                filt.update(X, pd, px, valid, K=K, T_color_depth=T)
-
-            frame[f"FusionEKF predict+update, jacobian={jac}"] = step
-        res.update(timeit(frame, reps))
-        out[f"B={B}"] = res
-    return out
+    return {f"B={B}": bench_batch(B, N, reps) for B in (1, 4)}
 
 
 def true_pose(t: torch.Tensor, B: int) -> torch.Tensor:

@@ -18,6 +18,17 @@ from torchtrack.geometry import (
 )
 
 F64 = torch.float64
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    """Small tensors: intra-op threads only contend on a shared machine (20x slower seen on 2 loaded cores)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 DT = 1 / 30
 
 
@@ -65,7 +76,7 @@ def run(filt, steps, X, K, T_cd, valid=None, start=None):
     return est, errs
 
 
-@pytest.mark.parametrize("jacobian", ["forward", "reverse", "analytic"])
+@pytest.mark.parametrize("jacobian", ["forward", "analytic"])
 def test_converges_to_true_pose_on_noise_free_synthetic_motion(jacobian):
     """Start 2 cm / 2 deg off; noise-free 2D+3D measurements (small variances): < 1e-4 m and < 0.01 deg."""
     X, K, T_cd = body()
@@ -73,7 +84,7 @@ def test_converges_to_true_pose_on_noise_free_synthetic_motion(jacobian):
         so3_exp(torch.tensor([0.0, 0.0, math.radians(2)], dtype=F64)), torch.tensor([0.02, 0.0, 0.0], dtype=F64)
     )
     filt = FusionEKF(sigma2_pix=1e-4, sigma2_xyz=1e-8, init_sigma_angle=0.05, init_sigma_trans=0.05, jacobian=jacobian)
-    est, errs = run(filt, 45, X, K, T_cd, start=start)
+    est, errs = run(filt, 30, X, K, T_cd, start=start)
     t_err, r_err = errs[-1]
     assert (t_err < 1e-4).all() and (r_err < 0.01).all(), (t_err, r_err)
     assert est.updated.all() and est.num_valid.tolist() == [60, 60]
