@@ -175,6 +175,8 @@ def pivot(runs: list[Run], methods, value) -> dict[str, dict[str, float | None]]
 def pivot_table(table: dict[str, dict[str, float | None]], methods, digits: int = 2) -> str:
     """Rows = sequences (+ the mean over sequences where every method has a value), columns = methods."""
     methods = [m for m in methods if any(table[s][m] is not None for s in table)]
+    if not methods:
+        return "No runs of these methods.\n"
     rows = [[s] + [fmt(table[s][m], digits) for m in methods] for s in table]
     full = [s for s in table if all(table[s][m] is not None for m in methods)]
     if len(full) > 1:
@@ -197,6 +199,8 @@ def improvement_table(errors: dict[str, dict[str, np.ndarray | None]]) -> tuple[
         mean = pis.mean(0)  # eq. (17) per sequence, then the mean over sequences ("mean percentage improvement")
         out[base] = {"pi": mean.tolist(), "sequences": seqs}
         rows.append([label(base)] + [fmt(v, 1) for v in mean] + [str(len(seqs))])
+    if not rows:
+        return out, f"No sequence with ground truth and runs of both {label(PROPOSED)} and a baseline.\n"
     return out, markdown_table(["Method / PI (%)", *AXES, "sequences"], rows)
 
 

@@ -203,6 +203,14 @@ def _extra_value(extra: list[str], key: str):
     return None
 
 
+def write_json(path: Path, data: dict) -> None:
+    """Atomic JSON write (temporary name, then rename): a reader never sees half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(data, indent=2) + "\n")
+    os.replace(tmp, path)
+
+
 def run_peer(out: Path, seq: str, data: Path, extra: list[str]) -> dict:
     """Open3D RGB-D odometry on one sequence, written like a tracker run (trajectory.txt, metrics.json)."""
     import numpy as np
@@ -210,7 +218,6 @@ def run_peer(out: Path, seq: str, data: Path, extra: list[str]) -> dict:
     from torchtrack.data.tum import TumSequence, write_tum_trajectory
     from torchtrack.metrics import trajectory_metrics
     from torchtrack.peers import open3d_rgbd_odometry
-    from torchtrack.run import write_json
 
     method = METHODS["open3d_odometry"]
     jd, rd = job_dir(out, method.name, seq), result_dir(out, method.name, seq)
@@ -256,10 +263,7 @@ def write_summary(out: Path, args: argparse.Namespace, extra: list[str], command
         "finished": finished,
         "unfinished": [[m, s] for m in args.methods for s in args.sequences if [m, s] not in finished],
     }
-    out.mkdir(parents=True, exist_ok=True)
-    tmp = out / ".sweep.json.tmp"
-    tmp.write_text(json.dumps(summary, indent=2) + "\n")
-    os.replace(tmp, out / "sweep.json")
+    write_json(out / "sweep.json", summary)
 
 
 def _parse(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
