@@ -61,7 +61,27 @@ def not_collinear(points: Tensor, w: Tensor) -> Tensor:
     (1e3 * eps: a 1 m long set needs about 1 cm of spread off its line in float32, 15 nm in float64).
     """
     c = points - masked_mean(points, w)[:, None]
-    scatter = (w[..., None, None] * c[..., :, None] * c[..., None, :]).sum(1)  # B,3,3
+    scatter = (w[..., None] * c).transpose(-1, -2) @ c  # B,3,3
     lam = torch.linalg.eigvalsh(scatter)  # ascending
     eps = torch.finfo(points.dtype).eps
     return (lam[:, 1] > 1e3 * eps * lam[:, 2]) & (lam[:, 2] > 0)
+
+
+def sq_dists(x: Tensor, y: Tensor, valid_x: Tensor, valid_y: Tensor, scale: Tensor | None = None) -> Tensor:
+    """Pairwise squared distances (B, N, 3), (B, M, 3) -> (B, N, M), +inf where x or y is padded.
+
+    One batched matmul of the augmented coordinates [x, |x|^2, 1] . [-2y, 1, |y|^2], the padding folded in
+    as |x|^2 = inf (x, y must be finite, e.g. zeroed padding). Optional ``scale`` (B,) multiplies the result
+    (CPD's -1/(2 sigma^2); then the padding is -inf). Both sets are first shifted by y's mean so that rounding
+    scales with their extent, not their distance from the camera; callers needing exact values recompute them.
+    """
+    c = y.mean(1, keepdim=True)
+    x, y = x - c, y - c
+    inf = torch.tensor(torch.inf, dtype=x.dtype, device=x.device)
+    x2 = torch.where(valid_x, x.square().sum(-1), inf)
+    y2 = torch.where(valid_y, y.square().sum(-1), inf)
+    x_aug = torch.cat([x, x2[..., None], torch.ones_like(x2)[..., None]], -1)  # B,N,5
+    y_aug = torch.cat([-2 * y, torch.ones_like(y2)[..., None], y2[..., None]], -1)  # B,M,5
+    if scale is not None:
+        y_aug = y_aug * scale[:, None, None]
+    return x_aug @ y_aug.transpose(-1, -2)

@@ -1,9 +1,9 @@
 """Point-to-point ICP (Besl & McKay 1992), batched over B sequences with padding masks.
 
-Each iteration matches every valid source point to its nearest valid destination point (brute force
-``torch.cdist`` over the padded sets, fine for N ~ 300), drops matches farther than
-``max_corr_dist``, and solves the rigid transform in closed form with :func:`horn`. Sequences stop
-independently when the relative change of the mean squared matching error falls below ``tol``.
+Each iteration matches every valid source point to its nearest valid destination point (brute-force
+squared distances over the padded sets, one batched matmul: fine for N ~ 300), drops matches farther
+than ``max_corr_dist``, and solves the rigid transform in closed form with Horn's method. Sequences
+stop independently when the relative change of the mean squared matching error falls below ``tol``.
 
 References:
     P. J. Besl and N. D. McKay, "A method for registration of 3-D shapes", IEEE TPAMI 14(2), 1992.
@@ -16,8 +16,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.estimators.base import check_mask, check_points, check_T, zero_invalid
-from torchtrack.estimators.horn import horn
+from torchtrack.estimators.base import check_mask, check_points, check_T, sq_dists, zero_invalid
+from torchtrack.estimators.horn import horn_weighted
 from torchtrack.geometry import transform_points
 
 
@@ -38,16 +38,16 @@ def nearest_neighbours(
 ) -> tuple[Tensor, Tensor, Tensor]:
     """For each src point (B, N, 3) its nearest valid dst point (B, M, 3).
 
-    Returns (index (B, N) into dst, squared distance (B, N), inlier (B, N) bool: valid src with a valid
+    Returns (matched dst point (B, N, 3), squared distance (B, N), inlier (B, N) bool: valid src with a valid
     match within ``max_corr_dist``).
     """
-    d2 = torch.cdist(src, dst, compute_mode="donot_use_mm_for_euclid_dist").square()  # B,N,M
-    d2 = d2.masked_fill(~valid_dst[:, None, :], torch.inf)
-    d2min, idx = d2.min(-1)
-    inlier = valid_src & torch.isfinite(d2min)
+    idx = sq_dists(src, dst, valid_src, valid_dst).argmin(-1)  # B,N; argmin of B,N,M
+    matched = torch.take_along_dim(dst, idx[..., None], dim=1)  # B,N,3
+    d2min = (src - matched).square().sum(-1)  # exact, not from the expanded form
+    inlier = valid_src & valid_dst.any(-1, keepdim=True)
     if max_corr_dist is not None:
         inlier = inlier & (d2min <= max_corr_dist**2)
-    return idx, torch.where(inlier, d2min, 0.0), inlier
+    return matched, torch.where(inlier, d2min, 0.0), inlier
 
 
 def icp(
@@ -88,21 +88,28 @@ def icp(
     active, converged = ok.clone(), torch.zeros_like(ok)
     iterations = torch.zeros(B, dtype=torch.long, device=src.device)
     mse_prev = torch.full((B,), torch.inf, dtype=src.dtype, device=src.device)
+    mse, n_in = torch.zeros_like(mse_prev), torch.zeros_like(iterations)
     for k in range(max_iters + 1):
-        idx, d2, inlier = nearest_neighbours(transform_points(T, src), dst, valid_src, valid_dst, max_corr_dist)
-        n_in = inlier.sum(-1)
-        mse = d2.sum(-1) / n_in.clamp_min(1)
-        done = (torch.isfinite(mse_prev) & ((mse_prev - mse).abs() <= tol * mse_prev)) | (mse <= mse_floor)
-        converged |= active & done
-        active &= ~done
-        if k == max_iters or not active.any():
+        ids = active.nonzero()[:, 0]  # work on the sequences still iterating only
+        if ids.numel() == 0:
             break
-        matched = torch.take_along_dim(dst, idx[..., None], dim=1)  # B,N,3
-        est = horn(src, matched, inlier)
-        active &= est.valid  # too few inlier matches: stop where we are
-        T = torch.where(active[:, None, None], est.T, T)
-        iterations += active.long()
-        mse_prev = torch.where(active, mse, mse_prev)
+        s, Tk = src[ids], T[ids]
+        matched, d2, inlier = nearest_neighbours(
+            transform_points(Tk, s), dst[ids], valid_src[ids], valid_dst[ids], max_corr_dist
+        )
+        n_in[ids] = inlier.sum(-1)
+        mse[ids] = mse_k = d2.sum(-1) / n_in[ids].clamp_min(1)
+        prev = mse_prev[ids]
+        done = (torch.isfinite(prev) & ((prev - mse_k).abs() <= tol * prev)) | (mse_k <= mse_floor[ids])
+        converged[ids] = done
+        if k == max_iters:
+            break
+        est = horn_weighted(s, matched, inlier.to(src.dtype))
+        go = ~done & est.valid  # too few inlier matches: stop where we are
+        T[ids] = torch.where(go[:, None, None], est.T, Tk)
+        iterations[ids] += go.long()
+        mse_prev[ids] = mse_k
+        active[ids] = go
     valid = ok & (n_in >= 3)
     T = torch.where(valid[:, None, None], T, T_init)
     return ICPResult(T, mse.sqrt(), iterations, converged & valid, valid)
