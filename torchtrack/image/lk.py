@@ -1,0 +1,348 @@
+"""Batched pyramidal Lucas–Kanade (Bouguet) and template inverse matching, eq. (10).
+
+Translation LK in the inverse-compositional form: per point and level, the template window, its
+gradients and the 2x2 gradient matrix are gathered once; each iteration samples the next image once (one
+gather of an integer (w+1)x(w+1) patch and two lerps: all window pixels share one pair of bilinear
+weights) and applies the precomputed inverse Hessian. All points of all images form one flat list that is
+compacted as points stop (per-point early stop); there is no Python loop over points.
+
+Two choices differ from OpenCV's ``calcOpticalFlowPyrLK`` (both keep its fixed point):
+- the template window is centred on the pixel nearest to the point (no template interpolation); the
+  estimated displacement is added to the point's exact sub-pixel position;
+- after ``ic_iters`` iterations at a level, the points still moving take Newton steps on the same normal
+  equations, using the next image's gradients (one gather of three planes instead of one): the slowly
+  sliding points that make OpenCV's loop run to ``iters`` converge in a few steps. ``ic_iters >= iters``
+  gives plain inverse-compositional iterations.
+
+References: J.-Y. Bouguet, "Pyramidal Implementation of the Lucas Kanade Feature Tracker", Intel, 2000;
+S. Baker, I. Matthews, "Lucas-Kanade 20 Years On", IJCV 2004; R. Liu et al., "Online Determination of
+Track Loss Using Template Inverse Matching", VS 2008 (d_TIM, paper eq. (10)).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchtrack.image.pyramid import Pyramid, build_pyramid
+
+_EXACT_F32 = 2**24  # float32 index arithmetic is exact below this
+_CONVERGED, _LOST = 1, 2
+
+
+class LKResult(NamedTuple):
+    """Result of pyramidal LK.
+
+    points: (B, N, 2) tracked positions in the next image (pixels, x right, y down); the input where not tracked.
+    status: (B, N) bool, tracked: valid input, inside the image, not degenerate, converged, ended inside the image.
+    residual: (B, N) mean absolute intensity difference over the final window (0 where not tracked).
+    """
+
+    points: Tensor
+    status: Tensor
+    residual: Tensor
+
+
+class _Sampler:
+    """Windows of one pyramid: (n, C, m, m) patches gathered with one 1-D index_select each."""
+
+    def __init__(self, pyr: Pyramid, window: int):
+        self.pyr, self.window, self.r, self.c = pyr, window, window // 2, pyr.channels
+        self.dtype = torch.float32 if pyr.flat.numel() < _EXACT_F32 else torch.float64
+        self.stride = torch.tensor([1.0, float(pyr.stride)], dtype=self.dtype)
+        self.base_table = ((pyr.row_start + pyr.pad) * pyr.stride + pyr.pad).to(self.dtype)  # L,B: level px (0, 0)
+        self._rows: dict[int, tuple[Tensor, Tensor]] = {}
+
+    def rows(self, size: int) -> tuple[Tensor, Tensor]:
+        """A sliding view (len, size) of the flat buffer (row i = flat[i : i + size]) and the (C * size,) int32
+        offsets of the rows of a size x size patch whose centre pixel is at offset 0."""
+        if size not in self._rows:
+            s, h, flat = self.pyr.stride, (size - 1) // 2, self.pyr.flat
+            rows = torch.arange(size, dtype=torch.int32) * s - h * (s + 1)
+            chan = torch.arange(self.c, dtype=torch.int32)[:, None] * self.pyr.plane
+            view = flat.as_strided((flat.numel() - size + 1, size), (1, 1))
+            self._rows[size] = (view, (chan + rows[None, :]).reshape(-1))
+        return self._rows[size]
+
+    def bounds(self, level: int) -> tuple[Tensor, Tensor]:
+        """Window centres q (level px) can be sampled, gradients included, iff lo <= q < hi."""
+        h, w = self.pyr.size(level)
+        lo, hi = self.r + 1 - self.pyr.pad, self.pyr.pad - self.r - 2
+        return torch.tensor(float(lo)), torch.tensor([w + hi, h + hi], dtype=torch.float32)
+
+    def base(self, level: int, image_index: Tensor) -> Tensor:
+        return self.base_table[level].index_select(0, image_index)
+
+    def gather(self, start: Tensor, size: int) -> Tensor:
+        """(n, C, size, size) patches centred at flat indices start (n,) (any dtype holding integers)."""
+        view, offsets = self.rows(size)  # one index per patch row: 2x faster than one per pixel
+        idx = (start.to(torch.int32).view(-1, 1) + offsets).view(-1)
+        return view.index_select(0, idx).view(start.shape[0], self.c, size, size)
+
+    def integer(self, centre: Tensor, base: Tensor, extra: int) -> Tensor:
+        """(n, C, w + 2 extra, w + 2 extra) windows at integer centres (n, 2)."""
+        return self.gather(torch.addmv(base, centre.to(self.dtype), self.stride), self.window + 2 * extra)
+
+    def bilinear(self, q: Tensor, base: Tensor, extra: int) -> Tensor:
+        """(n, C, w + 2 extra, w + 2 extra) windows bilinearly sampled at sub-pixel centres q (n, 2)."""
+        n = q.shape[0]
+        fl = q.floor()
+        fr = q - fl
+        patch = self.gather(torch.addmv(base, fl.to(self.dtype), self.stride), self.window + 1 + 2 * extra)
+        jy = torch.lerp(patch[:, :, :-1], patch[:, :, 1:], fr[:, 1].view(n, 1, 1, 1))
+        return torch.lerp(jy[..., :-1], jy[..., 1:], fr[:, 0].view(n, 1, 1, 1))
+
+
+_GRAD_SCALE = 13.0 / 32.0  # _gradients returns Scharr derivatives (per pixel) divided by this
+
+
+def _gradients(patch: Tensor) -> Tensor:
+    """(n, C, m, m) -> (n, 2, C * (m-2)^2): [d/dx, d/dy] Scharr derivatives on the inner (m-2)^2 window,
+    unscaled: [-3 0 3; -10 0 10; -3 0 3] / 13 (true per-pixel derivative = _GRAD_SCALE * value)."""
+    n = patch.shape[0]
+    dx = patch[..., 2:] - patch[..., :-2]
+    dy = patch[..., 2:, :] - patch[..., :-2, :]
+    gx = torch.lerp(dx[..., 1:-1, :], dx[..., :-2, :] + dx[..., 2:, :], 3.0 / 13.0)
+    gy = torch.lerp(dy[..., 1:-1], dy[..., :-2] + dy[..., 2:], 3.0 / 13.0)
+    return torch.stack([gx.view(n, -1), gy.view(n, -1)], 1)
+
+
+def _template(sampler: _Sampler, centre: Tensor, base: Tensor, min_eig: float) -> tuple[Tensor, Tensor, Tensor]:
+    """Template data at integer centres (n, 2): inverse-Hessian-premultiplied gradients gt (n, 2, C*K), the
+    template's projection tgh = gt @ T (n, 2), and a degenerate mask (n,) (smallest eigenvalue of the
+    gradient matrix below min_eig, in OpenCV's units)."""
+    patch = sampler.integer(centre, base, extra=1)
+    n = patch.shape[0]
+    t = patch[..., 1:-1, 1:-1].reshape(n, 1, -1)
+    g = _gradients(patch)
+    h = torch.bmm(g, g.mT)  # n,2,2 (in unscaled gradients)
+    a11, a12, a22 = h[:, 0, 0], h[:, 0, 1], h[:, 1, 1]
+    det = a11 * a22 - a12 * a12
+    lam = 0.5 * (a11 + a22 - torch.sqrt((a11 - a22) ** 2 + 4.0 * a12 * a12))
+    # OpenCV's minEig: intensities on 0..255, 1/32-scaled Scharr (1/1024 on products), per window pixel.
+    degenerate = (lam * (_GRAD_SCALE**2 * 255.0**2 / 1024.0 / sampler.window**2) < min_eig) | (det <= 0.0)
+    scale = 1.0 / (_GRAD_SCALE * torch.where(degenerate, torch.ones_like(det), det))
+    h_inv = torch.stack([a22, -a12, -a12, a11], -1).mul_(scale[:, None]).view(n, 2, 2)
+    gt = torch.bmm(h_inv, g)  # true H^-1 @ true gradients
+    return gt, torch.bmm(t, gt.mT), degenerate
+
+
+_ADJ = torch.tensor([3, 1, 2, 0])  # flat 2x2 [a, b, c, d] -> adjugate [d, -b, -c, a] (with _ADJ_SIGN)
+_ADJ_SIGN = torch.tensor([1.0, -1.0, -1.0, 1.0])
+
+
+def _newton(delta: Tensor, gt: Tensor, jy: Tensor, patch: Tensor, fx: Tensor) -> Tensor:
+    """Newton step M^-1 delta on the normal equations R(q) = sum gt (T - J(q)) = 0, whose Gauss-Newton
+    (inverse-compositional) step is delta; M = gt @ dJ/dq^T (n, 2, 2) with the exact derivatives of the
+    bilinear window: dJ/dx from the y-interpolated patch jy (n, C, w, w+1), dJ/dy from the raw patch.
+    Falls back to delta where M is far from the identity (det < 0.1)."""
+    n = delta.shape[0]
+    djx = (jy[..., 1:] - jy[..., :-1]).view(n, 1, -1)
+    djy = torch.lerp(patch[:, :, 1:, :-1] - patch[:, :, :-1, :-1], patch[:, :, 1:, 1:] - patch[:, :, :-1, 1:], fx)
+    m = torch.bmm(gt, torch.cat([djx, djy.view(n, 1, -1)], 1).mT).view(n, 4)
+    adj = m.index_select(1, _ADJ).mul_(_ADJ_SIGN)
+    det = torch.linalg.vecdot(m[:, :2], adj[:, ::2])
+    step = torch.bmm(adj.view(n, 2, 2), delta.view(n, 2, 1)).view(n, 2) / det[:, None]
+    return torch.where((det > 0.01)[:, None], step, delta)
+
+
+def _iterate(sampler, level, q, gt, tgh, base, *, iters, eps, ic_iters):
+    """LK iterations with per-point early stop for window centres q (P, 2) in level pixels.
+
+    Stops a point when its update is at most eps (converged), or, in the Newton phase, when the update
+    does not shrink (diverging: not converged), or after iters iterations. Sampling is clamped to the
+    image border; a point whose centre ends outside the sampleable area is lost.
+    Returns the final centres (P, 2) and a code (P,) int8: _CONVERGED, _LOST, or 0 (not converged).
+    """
+    lo, hi = sampler.bounds(level)
+    hi1 = hi - 1.0
+    q_out, code = q.clone(), torch.zeros(q.shape[0], dtype=torch.int8)
+    ids = torch.arange(q.shape[0])
+    d2_prev = None
+    eps2 = eps * eps
+    for j in range(iters):
+        n, newton = q.shape[0], j >= ic_iters
+        fl0 = q.floor()
+        fl = fl0.clamp(lo, hi1)
+        fr = (q - fl).view(n, 2, 1, 1, 1)
+        patch = sampler.gather(torch.addmv(base, fl.to(base.dtype), sampler.stride), sampler.window + 1)
+        fx, fy = fr[:, 0], fr[:, 1]
+        jy = torch.lerp(patch[:, :, :-1], patch[:, :, 1:], fy)
+        win = torch.lerp(jy[..., :-1], jy[..., 1:], fx).view(n, 1, -1)
+        delta = torch.baddbmm(tgh, win, gt.mT, alpha=-1.0).view(n, 2)  # inverse-compositional step
+        if newton:
+            delta = _newton(delta, gt, jy, patch, fx)
+        q = q + delta
+        d2 = torch.linalg.vecdot(delta, delta)
+        done = (d2 <= eps2) | (fl != fl0).any(-1)
+        if j > ic_iters:
+            done = done | (d2 >= d2_prev)
+        d2_prev = d2
+        if j == iters - 1 or bool(done.any()):
+            q_out[ids] = q
+            out = ((q < lo) | (q >= hi)).any(-1)
+            code[ids] = torch.where(out, _LOST, (d2 <= eps2).to(torch.int8))
+            keep = (~done).nonzero().squeeze(1)
+            if keep.numel() == 0:
+                break
+            ids, q, base, d2_prev = ids[keep], q[keep], base[keep], d2[keep]
+            gt, tgh = gt.index_select(0, keep), tgh.index_select(0, keep)
+    return q_out, code
+
+
+def lk_track_flat(
+    prev: Pyramid,
+    next: Pyramid,
+    points: Tensor,
+    image_index: Tensor,
+    init: Tensor,
+    *,
+    window: int = 21,
+    levels: int = 3,
+    iters: int = 30,
+    eps: float = 0.01,
+    min_eig: float = 1e-4,
+    ic_iters: int = 4,
+    with_residual: bool = True,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Pyramidal LK on a flat list of P points, each in its own image of the pyramids' batch.
+
+    Args:
+        prev, next: pyramids of equal geometry (built with a window at least ``window``).
+        points: (P, 2) level-0 positions in prev. image_index: (P,) int64 batch index of each point.
+        init: (P, 2) initial guess of the positions in next.
+
+    Returns:
+        points (P, 2) in next, status (P,) bool, residual (P,) (zeros unless with_residual).
+    """
+    with torch.inference_mode():
+        s_prev, s_next = _Sampler(prev, window), _Sampler(next, window)
+        h0, w0 = prev.size(0)
+        inside = (points >= 0).all(-1) & (points[:, 0] <= w0 - 1) & (points[:, 1] <= h0 - 1)
+        guess, status = init.clone(), inside.clone()
+        sel = inside.nonzero().squeeze(1)
+        x0, img = points[sel], image_index[sel]
+        for level in reversed(range(levels)):
+            scale = 0.5**level
+            x = x0 * scale
+            centre = torch.round(x)
+            frac = x - centre
+            gt, tgh, degenerate = _template(s_prev, centre, s_prev.base(level, img), min_eig)
+            track = (~degenerate).nonzero().squeeze(1)
+            rows = sel[track]
+            q, code = _iterate(
+                s_next, level, guess[rows] * scale - frac[track], gt.index_select(0, track),
+                tgh.index_select(0, track), s_next.base(level, img[track]), iters=iters, eps=eps, ic_iters=ic_iters,
+            )  # fmt: skip
+            guess[rows] = (q + frac[track]) / scale
+            if level == 0:
+                status[sel] = False
+                status[rows] = code == _CONVERGED
+        status &= (guess >= 0).all(-1) & (guess[:, 0] <= w0 - 1) & (guess[:, 1] <= h0 - 1)
+        residual = torch.zeros(points.shape[0], dtype=points.dtype)
+        good = status.nonzero().squeeze(1)
+        if with_residual and good.numel():
+            residual[good] = _residual(s_prev, s_next, points[good], guess[good], image_index[good])
+        guess = torch.where(inside[:, None], guess, points)
+    return guess.clone(), status.clone(), residual.clone()
+
+
+def _residual(s_prev: _Sampler, s_next: _Sampler, x0: Tensor, x1: Tensor, img: Tensor) -> Tensor:
+    """Mean |J - T| over the final level-0 window (the objective LK minimised), (P,)."""
+    centre = torch.round(x0)
+    t = s_prev.integer(centre, s_prev.base(0, img), extra=0)
+    j = s_next.bilinear(x1 - (x0 - centre), s_next.base(0, img), extra=0)
+    return (j - t).abs().flatten(1).mean(-1)
+
+
+def _as_pyramid(x: Tensor | Pyramid, levels: int, window: int, name: str) -> Pyramid:
+    if isinstance(x, Pyramid):
+        if x.levels < levels or x.max_window < window:
+            raise ValueError(
+                f"pyramidal_lk: {name} pyramid has {x.levels} levels / window {x.max_window}, need {levels} / {window}"
+            )
+        return x
+    return build_pyramid(x, levels, window=window)
+
+
+def pyramidal_lk(
+    prev: Tensor | Pyramid,
+    next: Tensor | Pyramid,
+    points: Tensor,
+    *,
+    window: int = 21,
+    levels: int = 3,
+    iters: int = 30,
+    eps: float = 0.01,
+    init: Tensor | None = None,
+    valid: Tensor | None = None,
+    min_eig: float = 1e-4,
+    ic_iters: int = 4,
+) -> LKResult:
+    """Track points from prev to next with pyramidal Lucas–Kanade (translation per window).
+
+    Args:
+        prev, next: (B, C, H, W) float images (channels tracked jointly) or their pyramids (build_pyramid),
+            reusable across calls: build each frame's pyramid once.
+        points: (B, N, 2) pixel positions in prev (x right, y down, pixel centres at integers).
+        window: odd window width in pixels (OpenCV winSize). levels: pyramid levels L (OpenCV maxLevel = L - 1).
+        iters, eps: per level, at most iters iterations; a point stops when its update is at most eps pixels.
+        init: (B, N, 2) initial guess in next (default: points). valid: (B, N) bool, False entries are skipped.
+        min_eig: threshold on the gradient matrix's smallest eigenvalue in OpenCV's units (minEigThreshold).
+        ic_iters: inverse-compositional iterations per level before Newton steps (see the module docstring).
+
+    Returns:
+        LKResult(points (B, N, 2), status (B, N), residual (B, N)).
+    """
+    if points.ndim != 3 or points.shape[-1] != 2:
+        raise ValueError(f"pyramidal_lk: points must be (B, N, 2), got {tuple(points.shape)}")
+    if window % 2 == 0 or window < 3 or levels < 1 or iters < 1:
+        raise ValueError(
+            f"pyramidal_lk: need odd window >= 3, levels >= 1, iters >= 1; got {window}, {levels}, {iters}"
+        )
+    prev_p, next_p = _as_pyramid(prev, levels, window, "prev"), _as_pyramid(next, levels, window, "next")
+    b, n = points.shape[:2]
+    if prev_p.batch != b or prev_p.images[0].shape != next_p.images[0].shape:
+        raise ValueError(
+            f"pyramidal_lk: images {tuple(prev_p.images[0].shape)} and {tuple(next_p.images[0].shape)} "
+            f"do not match points {tuple(points.shape)}"
+        )
+    init = points if init is None else init
+    if init.shape != points.shape:
+        raise ValueError(f"pyramidal_lk: init must be {tuple(points.shape)}, got {tuple(init.shape)}")
+    if valid is not None and valid.shape != (b, n):
+        raise ValueError(f"pyramidal_lk: valid must be {(b, n)}, got {tuple(valid.shape)}")
+    pts, guess = points.reshape(-1, 2).float(), init.reshape(-1, 2).float()
+    image_index = torch.arange(b).repeat_interleave(n)
+    sel = valid.reshape(-1).nonzero().squeeze(1) if valid is not None else torch.arange(b * n)
+    out, status, residual = pts.clone(), torch.zeros(b * n, dtype=torch.bool), torch.zeros(b * n)
+    out[sel], status[sel], residual[sel] = lk_track_flat(
+        prev_p, next_p, pts[sel], image_index[sel], guess[sel],
+        window=window, levels=levels, iters=iters, eps=eps, min_eig=min_eig, ic_iters=ic_iters,
+    )  # fmt: skip
+    return LKResult(out.view(b, n, 2).to(points.dtype), status.view(b, n), residual.view(b, n))
+
+
+def forward_backward(
+    prev: Tensor | Pyramid, next: Tensor | Pyramid, points: Tensor, **kwargs
+) -> tuple[LKResult, Tensor, Tensor]:
+    """Template inverse matching: track prev -> next, then the result back next -> prev.
+
+    Args:
+        prev, next, points: as pyramidal_lk; kwargs are passed to both passes (init and valid only forward).
+
+    Returns:
+        (forward LKResult, back_points (B, N, 2) in prev, d_tim (B, N)): d_TIM = ||x - x'||, eq. (10), +inf
+        where either pass failed.
+    """
+    levels, window = kwargs.get("levels", 3), kwargs.get("window", 21)
+    prev_p, next_p = _as_pyramid(prev, levels, window, "prev"), _as_pyramid(next, levels, window, "next")
+    fwd = pyramidal_lk(prev_p, next_p, points, **kwargs)
+    kwargs.pop("init", None)
+    kwargs["valid"] = fwd.status
+    bwd = pyramidal_lk(next_p, prev_p, fwd.points, **kwargs)
+    d_tim = torch.linalg.vector_norm(points - bwd.points, dim=-1)  # eq. (10)
+    d_tim = torch.where(fwd.status & bwd.status, d_tim, torch.full_like(d_tim, float("inf")))
+    return fwd, bwd.points, d_tim

@@ -1,0 +1,108 @@
+"""Gaussian image pyramids packed for fast gather-based Lucas–Kanade sampling.
+
+A pyramid is built once per frame and reused: as the *next* image of one LK call and as the *template*
+(previous) image of the following call. Each level is decimated like OpenCV's ``pyrDown`` (5x5 binomial
+blur, keep even pixels), so level-l coordinates are exactly ``x / 2**l`` and tracks agree with
+``cv2.calcOpticalFlowPyrLK`` level by level.
+
+All levels of all images live in one flat buffer (C, rows, row_stride) with the *same* row stride for
+every level (coarse levels leave the end of their rows unused). A window anywhere in the pyramid is then
+one 1-D ``index_select`` with one fixed table of offsets (measured 6x faster than ``grid_sample`` and 3x
+faster than gathering precomputed gradient planes), and points at different levels or in different
+images are sampled by a single call. Gradients are taken on the gathered patches, not on whole images.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import kornia
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+_BINOMIAL_5 = torch.tensor([[1.0, 4.0, 6.0, 4.0, 1.0]]) / 16.0  # cv2.pyrDown kernel, separable
+
+
+@dataclass
+class Pyramid:
+    """L-level Gaussian pyramid of a (B, C, H, W) image batch, packed for LK.
+
+    Attributes:
+        images: L tensors (B, C, H_l, W_l); level 0 is the input, H_l = ceil(H_{l-1} / 2).
+        flat: (C * R * S,) buffer, the contiguous flattening of (C, R, S): every level and image,
+            replicate-padded by ``pad`` pixels; image b of level l occupies rows ``row_start[l, b]`` to
+            ``row_start[l, b] + H_l + 2 pad`` and columns ``0`` to ``W_l + 2 pad`` of each channel plane.
+        row_start: (L, B) int64 first buffer row of each level and image.
+        stride: S, the row stride (W + 2 pad). plane: R * S, the channel stride.
+        pad: border in pixels; windows up to ``2 * (pad - 3) + 1`` pixels wide fit.
+    """
+
+    images: list[Tensor]
+    flat: Tensor
+    row_start: Tensor
+    stride: int
+    plane: int
+    pad: int
+
+    @property
+    def levels(self) -> int:
+        return len(self.images)
+
+    @property
+    def batch(self) -> int:
+        return self.images[0].shape[0]
+
+    @property
+    def channels(self) -> int:
+        return self.images[0].shape[1]
+
+    @property
+    def max_window(self) -> int:
+        return 2 * (self.pad - 3) + 1
+
+    def size(self, level: int) -> tuple[int, int]:
+        """(H_l, W_l) of a level."""
+        h, w = self.images[level].shape[-2:]
+        return int(h), int(w)
+
+
+def pyr_down(image: Tensor) -> Tensor:
+    """(B, C, H, W) -> (B, C, ceil(H/2), ceil(W/2)): 5x5 binomial blur, keep even pixels (as cv2.pyrDown)."""
+    k = _BINOMIAL_5.to(image)
+    blurred = kornia.filters.filter2d_separable(image, k, k, border_type="reflect")
+    return blurred[..., ::2, ::2]
+
+
+def build_pyramid(image: Tensor, levels: int, *, window: int = 21) -> Pyramid:
+    """Build the LK pyramid of an image batch; do it once per frame.
+
+    Args:
+        image: (B, C, H, W) float, e.g. intensity in [0, 1]. The C channels are tracked jointly by LK.
+        levels: number of levels L >= 1 (L = 1: no pyramid; OpenCV's maxLevel is L - 1).
+        window: the largest LK window (odd, pixels) the pyramid must support; sets the padding.
+
+    Returns:
+        Pyramid with L levels, to pass to every LK call on this frame.
+    """
+    if image.ndim != 4 or not image.is_floating_point():
+        raise ValueError(f"build_pyramid: image must be a float (B, C, H, W) tensor, got {tuple(image.shape)}")
+    if levels < 1 or window < 3 or window % 2 == 0:
+        raise ValueError(f"build_pyramid: need levels >= 1 and an odd window >= 3, got {levels}, {window}")
+    with torch.inference_mode():
+        pad = window // 2 + 3  # window + 1 px for bilinear weights + 1 px for gradients + 1 px slack
+        images = [image]
+        for _ in range(levels - 1):
+            images.append(pyr_down(images[-1]))
+        b, c, h, w = image.shape
+        heights = [x.shape[-2] + 2 * pad for x in images]
+        starts = torch.tensor([0] + heights[:-1]).cumsum(0) * b  # first row of each level
+        buf = image.new_empty(c, sum(heights) * b, w + 2 * pad)
+        for level, x in enumerate(images):
+            hp, wp = heights[level], x.shape[-1] + 2 * pad
+            rows = slice(int(starts[level]), int(starts[level]) + b * hp)
+            dst = buf[:, rows].view(c, b, hp, -1)
+            dst[..., :wp] = F.pad(x, (pad,) * 4, mode="replicate").transpose(0, 1)
+            dst[..., wp:] = 0.0
+        row_start = starts[:, None] + torch.arange(b)[None, :] * torch.tensor(heights)[:, None]
+    return Pyramid(images, buf.view(-1), row_start, stride=w + 2 * pad, plane=buf[0].numel(), pad=pad)
