@@ -1,0 +1,275 @@
+"""Spatio-textural feature selection, paper §III-B, eq. (9).
+
+1. Cornerness of the intensity image and of the SIM image (Harris, :mod:`torchtrack.image.corners`).
+2. Normalisation, per frame and per map, so that the two are comparable: with ``R+ = max(R, 0)`` on
+   the eligible pixels (region of interest, valid depth, valid SIM when used, away from the border)
+   and ``s`` the 90th percentile over the patches of the patch maxima of ``R+`` (patches with a
+   positive maximum), ``rho = (R+ / s)^(1/4)`` and ``C = rho / (1 + rho)``. The fourth root makes the
+   measure linear in image contrast (Harris grows as contrast^4, spanning 5 decades over a frame);
+   dividing by a high percentile makes it invariant to each image's contrast (1/2 = as strong as the
+   strong corners of this frame); the soft saturation keeps a few extreme corners of one map from
+   outweighing the other map, without ties (a monotone map: each map keeps its own ranking). C is in
+   [0, 1), 0 on flat areas and edges.
+3. ``C = lam * C_int + (1 - lam) * C_SIM`` (eq. 9).
+4. ``spread=True`` (the paper): a regular grid of patches over the image, one pixel of maximum C
+   per patch (patches outside the region of interest give none). ``spread=False`` (ablation EKF-1):
+   the global top-N by C after non-maximum suppression in a (2 nms_radius + 1)^2 window, N the
+   number of patches of the grid (or ``max_features``).
+
+Only pixels with C > 0 are selected: a patch without any corner-like pixel gives no feature.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from torchtrack.geometry import backproject, sample_depth
+from torchtrack.image.corners import harris
+from torchtrack.image.shape_index import SIM, ShapeIndex, compute_sim, sim_image
+
+
+class Features(NamedTuple):
+    """Selected features, padded to (B, N) and sorted by decreasing cornerness within each sequence.
+
+    Attributes:
+        pixels: (B, N, 2) float32 pixel coordinates (x, y) of the features (integers).
+        points: (B, N, 3) camera coordinates, back-projection of the raw depth at the pixels.
+        cornerness: (B, N) combined normalised cornerness C of eq. (9), in [0, 1).
+        cornerness_int: (B, N) normalised intensity cornerness.
+        cornerness_sim: (B, N) normalised SIM cornerness (0 when no SIM was used).
+        valid: (B, N) bool; invalid entries are all zeros.
+    """
+
+    pixels: Tensor
+    points: Tensor
+    cornerness: Tensor
+    cornerness_int: Tensor
+    cornerness_sim: Tensor
+    valid: Tensor
+
+
+def patch_shape(H: int, W: int, patch_size: int | tuple[int, int] = 32, grid: tuple[int, int] | None = None):
+    """(ph, pw, gh, gw): patch rows/cols in pixels and the grid's rows/cols covering (H, W)."""
+    if grid is not None:
+        gh, gw = grid
+        ph, pw = math.ceil(H / gh), math.ceil(W / gw)
+    else:
+        ph, pw = (patch_size, patch_size) if isinstance(patch_size, int) else patch_size
+    if ph < 1 or pw < 1:
+        raise ValueError(f"select_features: patch size must be positive, got {(ph, pw)}")
+    return ph, pw, math.ceil(H / ph), math.ceil(W / pw)
+
+
+def _patches(x: Tensor, ph: int, pw: int, gh: int, gw: int, value: float) -> Tensor:
+    """(B, C, H, W) -> (B, C, gh, ph, gw, pw), padded with ``value``."""
+    B, C, H, W = x.shape
+    if gh * ph != H or gw * pw != W:
+        x = F.pad(x, (0, gw * pw - W, 0, gh * ph - H), value=value)
+    return x.view(B, C, gh, ph, gw, pw)
+
+
+def normalise_cornerness(
+    R: Tensor, eligible: Tensor, ph: int, pw: int, gh: int, gw: int, quantile: float = 0.9
+) -> Tensor:
+    """Per-frame, per-channel normalisation of the module docstring: R (B, C, H, W) -> C in [0, 1)."""
+    r = R.clamp_min(0.0) * eligible
+    patch_max = _patches(r, ph, pw, gh, gw, 0.0).amax(dim=(3, 5)).flatten(2)  # B,C,P
+    pos = patch_max > 0
+    sorted_max = torch.where(pos, patch_max, torch.full_like(patch_max, float("inf"))).sort(dim=-1).values
+    n = pos.sum(-1, keepdim=True)
+    k = ((n - 1).clamp_min(0).to(R.dtype) * quantile).round().long()
+    s = sorted_max.gather(-1, k)  # the quantile of the positive patch maxima
+    s = torch.where(n > 0, s, torch.ones_like(s))[..., None]  # B,C,1,1
+    rho = (r / s).sqrt().sqrt()  # contrast-linear: Harris grows as contrast^4
+    return rho / (1.0 + rho)
+
+
+def _eligible(depth: Tensor, roi: Tensor | None, sim_valid: Tensor | None, border: int) -> Tensor:
+    m = (depth > 0).to(depth.dtype)
+    if roi is not None:
+        m = m * roi
+    if sim_valid is not None:
+        m = m * sim_valid
+    if border > 0:
+        m = F.pad(m[..., border:-border, border:-border], (border, border, border, border))
+    return m
+
+
+def _patch_maxima(C: Tensor, ph: int, pw: int, gh: int, gw: int) -> tuple[Tensor, Tensor]:
+    """One pixel of maximum C per patch: (pixels (B, P, 2) float, value (B, P)); C (B, 1, H, W)."""
+    B = C.shape[0]
+    p = _patches(C, ph, pw, gh, gw, -1.0)[:, 0].permute(0, 1, 3, 2, 4).reshape(B, gh * gw, ph * pw)
+    value, idx = p.max(dim=-1)
+    P = torch.arange(gh * gw, device=C.device)
+    x = (P % gw) * pw + idx % pw
+    y = (P // gw) * ph + idx // pw
+    return torch.stack([x, y], dim=-1).to(C.dtype), value
+
+
+def _local_maxima(C: Tensor, radius: int, n: int) -> tuple[Tensor, Tensor]:
+    """Global top-n of C (B, 1, H, W) after non-maximum suppression: (pixels (B, n, 2), value (B, n))."""
+    B, _, H, W = C.shape
+    m = C
+    for _ in range(radius):
+        p = F.pad(m, (1, 1), value=-1.0)
+        m = torch.maximum(torch.maximum(p[..., :-2], p[..., 2:]), m)
+    for _ in range(radius):
+        p = F.pad(m, (0, 0, 1, 1), value=-1.0)
+        m = torch.maximum(torch.maximum(p[..., :-2, :], p[..., 2:, :]), m)
+    score = torch.where(C >= m, C, torch.full_like(C, -1.0)).reshape(B, H * W)
+    value, idx = score.topk(min(n, H * W), dim=-1)
+    return torch.stack([idx % W, idx // W], dim=-1).to(C.dtype), value
+
+
+def _gather_map(x: Tensor, pixels: Tensor) -> Tensor:
+    """x (B, 1, H, W) at integer pixels (B, N, 2) -> (B, N)."""
+    B, _, H, W = x.shape
+    idx = (pixels[..., 1].long() * W + pixels[..., 0].long()).clamp(0, H * W - 1)
+    return x.reshape(B, H * W).gather(1, idx)
+
+
+def select_features(
+    gray: Tensor,
+    depth: Tensor,
+    K: Tensor,
+    *,
+    roi: Tensor | None = None,
+    sim: SIM | ShapeIndex | None = None,
+    lam: float = 0.5,
+    patch_size: int | tuple[int, int] = 32,
+    grid: tuple[int, int] | None = None,
+    spread: bool = True,
+    max_features: int | None = None,
+    border: int = 8,
+    nms_radius: int = 2,
+    require_sim: bool = True,
+    corner_kwargs: dict | None = None,
+    sim_kwargs: dict | None = None,
+) -> Features:
+    """Spatio-textural feature selection (eq. 9); method and normalisation in the module docstring.
+
+    Args:
+        gray: (B, 1, H, W) intensity in [0, 1].
+        depth: (B, 1, H, W) metres in the same pixel grid, 0 = none. Features only where depth > 0.
+        K: (B, 3, 3) intrinsics of that grid (for the back-projection and the SIM).
+        roi: (B, 1, H, W) bool region of interest (e.g. :func:`torchtrack.image.object_model.object_mask`);
+            None = whole frame.
+        sim: the frame's SIM (``compute_sim`` or ``shape_index`` output); computed here when None and lam < 1.
+        lam: lambda of eq. (9): 1 = intensity only (the SIM is then neither computed nor required).
+        patch_size: patch (rows, cols) in pixels, or one int for square patches (32: a 15 x 20 grid,
+            300 patches, on 640 x 480).
+        grid: (rows, cols) of the patch grid instead of ``patch_size``.
+        spread: one feature per patch (paper); False = global top-N with NMS (ablation EKF-1).
+        max_features: keep at most this many (the highest C); default: the number of patches.
+        border: features are at least this many pixels from the image edge (LK window).
+        nms_radius: non-maximum suppression radius (pixels) when ``spread`` is False.
+        require_sim: with lam < 1, only pixels with a valid SIM are eligible (the paper's choice;
+            False lets planar areas compete with C_SIM = 0).
+        corner_kwargs: keyword arguments of :func:`torchtrack.image.corners.harris`.
+        sim_kwargs: keyword arguments of :func:`torchtrack.image.shape_index.shape_index` (when computed here).
+
+    Returns:
+        Features, N = the largest number of selected features over the batch (or ``max_features``).
+    """
+    if gray.dim() != 4 or gray.shape[1] != 1 or depth.shape != gray.shape:
+        raise ValueError(
+            f"select_features: gray and depth must be (B, 1, H, W), got {tuple(gray.shape)}, {tuple(depth.shape)}"
+        )
+    B, _, H, W = gray.shape
+    if K.shape != (B, 3, 3):
+        raise ValueError(f"select_features: K must be ({B}, 3, 3), got {tuple(K.shape)}")
+    if roi is not None and roi.shape != gray.shape:
+        raise ValueError(f"select_features: roi must be {tuple(gray.shape)}, got {tuple(roi.shape)}")
+    if not 0.0 <= lam <= 1.0:
+        raise ValueError(f"select_features: lam must be in [0, 1], got {lam}")
+    ph, pw, gh, gw = patch_shape(H, W, patch_size, grid)
+    if 2 * border >= min(H, W):
+        raise ValueError(f"select_features: border {border} leaves no pixel of a {H}x{W} image")
+
+    if sim is None and lam < 1.0:
+        sim = compute_sim(depth, K, **(sim_kwargs or {}))
+    gray = gray.float()
+    if sim is not None:
+        sim_img = sim.image if isinstance(sim, SIM) else sim_image(sim)
+        maps = torch.cat([gray, sim_img], dim=1)
+    else:
+        maps = gray
+    eligible = _eligible(depth, roi, sim.valid if (sim is not None and lam < 1.0 and require_sim) else None, border)
+    R = harris(maps, **(corner_kwargs or {}))  # B,1|2,H,W
+    Cn = normalise_cornerness(R, eligible, ph, pw, gh, gw)
+    c_int = Cn[:, :1]
+    c_sim = Cn[:, 1:] if sim is not None else torch.zeros_like(c_int)
+    C = lam * c_int + (1.0 - lam) * c_sim  # eq. (9)
+    C = C * eligible + (eligible - 1.0)  # -1 where not eligible
+
+    n_max = gh * gw if max_features is None else max_features
+    if spread:
+        pixels, value = _patch_maxima(C, ph, pw, gh, gw)
+    else:
+        pixels, value = _local_maxima(C, nms_radius, n_max)
+    return _finish(pixels, value, c_int, c_sim, depth, K, n_max)
+
+
+def _finish(
+    pixels: Tensor, value: Tensor, c_int: Tensor, c_sim: Tensor, depth: Tensor, K: Tensor, n_max: int
+) -> Features:
+    """Sort by (valid, C) descending, pad to the batch's largest count, back-project."""
+    valid = value > 0
+    order = torch.where(valid, value, torch.full_like(value, -1.0)).argsort(dim=-1, descending=True, stable=True)
+    N = max(1, min(n_max, int(valid.sum(-1).max())))
+    order = order[:, :N]
+    pixels = pixels.gather(1, order[..., None].expand(-1, -1, 2))
+    value, valid = value.gather(1, order), valid.gather(1, order)
+    vf = valid.to(pixels.dtype)
+    pixels = pixels * vf[..., None]
+    z = sample_depth(depth, pixels) * vf
+    points = backproject(K.to(pixels), pixels, z) * vf[..., None]
+    return Features(
+        pixels=pixels,
+        points=points,
+        cornerness=value.clamp_min(0.0) * vf,
+        cornerness_int=_gather_map(c_int, pixels) * vf,
+        cornerness_sim=_gather_map(c_sim, pixels) * vf,
+        valid=valid,
+    )
+
+
+class FeatureSelector:
+    """Holds the selection parameters; ``__call__(gray, depth, K, roi=None, sim=None)`` delegates to
+    :func:`select_features` (the ``select`` stage of :class:`torchtrack.tracker.Tracker`)."""
+
+    def __init__(
+        self,
+        lam: float = 0.5,
+        patch_size: int | tuple[int, int] = 32,
+        grid: tuple[int, int] | None = None,
+        spread: bool = True,
+        max_features: int | None = None,
+        border: int = 8,
+        nms_radius: int = 2,
+        require_sim: bool = True,
+        corner_kwargs: dict | None = None,
+        sim_kwargs: dict | None = None,
+    ) -> None:
+        if not 0.0 <= lam <= 1.0:
+            raise ValueError(f"FeatureSelector: lam must be in [0, 1], got {lam}")
+        self.kwargs = dict(
+            lam=lam,
+            patch_size=tuple(patch_size) if isinstance(patch_size, list) else patch_size,
+            grid=tuple(grid) if grid is not None else None,
+            spread=spread,
+            max_features=max_features,
+            border=border,
+            nms_radius=nms_radius,
+            require_sim=require_sim,
+            corner_kwargs=dict(corner_kwargs or {}),
+            sim_kwargs=dict(sim_kwargs or {}),
+        )
+
+    def __call__(self, gray: Tensor, depth: Tensor, K: Tensor, *, roi: Tensor | None = None, sim=None) -> Features:
+        return select_features(gray, depth, K, roi=roi, sim=sim, **self.kwargs)
