@@ -1,0 +1,223 @@
+"""Benchmark the pose estimators (issue 6, Speed): Horn, ICP, CPD on 300 correspondences, batched B=8.
+
+Runs ours (batched over B) next to Open3D's point-to-point ``registration_icp`` and pycpd's
+``RigidRegistration`` (both looped over B) in one process on the same inputs, and prints ms per frame
+(= per sequence per frame: batch time / B) and ratios. A second table measures accuracy under noise
+and outliers (mean rotation error in degrees, translation error in mm, over the B sequences).
+
+    python experiments/bench_estimators.py            # B=8, N=300, float64 and float32, 1 thread
+    python experiments/bench_estimators.py --threads 2 --repeats 50 > bench.md
+"""
+
+from __future__ import annotations
+
+import os
+
+# One thread for every library (Open3D's OpenMP, numpy's BLAS, torch), set before they load: idle OpenMP/BLAS
+# workers spin after each call and would steal the CPU from whichever method runs next in the round.
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import math  # noqa: E402
+import platform  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from torchtrack.estimators import cpd_rigid, horn, icp  # noqa: E402
+from torchtrack.geometry import make_T, rotation_angle, so3_exp, transform_points  # noqa: E402
+
+
+def make_problem(B, N, noise, outlier_frac, seed, dtype=torch.float64):
+    """Object points (~10 cm at 1 m), an inter-frame motion (<= 6 deg, 2 cm), measured points with noise (m)
+    and a fraction of features replaced by gross outliers (mis-tracked: displaced 5-20 cm)."""
+    g = torch.Generator().manual_seed(seed)
+    src = torch.randn(B, N, 3, generator=g, dtype=torch.float64) * 0.1 + torch.tensor(
+        [0.0, 0.0, 1.0], dtype=torch.float64
+    )
+    axis = torch.randn(B, 3, generator=g, dtype=torch.float64)
+    omega = (
+        axis / axis.norm(dim=-1, keepdim=True) * math.radians(6) * torch.rand(B, 1, generator=g, dtype=torch.float64)
+    )
+    T = make_T(so3_exp(omega), (torch.rand(B, 3, generator=g, dtype=torch.float64) * 2 - 1) * 0.02)
+    dst = transform_points(T, src) + noise * torch.randn(B, N, 3, generator=g, dtype=torch.float64)
+    n_out = int(round(outlier_frac * N))
+    if n_out:
+        d = torch.randn(B, n_out, 3, generator=g, dtype=torch.float64)
+        r = 0.05 + 0.15 * torch.rand(B, n_out, 1, generator=g, dtype=torch.float64)
+        dst[:, :n_out] += d / d.norm(dim=-1, keepdim=True) * r
+    return src.to(dtype), dst.to(dtype), T.to(dtype)
+
+
+def open3d_icp(src, dst, T_init, max_corr_dist, max_iters, tol):
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    crit = reg.ICPConvergenceCriteria(relative_fitness=tol, relative_rmse=tol, max_iteration=max_iters)
+    out = []
+    for b in range(src.shape[0]):
+        s = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src[b]))
+        d = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(dst[b]))
+        res = reg.registration_icp(s, d, max_corr_dist, T_init[b], reg.TransformationEstimationPointToPoint(), crit)
+        out.append(np.asarray(res.transformation))
+    return np.stack(out)
+
+
+def pycpd_rigid(src, dst, max_iters, tol, w):
+    """pycpd moves Y (source) onto X (target) with row vectors: TY = s Y @ R + t, so R_ours = R.T."""
+    from pycpd import RigidRegistration
+
+    out = []
+    for b in range(src.shape[0]):
+        reg = RigidRegistration(X=dst[b], Y=src[b], max_iterations=max_iters, tolerance=tol, w=w)
+        _, (s, R, t) = reg.register()
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = s * R.T, t
+        out.append(T)
+    return np.stack(out)
+
+
+def errors(T_est, T_true):
+    T_est = torch.as_tensor(T_est, dtype=torch.float64)
+    T_true = T_true.to(torch.float64)
+    rot = rotation_angle(T_est[:, :3, :3].transpose(-1, -2) @ T_true[:, :3, :3])
+    trans = (T_est[:, :3, 3] - T_true[:, :3, 3]).norm(dim=-1)
+    return math.degrees(rot.mean().item()), 1e3 * trans.mean().item()
+
+
+def timed_round_robin(fns, repeats):
+    """name -> (min, median) seconds; the methods take turns within each round so that load drifts hit all alike.
+    The min is the least disturbed run (the figure ratios use on a shared machine); the median shows the spread."""
+    for fn in fns.values():
+        fn()  # warm-up
+    times = {name: [] for name in fns}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - t0)
+    return {name: (float(np.min(ts)), float(np.median(ts))) for name, ts in times.items()}
+
+
+def methods(src, dst, valid, T_init, d_max, args, references):
+    """name -> callable returning T (B, 4, 4): ours with their default stopping rules, the references with theirs,
+    then every iterative method for a fixed number of iterations (no stopping test: same work on both sides)."""
+    src_np, dst_np, T_np = src.double().numpy(), dst.double().numpy(), T_init.double().numpy()
+    k_icp, k_cpd = args.fixed_icp, args.fixed_cpd
+    m = {
+        "horn (ours)": lambda: horn(src, dst, valid).T,
+        "icp (ours)": lambda: icp(src, dst, valid, valid, T_init, max_iters=50, tol=1e-6, max_corr_dist=d_max).T,
+        "icp open3d": lambda: open3d_icp(src_np, dst_np, T_np, d_max, 50, 1e-6),
+        "cpd (ours, scale)": lambda: cpd_rigid(src, dst, valid, valid, T_init, w=args.w, tol=1e-5, scale=True).T,
+        "cpd (ours, rigid)": lambda: cpd_rigid(src, dst, valid, valid, T_init, w=args.w, tol=1e-5).T,
+        "cpd pycpd": lambda: pycpd_rigid(src_np, dst_np, 100, args.pycpd_tol, args.w),
+        f"icp (ours) {k_icp} it": lambda: (
+            icp(src, dst, valid, valid, T_init, max_iters=k_icp, tol=0, max_corr_dist=d_max).T
+        ),
+        f"icp open3d {k_icp} it": lambda: open3d_icp(src_np, dst_np, T_np, d_max, k_icp, 0.0),
+        f"cpd (ours, scale) {k_cpd} it": lambda: (
+            cpd_rigid(src, dst, valid, valid, T_init, w=args.w, max_iters=k_cpd, tol=0, scale=True).T
+        ),
+        f"cpd pycpd {k_cpd} it": lambda: pycpd_rigid(src_np, dst_np, k_cpd, 0.0, args.w),
+    }
+    return {k: v for k, v in m.items() if references or not ("open3d" in k or "pycpd" in k)}
+
+
+def iteration_counts(src, dst, valid, T_init, d_max, args):
+    """Mean iterations to convergence of ours (the references do not report theirs the same way)."""
+    r_icp = icp(src, dst, valid, valid, T_init, max_iters=50, tol=1e-6, max_corr_dist=d_max)
+    r_cs = cpd_rigid(src, dst, valid, valid, T_init, w=args.w, tol=1e-5, scale=True)
+    r_cr = cpd_rigid(src, dst, valid, valid, T_init, w=args.w, tol=1e-5)
+    return {
+        "icp (ours)": r_icp.iterations.double().mean().item(),
+        "cpd (ours, scale)": r_cs.iterations.double().mean().item(),
+        "cpd (ours, rigid)": r_cr.iterations.double().mean().item(),
+    }
+
+
+def bench_speed(args):
+    print(f"## Speed: B={args.B}, N={args.N} correspondences, 1 mm noise, init = identity (previous pose)\n")
+    omp = ", ".join(f"{v}={os.environ[v]}" for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"))
+    print(f"torch {torch.__version__}, torch.set_num_threads({args.threads}), {omp}, {platform.machine()}, "
+          f"{os.cpu_count()} cores; {args.repeats} rounds, methods interleaved within each round, median")  # fmt: skip
+    print("ICP: max_iters 50, tol 1e-6 (relative change of the mse), max_corr_dist 0.1 m; Open3D: max_iteration 50,")
+    print("     relative_fitness = relative_rmse = 1e-6 (absolute changes in Open3D's code)")
+    print(f"CPD: w={args.w}, max_iters 100, tol 1e-5 nats/point; pycpd: max_iterations 100, tolerance {args.pycpd_tol}")
+    print("'k it' rows: exactly k iterations on both sides (no stopping test). References: float64, looped over B.")
+    print("ms/frame = batch time / B: min over the rounds (median in brackets); ratios use the min.\n")
+    for dtype in (torch.float64, torch.float32):
+        src, dst, T = make_problem(args.B, args.N, 0.001, 0.0, seed=0, dtype=dtype)
+        valid = torch.ones(args.B, args.N, dtype=torch.bool)
+        T_init = torch.eye(4, dtype=dtype).expand(args.B, 4, 4).clone()
+        fns = methods(src, dst, valid, T_init, 0.1, args, references=dtype == torch.float64)
+        secs = timed_round_robin(fns, args.repeats)
+        iters = iteration_counts(src, dst, valid, T_init, 0.1, args)
+        print(f"### torch {str(dtype).replace('torch.', '')}\n")
+        print("| method | ms/frame min (median) | mean iterations | rot err (deg) | trans err (mm) |")
+        print("|---|---:|---:|---:|---:|")
+        rows = {}
+        for name, fn in fns.items():
+            rows[name] = 1e3 * secs[name][0] / args.B
+            er, et = errors(fn(), T)
+            it = f"{iters[name]:.1f}" if name in iters else name.split()[-2] if name.endswith(" it") else ""
+            print(f"| {name} | {rows[name]:.3f} ({1e3 * secs[name][1] / args.B:.3f}) | {it} | {er:.4f} | {et:.3f} |")
+        print()
+        yield dtype, rows
+
+
+def bench_accuracy(args):
+    print(f"## Accuracy (float64): B={args.B}, N={args.N}, mean over B; CPD w = outlier weight")
+    print("| noise (mm) | outliers | horn | icp (d_max 0.1) | icp open3d | cpd w=0 | cpd w=0.2 | pycpd w=0.2 |")
+    print("|---:|---:|---|---|---|---|---|---|")
+    for noise, frac in [(0.0, 0.0), (1.0, 0.0), (5.0, 0.0), (1.0, 0.1), (1.0, 0.3)]:
+        src, dst, T = make_problem(args.B, args.N, noise * 1e-3, frac, seed=1)
+        valid = torch.ones(args.B, args.N, dtype=torch.bool)
+        T_init = torch.eye(4, dtype=torch.float64).expand(args.B, 4, 4).clone()
+        s_np, d_np = src.numpy(), dst.numpy()
+        Ts = [
+            horn(src, dst, valid).T,
+            icp(src, dst, valid, valid, T_init, max_corr_dist=0.1).T,
+            open3d_icp(s_np, d_np, T_init.numpy(), 0.1, 50, 1e-6),
+            cpd_rigid(src, dst, valid, valid, T_init, w=0.0).T,
+            cpd_rigid(src, dst, valid, valid, T_init, w=0.2).T,
+            pycpd_rigid(s_np, d_np, 100, args.pycpd_tol, 0.2),
+        ]
+        cells = " | ".join("{:.3f} deg {:.2f} mm".format(*errors(T_est, T)) for T_est in Ts)
+        print(f"| {noise:g} | {frac:.0%} | {cells} |")
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--B", type=int, default=8)
+    p.add_argument("--N", type=int, default=300)
+    p.add_argument("--repeats", type=int, default=20)
+    p.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (1: reproducible on a loaded box)")
+    p.add_argument("--w", type=float, default=0.0, help="CPD outlier weight in the speed table")
+    p.add_argument("--pycpd-tol", type=float, default=1e-3, help="pycpd's absolute tolerance on Q (its default)")
+    p.add_argument("--fixed-icp", type=int, default=10, help="iterations of the fixed-work ICP rows")
+    p.add_argument("--fixed-cpd", type=int, default=30, help="iterations of the fixed-work CPD rows")
+    args = p.parse_args()
+    torch.set_num_threads(args.threads)
+    ref = {}
+    for dtype, rows in bench_speed(args):
+        ref = ref or rows  # the references ran with float64
+        ki, kc = args.fixed_icp, args.fixed_cpd
+        pairs = [
+            ("icp open3d", "icp (ours)"),
+            ("cpd pycpd", "cpd (ours, scale)"),
+            ("cpd pycpd", "cpd (ours, rigid)"),
+            (f"icp open3d {ki} it", f"icp (ours) {ki} it"),
+            (f"cpd pycpd {kc} it", f"cpd (ours, scale) {kc} it"),
+        ]
+        name = str(dtype).replace("torch.", "")
+        print(f"ratios, reference ms / ours ms (ours in {name}; > 1: ours faster):")
+        for r, o in pairs:
+            print(f"  {r} / {o}: {ref[r] / rows[o]:.2f}")
+        print()
+    bench_accuracy(args)
+
+
+if __name__ == "__main__":
+    main()
