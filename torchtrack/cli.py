@@ -24,6 +24,8 @@ from torchtrack.run import run_tracker
 from torchtrack.tracker import Tracker
 
 log = logging.getLogger("torchtrack")
+# The configs live beside the package (top-level conf/); torchtrack is installed in editable mode.
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 
 def build_sequences(data: DictConfig) -> list[TumSequence]:
@@ -62,7 +64,7 @@ def build_tracker(cfg: DictConfig) -> Tracker:
     )
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
 def app(cfg: DictConfig) -> None:
     out = Path(HydraConfig.get().runtime.output_dir)
     if cfg.threads:

@@ -84,6 +84,7 @@ class RegistrationBackend:
 
     def __call__(self, obs: Observation) -> Tensor:
         weights = 1.0 / obs.var_xyz.clamp_min(1e-12) if self.weighted else None
-        T = self.estimator(obs.points_obj, obs.points_d, obs.valid, self.T_prev, weights)
+        T_prev = self.T_prev.to(obs.points_obj.dtype)
+        T = self.estimator(obs.points_obj, obs.points_d, obs.valid, T_prev, weights)
         self.T_prev = T
         return T

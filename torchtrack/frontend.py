@@ -15,16 +15,16 @@ from torch import Tensor
 from torchtrack.data.frame import FrameBatch
 from torchtrack.geometry import T_inv, backproject, sample_depth, transform_points, warp_depth
 from torchtrack.image.flow import FlowFrame, prepare_frame
-from torchtrack.image.shape_index import ShapeIndex, shape_index, sim_image
+from torchtrack.image.shape_index import SIM, compute_sim
 
 
 @dataclass
 class PreparedFrame:
-    """Attributes: gray (B,1,H,W); depth (B,1,H,W) in the colour grid; sim (ShapeIndex); flow (pyramids)."""
+    """Attributes: gray (B,1,H,W); depth (B,1,H,W) in the colour grid; sim (SI, mask, LK image) or None; flow."""
 
     gray: Tensor
     depth: Tensor
-    sim: ShapeIndex
+    sim: SIM | None
     flow: FlowFrame
 
 
@@ -58,9 +58,9 @@ class FrontEnd:
     def __call__(self, frame: FrameBatch) -> PreparedFrame:
         gray = frame.gray
         depth = depth_in_colour(frame)
-        sim = shape_index(depth, frame.K, **self.sim_kwargs) if self.use_sim else None
-        sim_img = sim_image(sim) if sim is not None else None
-        return PreparedFrame(gray, depth, sim, prepare_frame(gray, sim_img, self.levels))
+        sim = compute_sim(depth, frame.K, **self.sim_kwargs) if self.use_sim else None  # eq. (8)
+        flow = prepare_frame(gray, sim.image if sim is not None else None, self.levels)
+        return PreparedFrame(gray, depth, sim, flow)
 
 
 def measure_points(prepared: PreparedFrame, frame: FrameBatch, pixels: Tensor) -> tuple[Tensor, Tensor]:

@@ -60,7 +60,7 @@ class Recorder:
             }
         )
         if i in self.snapshots:
-            T_color_obj = frame.T_color_depth[b] @ res.T_cam_obj[b]
+            T_color_obj = frame.T_color_depth[b].double() @ res.T_cam_obj[b]
             self.tiles.append(
                 draw_frame(frame.rgb[b], res.pixels[b], res.valid[b], res.winner[b], frame.K[b], T_color_obj,
                            res.points_obj[b], f"{self.sequence.name} #{i}")  # fmt: skip

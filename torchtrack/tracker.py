@@ -32,7 +32,7 @@ class StepResult:
     """Per-frame outputs, each batched over B.
 
     Attributes:
-        T_cam_obj: (B, 4, 4) object pose in the depth camera.
+        T_cam_obj: (B, 4, 4) float64 object pose in the depth camera.
         T_world_cam: (B, 4, 4) float64 camera pose (camera-to-world) for a static object/scene.
         pixels: (B, N, 2) tracked feature pixels in the colour image; valid (B, N).
         winner: (B, N) 0 where the intensity tracker won, 1 where the SIM tracker won, -1 unknown.
@@ -110,7 +110,7 @@ class Tracker:
         var = self.weighting(WeightingInputs(track.d_tim, points_d[..., 2], points_d, valid, frame.K_depth[:, 0, 0]))
         dt = (frame.timestamp - self.timestamp).to(points_d.dtype).clamp_min(1e-3)  # eqs. (11)-(14) above
         obs = Observation(dt, self.points_obj, points_d, track.points, valid, var.var_xyz, var.var_pix, frame.K, frame.T_color_depth)
-        T_cam_obj = self.backend(obs)  # eqs. (2)-(7), (15)
+        T_cam_obj = self.backend(obs).double()  # eqs. (2)-(7), (15)
         T_cam_obj = torch.where(frame.active[:, None, None], T_cam_obj, self.T_cam_obj)
         self.pixels, self.valid, self.T_cam_obj, self.timestamp = track.points, valid, T_cam_obj, frame.timestamp
         result = self._result(frame, track.winner, track.d_tim)
@@ -128,7 +128,7 @@ class Tracker:
         self.T_world_cam0 = torch.where(
             frame.gt_valid[:, None, None], frame.T_world_cam_gt, torch.eye(4, dtype=torch.float64).expand(B, 4, 4)
         )
-        self.T_cam_obj = torch.eye(4).expand(B, 4, 4).clone()
+        self.T_cam_obj = torch.eye(4, dtype=torch.float64).expand(B, 4, 4).clone()
         self.T_world_obj = torch.eye(4, dtype=torch.float64).expand(B, 4, 4).clone()
         self.timestamp = frame.timestamp
         self.pixels = self.valid = self.points_obj = self.n_model = None
@@ -146,13 +146,13 @@ class Tracker:
         valid = feats.valid & has_depth
         centroid = masked_mean(points_d, valid)
         points_obj = torch.where(valid[..., None], points_d - centroid[:, None], torch.zeros_like(points_d))
-        T_cam_obj = make_T(torch.eye(3).expand(len(mask), 3, 3), centroid)
+        T_cam_obj = make_T(torch.eye(3, dtype=torch.float64).expand(len(mask), 3, 3), centroid.double())
         if self.pixels is None:  # first frame: the world is where the first camera is
             T_world_cam = self.T_world_cam0
         else:
-            T_world_cam = self.T_world_obj @ T_inv(self.T_cam_obj.double())
+            T_world_cam = self.T_world_obj @ T_inv(self.T_cam_obj)
         m3, m2 = mask[:, None, None], mask[:, None]
-        self.T_world_obj = torch.where(m3, T_world_cam @ T_cam_obj.double(), self.T_world_obj)
+        self.T_world_obj = torch.where(m3, T_world_cam @ T_cam_obj, self.T_world_obj)
         self.T_cam_obj = torch.where(m3, T_cam_obj, self.T_cam_obj)
         self.pixels = feats.pixels if self.pixels is None else torch.where(m2[..., None], feats.pixels, self.pixels)
         self.valid = valid if self.valid is None else torch.where(m2, valid, self.valid)
@@ -163,11 +163,11 @@ class Tracker:
 
     def _result(self, frame: FrameBatch, winner: Tensor | None, d_tim: Tensor | None) -> StepResult:
         B, N = self.valid.shape
-        T_color_obj = frame.T_color_depth @ self.T_cam_obj
+        T_color_obj = (frame.T_color_depth.double() @ self.T_cam_obj).float()
         err = reprojection_error(frame.K, T_color_obj, self.points_obj, self.pixels, self.valid)
         return StepResult(
             T_cam_obj=self.T_cam_obj,
-            T_world_cam=self.T_world_obj @ T_inv(self.T_cam_obj.double()),
+            T_world_cam=self.T_world_obj @ T_inv(self.T_cam_obj),
             pixels=self.pixels,
             valid=self.valid,
             winner=winner if winner is not None else torch.full((B, N), -1, dtype=torch.long),
