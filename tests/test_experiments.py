@@ -276,3 +276,32 @@ def test_table1_subsets_grow_in_spread():
     assert bool((s[1:] > s[:-1]).all())
     with pytest.raises(ValueError, match="only"):
         table1.spread_subsets(P[:50], 40, [0.2], 1, g)
+
+
+# ----------------------------------------------------------------------------------------------- Table II
+
+
+table2 = _load("table2_tim")
+
+
+def test_table2_combined_tracker_takes_the_smaller_tim_per_feature():
+    """Intensity moved by a known integer shift (LK exact, d_TIM ~ 0); a static SIM, flat on its left half
+    (LK loses the feature there) and textured on its right half (zero motion: d_TIM = 0 exactly). The combined
+    tracker takes, per feature, the smaller d_TIM; an invalid feature has none."""
+    g = torch.Generator().manual_seed(0)
+    tex = torch.nn.functional.avg_pool2d(torch.rand(1, 1, 96, 96, generator=g), 5, 1, 2)  # smooth texture
+    nxt = torch.roll(tex, shifts=(1, 2), dims=(2, 3))  # content moves by (x, y) = (2, 1) px
+    sim = torch.nn.functional.avg_pool2d(torch.rand(1, 1, 96, 96, generator=g), 5, 1, 2)
+    sim[..., :48] = 0.5
+    pixels = torch.tensor([[[30.0, 30.0], [70.0, 40.0], [40.0, 60.0]]])
+    valid = torch.tensor([[True, True, False]])
+    d = table2.tim_by_tracker({"intensity": tex, "sim": sim}, {"intensity": nxt, "sim": sim}, pixels, valid, 2, 11)
+    assert d["intensity"][0, :2].max() < 0.05
+    assert torch.isinf(d["sim"][0, 0]) and d["sim"][0, 1] < 1e-6
+    assert d["combined"][0, 0] == d["intensity"][0, 0] and d["combined"][0, 1] == d["sim"][0, 1]
+    assert all(torch.isinf(d[m][0, 2]) for m in table2.MODES)
+    s = table2._stats(d["combined"][valid].numpy())
+    assert s["lost_fraction"] == 0.0 and s["features"] == 2 and s["mean_px"] < 0.05
+    assert table2._stats(np.array([1.0, 3.0, np.inf, np.inf])) == {
+        "mean_px": 2.0, "median_px": 2.0, "lost_fraction": 0.5, "features": 4
+    }  # fmt: skip
