@@ -141,7 +141,7 @@ def bench_speed(args):
     print(f"## Speed: B={args.B}, N={args.N} correspondences, 1 mm noise, init = identity (previous pose)\n")
     omp = ", ".join(f"{v}={os.environ[v]}" for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"))
     print(f"torch {torch.__version__}, torch.set_num_threads({args.threads}), {omp}, {platform.machine()}, "
-          f"{os.cpu_count()} cores; {args.repeats} rounds, methods interleaved within each round, median")  # fmt: skip
+          f"{os.cpu_count()} cores; {args.repeats} rounds, methods interleaved within each round")  # fmt: skip
     print("ICP: max_iters 50, tol 1e-6 (relative change of the mse), max_corr_dist 0.1 m; Open3D: max_iteration 50,")
     print("     relative_fitness = relative_rmse = 1e-6 (absolute changes in Open3D's code)")
     print(f"CPD: w={args.w}, max_iters 100, tol 1e-5 nats/point; pycpd: max_iterations 100, tolerance {args.pycpd_tol}")

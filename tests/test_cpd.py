@@ -128,7 +128,7 @@ def test_exact_recovery_of_known_se3(dtype):
     if dtype == torch.float64:
         assert (res.T - T).abs().max() <= 1e-9
     else:
-        torch.testing.assert_close(res.T, T, atol=5e-5, rtol=0)
+        torch.testing.assert_close(res.T, T, atol=1e-5, rtol=0)
 
 
 @pytest.mark.parametrize("w", [0.0, 0.2])

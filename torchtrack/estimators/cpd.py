@@ -19,7 +19,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.estimators.base import check_mask, check_points, check_T, sq_dists, zero_invalid
+from torchtrack.estimators.base import check_mask, check_points, check_T, masked_mean, sq_dists, zero_invalid
 from torchtrack.geometry import make_T, transform_points
 
 
@@ -108,12 +108,13 @@ def cpd_rigid(
     tol: float = 1e-5,
     scale: bool = False,
 ) -> CPDResult:
-    """Rigid CPD of ``src`` (B, N, 3) onto ``dst`` (B, M, 3) starting at ``T_init`` (B, 4, 4), rigid.
+    """Rigid CPD of ``src`` (B, N, 3) onto ``dst`` (B, M, 3) starting at ``T_init`` (B, 4, 4): ``dst ≈ s R src + t``.
 
-    sigma² starts at the mean squared distance over all valid pairs (after ``T_init``), as in pycpd and the
-    original code. A sequence stops when the objective Q changes by at most ``tol`` per matched point
-    (|Q_k - Q_{k-1}| <= tol * N_P, a scale-free criterion: Q/N_P is in nats per point) or at ``max_iters``.
-    ``w`` in [0, 1) is the outlier weight; ``scale=True`` also estimates a similarity scale s.
+    sigma² starts at the mean squared distance over all valid pairs, as in pycpd and the original code (which
+    start from the identity; here the pairs are taken after ``T_init``). A sequence stops when the objective Q
+    changes by at most ``tol`` per matched point (|Q_k - Q_{k-1}| <= tol * N_P, scale-free: Q/N_P is in nats per
+    point), when sigma² reaches its rounding floor (exact data), or at ``max_iters``. ``w`` in [0, 1) is the
+    outlier weight; ``scale=True`` also estimates a similarity scale s (else s = 1).
     """
     check_points("src", src, "cpd_rigid")
     B, N, _ = src.shape
@@ -128,7 +129,10 @@ def cpd_rigid(
     ok = (n_src >= 3) & (n_dst >= 3)
     d2 = sq_dists(transform_points(T_init, src), dst, valid_src, valid_dst)  # inf at padding
     sigma2 = torch.where(torch.isfinite(d2), d2, 0.0).sum((1, 2)) / (3 * n_src * n_dst).clamp_min(1)
-    sigma2_floor = 10 * torch.finfo(src.dtype).eps * (dst.square().sum(-1).sum(-1) / n_dst.clamp_min(1))
+    # the residual is formed from centred sets: below 10 eps * extent^2 it is rounding noise
+    vd = valid_dst.to(src.dtype)
+    extent2 = (vd * (dst - masked_mean(dst, vd)[:, None]).square().sum(-1)).sum(-1) / n_dst.clamp_min(1)
+    sigma2_floor = 10 * torch.finfo(src.dtype).eps * extent2.clamp_min(torch.finfo(src.dtype).tiny)
     sigma2 = torch.maximum(sigma2, sigma2_floor)
 
     R, t = T_init[:, :3, :3].clone(), T_init[:, :3, 3].clone()
