@@ -16,7 +16,9 @@
    the global top-N by C after non-maximum suppression in a (2 nms_radius + 1)^2 window, N the
    number of patches of the grid (or ``max_features``).
 
-Only pixels with C > 0 are selected: a patch without any corner-like pixel gives no feature.
+Only pixels with C > ``min_cornerness`` (default 0.05: a corner of about 5% of the contrast of the
+frame's strong corners) are selected: a textureless patch gives no feature rather than an
+untrackable one.
 """
 
 from __future__ import annotations
@@ -51,6 +53,22 @@ class Features(NamedTuple):
     cornerness_int: Tensor
     cornerness_sim: Tensor
     valid: Tensor
+
+
+class CornernessMaps(NamedTuple):
+    """Per-pixel maps of the selector, each (B, 1, H, W).
+
+    Attributes:
+        C: combined cornerness of eq. (9) in [0, 1) on eligible pixels, -1 elsewhere.
+        c_int, c_sim: normalised intensity and SIM cornerness (c_sim is 0 without a SIM).
+        eligible: float {0, 1}: in the region of interest, with depth, with a valid SIM when required,
+            at least ``border`` pixels from the image edge.
+    """
+
+    C: Tensor
+    c_int: Tensor
+    c_sim: Tensor
+    eligible: Tensor
 
 
 def patch_shape(H: int, W: int, patch_size: int | tuple[int, int] = 32, grid: tuple[int, int] | None = None):
@@ -133,6 +151,38 @@ def _gather_map(x: Tensor, pixels: Tensor) -> Tensor:
     return x.reshape(B, H * W).gather(1, idx)
 
 
+def cornerness_maps(
+    gray: Tensor,
+    depth: Tensor,
+    K: Tensor,
+    *,
+    roi: Tensor | None,
+    sim: SIM | ShapeIndex | None,
+    lam: float,
+    patches: tuple[int, int, int, int],
+    border: int,
+    require_sim: bool = True,
+    corner_kwargs: dict | None = None,
+    sim_kwargs: dict | None = None,
+) -> CornernessMaps:
+    """Steps 1-3 of the module docstring (arguments as :func:`select_features`; ``patches`` from :func:`patch_shape`)."""
+    if sim is None and lam < 1.0:
+        sim = compute_sim(depth, K, **(sim_kwargs or {}))
+    gray = gray.float()
+    if sim is not None:
+        sim_img = sim.image if isinstance(sim, SIM) else sim_image(sim)
+        images = torch.cat([gray, sim_img], dim=1)
+    else:
+        images = gray
+    eligible = _eligible(depth, roi, sim.valid if (sim is not None and lam < 1.0 and require_sim) else None, border)
+    R = harris(images, **(corner_kwargs or {}))  # B,1|2,H,W
+    Cn = normalise_cornerness(R, eligible, *patches)
+    c_int = Cn[:, :1]
+    c_sim = Cn[:, 1:] if sim is not None else torch.zeros_like(c_int)
+    C = lam * c_int + (1.0 - lam) * c_sim  # eq. (9)
+    return CornernessMaps(C=C * eligible + (eligible - 1.0), c_int=c_int, c_sim=c_sim, eligible=eligible)
+
+
 def select_features(
     gray: Tensor,
     depth: Tensor,
@@ -147,6 +197,7 @@ def select_features(
     max_features: int | None = None,
     border: int = 8,
     nms_radius: int = 2,
+    min_cornerness: float = 0.05,
     require_sim: bool = True,
     corner_kwargs: dict | None = None,
     sim_kwargs: dict | None = None,
@@ -168,6 +219,7 @@ def select_features(
         max_features: keep at most this many (the highest C); default: the number of patches.
         border: features are at least this many pixels from the image edge (LK window).
         nms_radius: non-maximum suppression radius (pixels) when ``spread`` is False.
+        min_cornerness: a feature needs C above this (module docstring).
         require_sim: with lam < 1, only pixels with a valid SIM are eligible (the paper's choice;
             False lets planar areas compete with C_SIM = 0).
         corner_kwargs: keyword arguments of :func:`torchtrack.image.corners.harris`.
@@ -191,35 +243,24 @@ def select_features(
     if 2 * border >= min(H, W):
         raise ValueError(f"select_features: border {border} leaves no pixel of a {H}x{W} image")
 
-    if sim is None and lam < 1.0:
-        sim = compute_sim(depth, K, **(sim_kwargs or {}))
-    gray = gray.float()
-    if sim is not None:
-        sim_img = sim.image if isinstance(sim, SIM) else sim_image(sim)
-        maps = torch.cat([gray, sim_img], dim=1)
-    else:
-        maps = gray
-    eligible = _eligible(depth, roi, sim.valid if (sim is not None and lam < 1.0 and require_sim) else None, border)
-    R = harris(maps, **(corner_kwargs or {}))  # B,1|2,H,W
-    Cn = normalise_cornerness(R, eligible, ph, pw, gh, gw)
-    c_int = Cn[:, :1]
-    c_sim = Cn[:, 1:] if sim is not None else torch.zeros_like(c_int)
-    C = lam * c_int + (1.0 - lam) * c_sim  # eq. (9)
-    C = C * eligible + (eligible - 1.0)  # -1 where not eligible
-
+    maps = cornerness_maps(
+        gray, depth, K, roi=roi, sim=sim, lam=lam, patches=(ph, pw, gh, gw), border=border,
+        require_sim=require_sim, corner_kwargs=corner_kwargs, sim_kwargs=sim_kwargs,
+    )  # fmt: skip
+    C, c_int, c_sim = maps.C, maps.c_int, maps.c_sim
     n_max = gh * gw if max_features is None else max_features
     if spread:
         pixels, value = _patch_maxima(C, ph, pw, gh, gw)
     else:
         pixels, value = _local_maxima(C, nms_radius, n_max)
-    return _finish(pixels, value, c_int, c_sim, depth, K, n_max)
+    return _finish(pixels, value, c_int, c_sim, depth, K, n_max, min_cornerness)
 
 
 def _finish(
-    pixels: Tensor, value: Tensor, c_int: Tensor, c_sim: Tensor, depth: Tensor, K: Tensor, n_max: int
+    pixels: Tensor, value: Tensor, c_int: Tensor, c_sim: Tensor, depth: Tensor, K: Tensor, n_max: int, min_c: float
 ) -> Features:
     """Sort by (valid, C) descending, pad to the batch's largest count, back-project."""
-    valid = value > 0
+    valid = value > max(min_c, 0.0)
     order = torch.where(valid, value, torch.full_like(value, -1.0)).argsort(dim=-1, descending=True, stable=True)
     N = max(1, min(n_max, int(valid.sum(-1).max())))
     order = order[:, :N]
@@ -252,6 +293,7 @@ class FeatureSelector:
         max_features: int | None = None,
         border: int = 8,
         nms_radius: int = 2,
+        min_cornerness: float = 0.05,
         require_sim: bool = True,
         corner_kwargs: dict | None = None,
         sim_kwargs: dict | None = None,
@@ -266,6 +308,7 @@ class FeatureSelector:
             max_features=max_features,
             border=border,
             nms_radius=nms_radius,
+            min_cornerness=min_cornerness,
             require_sim=require_sim,
             corner_kwargs=dict(corner_kwargs or {}),
             sim_kwargs=dict(sim_kwargs or {}),
