@@ -4,11 +4,14 @@
     python experiments/table2_tim.py --sequences sun3d_fragment1 --pairs 5 --out /tmp/t2
 
 The flow stage alone (paper §III-C): for consecutive frames (t-1, t), features are selected on frame t-1
-(:func:`torchtrack.image.select.select_features`, spatio-textural, eq. 9) and tracked to t with pyramidal LK
-on the intensity image and on the SIM image (eq. 8), each tracked back to t-1: the template inverse
-matching error is ``d_TIM = || x_{t-1} - x'_{t-1} ||`` (eq. 10). The combined tracker keeps, per feature,
-the tracker with the smaller d_TIM. A feature that a tracker loses (LK failure, out of the image) has no
-d_TIM there; it counts in the failure rate, and the combined tracker then takes the other one.
+(:func:`torchtrack.image.select.select_features`, spatio-textural, eq. 9) and tracked to t by
+:func:`torchtrack.image.flow.combined_track`: pyramidal LK on the intensity image and on the SIM image
+(eq. 8), each tracked back to t-1, ``d_TIM = || x_{t-1} - x'_{t-1} ||`` (eq. 10); the combined tracker keeps,
+per feature, the tracker with the smaller d_TIM. One call in mode "combined" gives all three: the
+intensity and SIM trackers' own d_TIM (what modes "intensity" and "sim" compute, the same LK passes) and
+the winner's. d_TIM is taken before the threshold of step IV (the table measures the trackers, not the
+filter). A feature that a tracker loses (LK failure, out of the image) has no d_TIM there; it counts in
+the failure rate, and the combined tracker then takes the other one.
 
 Reported per sequence and tracker: the mean d_TIM over the features it tracked, the median, and the
 share of features lost. Writes ``OUT/table2_tim.{md,json}``.
@@ -27,8 +30,7 @@ from torch import Tensor
 
 from torchtrack.data.tum import TumSequence
 from torchtrack.geometry import warp_depth
-from torchtrack.image.lk import forward_backward
-from torchtrack.image.pyramid import build_pyramid
+from torchtrack.image.flow import FlowFrame, combined_track, prepare_frame
 from torchtrack.image.select import select_features
 from torchtrack.image.shape_index import compute_sim
 
@@ -49,18 +51,15 @@ def load_frames(seq: TumSequence, indices: list[int]) -> tuple[Tensor, Tensor, T
     return gray, depth, K
 
 
-def tim_by_tracker(prev: dict, next: dict, pixels: Tensor, valid: Tensor, levels: int, window: int) -> dict:
-    """d_TIM (B, N) per tracker (inf where lost or invalid), eq. (10); the combined one is the per-feature min.
+def tim_by_tracker(prev: FlowFrame, next: FlowFrame, pixels: Tensor, valid: Tensor, **flow_kwargs) -> dict:
+    """d_TIM (B, N) of each tracker, eq. (10), +inf where lost or invalid.
 
-    prev, next: {"intensity": (B, 1, H, W), "sim": (B, 1, H, W)} images of frames t-1 and t.
+    Args: prev, next: frames t-1 and t from :func:`prepare_frame` with a SIM image; pixels (B, N, 2) and
+    valid (B, N) on frame t-1; flow_kwargs: LK parameters of :func:`combined_track`.
     """
-    out = {}
-    for mode in ("intensity", "sim"):
-        p, n = build_pyramid(prev[mode], levels, window=window), build_pyramid(next[mode], levels, window=window)
-        _, _, d = forward_backward(p, n, pixels, levels=levels, window=window, valid=valid)
-        out[mode] = torch.where(valid, d, torch.full_like(d, float("inf")))
-    out["combined"] = torch.minimum(out["intensity"], out["sim"])  # per feature, the tracker with smaller d_TIM
-    return out
+    r = combined_track(prev, next, pixels, valid, mode="combined", **flow_kwargs)
+    inf = torch.full_like(r.d_tim, float("inf"))
+    return {m: torch.where(valid, d, inf) for m, d in zip(MODES, (r.d_tim_int, r.d_tim_sim, r.d_tim), strict=True)}
 
 
 def sequence_tim(seq: TumSequence, pairs: int, batch: int, levels: int, window: int, sim_kwargs: dict) -> dict:
@@ -73,9 +72,9 @@ def sequence_tim(seq: TumSequence, pairs: int, batch: int, levels: int, window: 
         sim = compute_sim(depth, K, **sim_kwargs)
         B = len(ts)
         feats = select_features(gray[:B], depth[:B], K[:B], sim=_slice_sim(sim, B))  # eq. (9) on frame t-1
-        prev = {"intensity": gray[:B], "sim": sim.image[:B]}
-        next = {"intensity": gray[B:], "sim": sim.image[B:]}
-        tim = tim_by_tracker(prev, next, feats.pixels, feats.valid, levels, window)
+        prev = prepare_frame(gray[:B], sim.image[:B], levels)
+        next = prepare_frame(gray[B:], sim.image[B:], levels)
+        tim = tim_by_tracker(prev, next, feats.pixels, feats.valid, levels=levels, window=window)
         for m in MODES:
             d[m].append(tim[m][feats.valid].numpy())
     return {m: _stats(np.concatenate(v)) for m, v in d.items()} | {"pairs": n_pairs}

@@ -295,7 +295,13 @@ def test_table2_combined_tracker_takes_the_smaller_tim_per_feature():
     sim[..., :48] = 0.5
     pixels = torch.tensor([[[30.0, 30.0], [70.0, 40.0], [40.0, 60.0]]])
     valid = torch.tensor([[True, True, False]])
-    d = table2.tim_by_tracker({"intensity": tex, "sim": sim}, {"intensity": nxt, "sim": sim}, pixels, valid, 2, 11)
+    from torchtrack.image.flow import combined_track, prepare_frame
+
+    prev, next = prepare_frame(tex, sim, 2), prepare_frame(nxt, sim, 2)
+    d = table2.tim_by_tracker(prev, next, pixels, valid, levels=2, window=11)
+    for mode in ("intensity", "sim"):  # one combined call == the single-tracker modes
+        single = combined_track(prev, next, pixels, valid, mode=mode, levels=2, window=11).d_tim
+        assert torch.equal(torch.where(valid, single, torch.full_like(single, float("inf"))), d[mode])
     assert d["intensity"][0, :2].max() < 0.05
     assert torch.isinf(d["sim"][0, 0]) and d["sim"][0, 1] < 1e-6
     assert d["combined"][0, 0] == d["intensity"][0, 0] and d["combined"][0, 1] == d["sim"][0, 1]
