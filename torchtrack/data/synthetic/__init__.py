@@ -22,7 +22,7 @@ from torchtrack.data.synthetic.config import KinectNoise, SyntheticConfig
 from torchtrack.data.synthetic.motion import SequencePoses, look_at, sequence_poses
 from torchtrack.data.synthetic.noise import apply_kinect_noise, depth_sigma, edge_holes, quantise_disparity
 from torchtrack.data.synthetic.raycast import RGBD, RayHits, raycast, render_frame, render_pixels
-from torchtrack.data.synthetic.scene import Primitive, Scene, TextureParams, default_scene
+from torchtrack.data.synthetic.scene import Primitive, Scene, TextureParams, default_scene, make_scene, random_texture
 from torchtrack.data.synthetic.writer import (
     default_cache_root,
     ensure_sequence,
@@ -34,7 +34,7 @@ from torchtrack.data.synthetic.writer import (
 __all__ = [
     "RGBD", "KinectNoise", "Primitive", "RayHits", "Scene", "SequencePoses", "SyntheticConfig", "TextureParams",
     "apply_kinect_noise", "default_cache_root", "default_scene", "depth_sigma", "edge_holes", "ensure_sequence",
-    "frame_generator", "look_at", "main", "quantise_disparity", "raycast", "render_frame", "render_pixels",
+    "frame_generator", "look_at", "main", "make_scene", "quantise_disparity", "random_texture", "raycast", "render_frame", "render_pixels",
     "render_sequence", "sequence_name", "sequence_poses",
 ]  # fmt: skip
 

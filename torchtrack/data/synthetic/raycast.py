@@ -47,13 +47,13 @@ def _hit_plane(o: list[float], d: tuple[Tensor, Tensor, Tensor], s: tuple[float,
 
 
 def _hit_sphere(o: list[float], d: tuple[Tensor, Tensor, Tensor], s: tuple[float, ...]) -> Tensor:
-    dx, dy, dz = d
+    dx, dy, dz = (c.double() for c in d)  # quadrics cancel badly near silhouettes in float32
     a = dx * dx + dy * dy + dz * dz
     b = o[0] * dx + o[1] * dy + o[2] * dz
     c = o[0] ** 2 + o[1] ** 2 + o[2] ** 2 - s[0] ** 2
     disc = b * b - a * c
     t = (-b - disc.clamp_min(0).sqrt()) / a
-    return torch.where((disc >= 0) & (t > _EPS), t, _INF)
+    return torch.where((disc >= 0) & (t > _EPS), t, _INF).float()
 
 
 def _hit_box(o: list[float], d: tuple[Tensor, Tensor, Tensor], s: tuple[float, ...]) -> Tensor:
@@ -69,7 +69,7 @@ def _hit_box(o: list[float], d: tuple[Tensor, Tensor, Tensor], s: tuple[float, .
 
 def _hit_cylinder(o: list[float], d: tuple[Tensor, Tensor, Tensor], s: tuple[float, ...]) -> Tensor:
     r, hh = s
-    dx, dy, dz = d
+    dx, dy, dz = (c.double() for c in d)
     a = dx * dx + dy * dy
     b = o[0] * dx + o[1] * dy
     c = o[0] ** 2 + o[1] ** 2 - r * r
@@ -80,7 +80,7 @@ def _hit_cylinder(o: list[float], d: tuple[Tensor, Tensor, Tensor], s: tuple[flo
     cap_z = hh if o[2] > 0 else -hh  # the only cap visible from outside
     tc = (cap_z - o[2]) / dz
     cap = (tc > _EPS) & ((o[0] + tc * dx) ** 2 + (o[1] + tc * dy) ** 2 <= r * r) & (tc < t)
-    return torch.where(cap, tc, t)
+    return torch.where(cap, tc, t).float()
 
 
 _HIT = {"plane": _hit_plane, "sphere": _hit_sphere, "box": _hit_box, "cylinder": _hit_cylinder}

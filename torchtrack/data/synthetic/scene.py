@@ -190,6 +190,26 @@ def _compound_object(tex: _Textures) -> list[Primitive]:
     ]
 
 
+def make_scene(primitives: list[Primitive], cfg: SyntheticConfig) -> Scene:
+    """A scene of the given primitives seen through cfg's camera, texture tables drawn from cfg.seed."""
+    gen = torch.Generator().manual_seed(int(cfg.seed) + 1)
+    return Scene(
+        primitives=list(primitives),
+        K=intrinsics_matrix(cfg.fx, cfg.fy, cfg.cx, cfg.cy),
+        width=cfg.width,
+        height=cfg.height,
+        lattice=torch.rand(TABLE_SIZE, TABLE_SIZE, 8, generator=gen),
+        noise=torch.rand(TABLE_SIZE, TABLE_SIZE, generator=gen),
+    )
+
+
+def random_texture(
+    seed: int, cell_m: float = 0.1, checker_m: float = 0.06, checker_weight: float = 0.7
+) -> TextureParams:
+    """A texture drawn like the default scene's, for hand-made scenes."""
+    return _Textures(torch.Generator().manual_seed(seed))(cell_m, checker_m, checker_weight)
+
+
 def default_scene(cfg: SyntheticConfig) -> Scene:
     """The scene of ``cfg``: room corner with props (scene mode) or a compound object (object mode)."""
     gen = torch.Generator().manual_seed(int(cfg.seed))
@@ -198,11 +218,4 @@ def default_scene(cfg: SyntheticConfig) -> Scene:
     if cfg.mode == "scene" or cfg.background:
         prims += _room(tex)
     prims += _props(tex, gen) if cfg.mode == "scene" else _compound_object(tex)
-    return Scene(
-        primitives=prims,
-        K=intrinsics_matrix(cfg.fx, cfg.fy, cfg.cx, cfg.cy),
-        width=cfg.width,
-        height=cfg.height,
-        lattice=torch.rand(TABLE_SIZE, TABLE_SIZE, 8, generator=gen),
-        noise=torch.rand(TABLE_SIZE, TABLE_SIZE, generator=gen),
-    )
+    return make_scene(prims, cfg)

@@ -11,7 +11,9 @@ is several times faster than (n, 3) layouts for long chains of element-wise oper
 
 from __future__ import annotations
 
+import hashlib
 import math
+from collections import OrderedDict
 
 import torch
 import torch.nn.functional as F
@@ -20,7 +22,8 @@ from torch import Tensor
 from torchtrack.data.synthetic.scene import Primitive, Scene, TextureParams
 
 EDGE_M = 0.003
-ATLAS_TEXEL_M = 0.004  # planes' textures are baked once per scene at this resolution
+ATLAS_TEXEL_M = 0.004  # planes' textures are baked once per scene at this resolution, or one pixel at
+ATLAS_TEXEL_PX_AT_M = 2.0  # this distance (metres) for low-resolution cameras, whichever is coarser
 
 Vec3 = tuple[Tensor | float, Tensor | float, Tensor | float]
 
@@ -143,23 +146,50 @@ def texture_rgb(scene: Scene, tex: TextureParams, u: Tensor, v: Tensor) -> list[
     return [torch.lerp(ch, cc, mask) for ch, cc in zip(col, colour, strict=True)]
 
 
+_ATLAS_CACHE: OrderedDict[str, Tensor] = OrderedDict()  # baked atlases shared by equal scenes (same seed)
+_ATLAS_CACHE_SIZE = 16
+ATLAS_MAX_TEXELS = 2048  # per side; larger planes get coarser texels
+
+
+def _atlas_texel(scene: Scene) -> float:
+    return max(ATLAS_TEXEL_M, ATLAS_TEXEL_PX_AT_M / float(scene.K[0, 0]))
+
+
+def _atlas_key(scene: Scene, prim: Primitive) -> str:
+    h = hashlib.sha1(repr((prim.size, prim.texture, EDGE_M, _atlas_texel(scene), ATLAS_MAX_TEXELS)).encode())
+    h.update(scene.lattice.numpy().tobytes())
+    h.update(scene.noise.numpy().tobytes())
+    return h.hexdigest()
+
+
 def plane_atlas(scene: Scene, k: int) -> Tensor:
     """(1, 3, Ht, Wt) albedo of plane primitive k baked on a regular grid over its rectangle (cached).
 
     Texel (i, j) holds ``texture_rgb`` at u = -hx + j * 2hx / (Wt - 1), v = -hy + i * 2hy / (Ht - 1), so
     ``grid_sample(atlas, (u / hx, v / hy), align_corners=True)`` is a fixed function of the surface
-    point: rendering stays exactly rigid, at the cost of bilinear interpolation over 4 mm texels.
+    point: rendering stays exactly rigid, at the cost of bilinear interpolation over ATLAS_TEXEL_M texels
+    (coarser for low-resolution cameras, like a mip-map, and for planes wider than ATLAS_MAX_TEXELS
+    texels). Baked once per distinct plane, texture and texel size.
     """
-    if k not in scene._atlas:
-        prim = scene.primitives[k]
+    if k in scene._atlas:
+        return scene._atlas[k]
+    prim = scene.primitives[k]
+    key = _atlas_key(scene, prim)
+    if key not in _ATLAS_CACHE:
         hx, hy = prim.size
-        Wt, Ht = math.ceil(2 * hx / ATLAS_TEXEL_M) + 1, math.ceil(2 * hy / ATLAS_TEXEL_M) + 1
+        texel = _atlas_texel(scene)
+        Wt = min(math.ceil(2 * hx / texel) + 1, ATLAS_MAX_TEXELS)
+        Ht = min(math.ceil(2 * hy / texel) + 1, ATLAS_MAX_TEXELS)
         u = torch.linspace(-hx, hx, Wt)
         rows = []
         for v in torch.linspace(-hy, hy, Ht).split(256):  # chunks of rows bound the memory
             uu, vv = u.repeat(len(v)), v.repeat_interleave(Wt)
             rows.append(torch.stack(texture_rgb(scene, prim.texture, uu, vv)).reshape(3, len(v), Wt))
-        scene._atlas[k] = torch.cat(rows, dim=1)[None].contiguous(memory_format=torch.channels_last)  # faster sampling
+        _ATLAS_CACHE[key] = torch.cat(rows, dim=1)[None].contiguous(memory_format=torch.channels_last)  # fast reads
+        while len(_ATLAS_CACHE) > _ATLAS_CACHE_SIZE:
+            _ATLAS_CACHE.popitem(last=False)
+    _ATLAS_CACHE.move_to_end(key)
+    scene._atlas[k] = _ATLAS_CACHE[key]
     return scene._atlas[k]
 
 
