@@ -162,8 +162,8 @@ def test_rigid_matches_fixed_scale_pycpd_and_init_is_composed():
 
 def test_noise_matches_horn_level_and_outlier_weight_helps():
     """Noise 2 mm on all points: CPD's error is within 2x of Horn's with the true correspondences (whose
-    sigma/sqrt(N) statistics test_horn checks). With 20 % of measured points displaced 5-20 cm, w = 0.2 keeps the error within 3x
-    of the outlier-free Horn level while w = 0 is pulled off by more than 5x."""
+    sigma/sqrt(N) statistics test_horn checks). With 20 % of the measured points displaced 5-20 cm, w = 0.2
+    keeps the error within 3x of the outlier-free Horn level while w = 0 is pulled off by more than 5x."""
     B, N, sigma = 6, 60, 0.002
     T = random_T(B, seed=50)
     src = random_cloud(B, N, seed=51)
