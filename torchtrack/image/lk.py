@@ -29,7 +29,6 @@ from torch import Tensor
 from torchtrack.image.pyramid import Pyramid, build_pyramid
 
 _EXACT_F32 = 2**24  # float32 index arithmetic is exact below this
-_CONVERGED, _LOST = 1, 2
 
 
 class LKResult(NamedTuple):
@@ -67,9 +66,9 @@ class _Sampler:
         return self._rows[size]
 
     def bounds(self, level: int) -> tuple[Tensor, Tensor]:
-        """Window centres q (level px) can be sampled, gradients included, iff lo <= q < hi."""
+        """Window centres q (level px) can be sampled, gradients included, iff lo <= floor(q) <= hi."""
         h, w = self.pyr.size(level)
-        lo, hi = self.r + 1 - self.pyr.pad, self.pyr.pad - self.r - 2
+        lo, hi = self.r + 1 - self.pyr.pad, self.pyr.pad - self.r - 3
         return torch.tensor(float(lo)), torch.tensor([w + hi, h + hi], dtype=torch.float32)
 
     def base(self, level: int, image_index: Tensor) -> Tensor:
@@ -96,100 +95,109 @@ class _Sampler:
 
 
 _GRAD_SCALE = 13.0 / 32.0  # _gradients returns Scharr derivatives (per pixel) divided by this
-
-
-def _gradients(patch: Tensor) -> Tensor:
-    """(n, C, m, m) -> (n, 2, C * (m-2)^2): [d/dx, d/dy] Scharr derivatives on the inner (m-2)^2 window,
-    unscaled: [-3 0 3; -10 0 10; -3 0 3] / 13 (true per-pixel derivative = _GRAD_SCALE * value)."""
-    n = patch.shape[0]
-    dx = patch[..., 2:] - patch[..., :-2]
-    dy = patch[..., 2:, :] - patch[..., :-2, :]
-    gx = torch.lerp(dx[..., 1:-1, :], dx[..., :-2, :] + dx[..., 2:, :], 3.0 / 13.0)
-    gy = torch.lerp(dy[..., 1:-1], dy[..., :-2] + dy[..., 2:], 3.0 / 13.0)
-    return torch.stack([gx.view(n, -1), gy.view(n, -1)], 1)
-
-
-def _template(sampler: _Sampler, centre: Tensor, base: Tensor, min_eig: float) -> tuple[Tensor, Tensor, Tensor]:
-    """Template data at integer centres (n, 2): inverse-Hessian-premultiplied gradients gt (n, 2, C*K), the
-    template's projection tgh = gt @ T (n, 2), and a degenerate mask (n,) (smallest eigenvalue of the
-    gradient matrix below min_eig, in OpenCV's units)."""
-    patch = sampler.integer(centre, base, extra=1)
-    n = patch.shape[0]
-    t = patch[..., 1:-1, 1:-1].reshape(n, 1, -1)
-    g = _gradients(patch)
-    h = torch.bmm(g, g.mT)  # n,2,2 (in unscaled gradients)
-    a11, a12, a22 = h[:, 0, 0], h[:, 0, 1], h[:, 1, 1]
-    det = a11 * a22 - a12 * a12
-    lam = 0.5 * (a11 + a22 - torch.sqrt((a11 - a22) ** 2 + 4.0 * a12 * a12))
-    # OpenCV's minEig: intensities on 0..255, 1/32-scaled Scharr (1/1024 on products), per window pixel.
-    degenerate = (lam * (_GRAD_SCALE**2 * 255.0**2 / 1024.0 / sampler.window**2) < min_eig) | (det <= 0.0)
-    scale = 1.0 / (_GRAD_SCALE * torch.where(degenerate, torch.ones_like(det), det))
-    h_inv = torch.stack([a22, -a12, -a12, a11], -1).mul_(scale[:, None]).view(n, 2, 2)
-    gt = torch.bmm(h_inv, g)  # true H^-1 @ true gradients
-    return gt, torch.bmm(t, gt.mT), degenerate
-
-
 _ADJ = torch.tensor([3, 1, 2, 0])  # flat 2x2 [a, b, c, d] -> adjugate [d, -b, -c, a] (with _ADJ_SIGN)
 _ADJ_SIGN = torch.tensor([1.0, -1.0, -1.0, 1.0])
 
 
-def _newton(delta: Tensor, gt: Tensor, jy: Tensor, patch: Tensor, fx: Tensor) -> Tensor:
-    """Newton step M^-1 delta on the normal equations R(q) = sum gt (T - J(q)) = 0, whose Gauss-Newton
-    (inverse-compositional) step is delta; M = gt @ dJ/dq^T (n, 2, 2) with the exact derivatives of the
-    bilinear window: dJ/dx from the y-interpolated patch jy (n, C, w, w+1), dJ/dy from the raw patch.
-    Falls back to delta where M is far from the identity (det < 0.1)."""
-    n = delta.shape[0]
-    djx = (jy[..., 1:] - jy[..., :-1]).view(n, 1, -1)
-    djy = torch.lerp(patch[:, :, 1:, :-1] - patch[:, :, :-1, :-1], patch[:, :, 1:, 1:] - patch[:, :, :-1, 1:], fx)
-    m = torch.bmm(gt, torch.cat([djx, djy.view(n, 1, -1)], 1).mT).view(n, 4)
-    adj = m.index_select(1, _ADJ).mul_(_ADJ_SIGN)
-    det = torch.linalg.vecdot(m[:, :2], adj[:, ::2])
-    step = torch.bmm(adj.view(n, 2, 2), delta.view(n, 2, 1)).view(n, 2) / det[:, None]
-    return torch.where((det > 0.01)[:, None], step, delta)
+def _gradients(patch: Tensor, out: Tensor) -> None:
+    """Scharr derivatives [d/dx, d/dy] of patches (n, C, m, m) on their inner window, into out (n, 2, C, m-2, m-2);
+    unscaled: [-3 0 3; -10 0 10; -3 0 3] / 13 (the per-pixel derivative is _GRAD_SCALE times this)."""
+    dx = patch[..., 2:] - patch[..., :-2]
+    dy = patch[..., 2:, :] - patch[..., :-2, :]
+    torch.lerp(dx[..., 1:-1, :], dx[..., :-2, :] + dx[..., 2:, :], 3.0 / 13.0, out=out[:, 0])
+    torch.lerp(dy[..., 1:-1], dy[..., :-2] + dy[..., 2:], 3.0 / 13.0, out=out[:, 1])
 
 
-def _iterate(sampler, level, q, gt, tgh, base, *, iters, eps, ic_iters):
+def _inverse_2x2(m: Tensor, scale: Tensor | float = 1.0) -> tuple[Tensor, Tensor]:
+    """Inverses (n, 2, 2) of 2x2 matrices m (n, 2, 2), times scale, and their determinants (n,)."""
+    n = m.shape[0]
+    adj = m.reshape(n, 4).index_select(1, _ADJ).mul_(_ADJ_SIGN)
+    det = torch.linalg.vecdot(m[:, 0], adj[:, ::2])
+    return adj.mul_((scale / det).view(n, 1)).view(n, 2, 2), det
+
+
+def _template(sampler: _Sampler, centre: Tensor, base: Tensor, min_eig: float):
+    """Template data at integer centres (n, 2), once per point and level.
+
+    Returns g (n, 2, C*K) unscaled gradients, tg = T @ g^T (n, 1, 2), h_inv (n, 2, 2) the inverse of the
+    gradient matrix g @ g^T divided by _GRAD_SCALE (so that h_inv @ (tg - J @ g^T) is the LK step in pixels),
+    and a degenerate mask (n,): smallest eigenvalue below min_eig in OpenCV's units.
+    """
+    patch = sampler.integer(centre, base, extra=1)
+    n, c, m = patch.shape[:3]
+    win = patch.new_empty(n, 3, c, m - 2, m - 2)  # [gx, gy, T]: one bmm gives the Hessian and g @ T
+    _gradients(patch, win)
+    win[:, 2] = patch[..., 1:-1, 1:-1]
+    win = win.view(n, 3, -1)
+    g = win[:, :2]
+    a = torch.bmm(g, win.mT)  # n,2,3: [g g^T | g T]
+    h = a[:, :, :2]
+    a11, a12, a22 = h[:, 0, 0], h[:, 0, 1], h[:, 1, 1]
+    lam = 0.5 * (a11 + a22 - torch.sqrt((a11 - a22) ** 2 + 4.0 * a12 * a12))
+    # OpenCV's minEig: intensities on 0..255, 1/32-scaled Scharr (1/1024 on products), per window pixel.
+    degenerate = lam * (_GRAD_SCALE**2 * 255.0**2 / 1024.0 / sampler.window**2) < min_eig
+    h_inv, det = _inverse_2x2(h, 1.0 / _GRAD_SCALE)
+    degenerate |= ~(det > 0.0)
+    return g, a[:, :, 2].reshape(n, 1, 2), h_inv, degenerate
+
+
+def _newton(r: Tensor, step: Tensor, g: Tensor, h_inv: Tensor, jy: Tensor, patch: Tensor, fx: Tensor) -> Tensor:
+    """Newton step on the normal equations R(q) = (T - J(q)) @ g^T = r (n, 1, 2), whose inverse-compositional
+    step is ``step`` = r @ h_inv: M^-1 r with M = dR/dq = -g @ dJ/dq^T (n, 2, 2), from the exact derivatives of
+    the bilinear window: d/dx from the y-interpolated patch jy (n, C, w, w+1), d/dy from the raw patch
+    (n, C, w+1, w+1). Where h_inv @ M is far from the identity (det < 0.01) the step stays ``step``."""
+    n = r.shape[0]
+    djx = jy[..., 1:] - jy[..., :-1]
+    dpy = patch[:, :, 1:] - patch[:, :, :-1]
+    djy = torch.lerp(dpy[..., :-1], dpy[..., 1:], fx)
+    m = torch.bmm(g, torch.stack([djx.view(n, -1), djy.view(n, -1)], 1).mT)  # n,2,2 (unscaled)
+    m_inv, det = _inverse_2x2(m)
+    newton = torch.bmm(r, m_inv.mT).view(n, 2)
+    ok = det * torch.linalg.det(h_inv) > 0.01 / _GRAD_SCALE  # det(h_inv @ M) with the scales
+    return torch.where(ok.view(n, 1), newton, step)
+
+
+def _iterate(sampler, level, q, g, tg, h_inv, base, *, iters, eps, ic_iters):
     """LK iterations with per-point early stop for window centres q (P, 2) in level pixels.
 
-    Stops a point when its update is at most eps (converged), or, in the Newton phase, when the update
-    does not shrink (diverging: not converged), or after iters iterations. Sampling is clamped to the
-    image border; a point whose centre ends outside the sampleable area is lost.
-    Returns the final centres (P, 2) and a code (P,) int8: _CONVERGED, _LOST, or 0 (not converged).
+    A point stops when its update is at most eps (converged), or, in the Newton phase, when its update
+    is not at least halved (not converging), or after iters iterations. Windows are sampled inside the
+    padded image; a point that leaves it stops (not converged).
+    Returns the final centres (P, 2) and converged flags (P,).
     """
     lo, hi = sampler.bounds(level)
-    hi1 = hi - 1.0
-    q_out, code = q.clone(), torch.zeros(q.shape[0], dtype=torch.int8)
+    q_out, conv_out = q.clone(), torch.zeros(q.shape[0], dtype=torch.bool)
     ids = torch.arange(q.shape[0])
-    d2_prev = None
-    eps2 = eps * eps
+    size, stride, eps2, d2_prev = sampler.window + 1, sampler.stride.to(q.dtype), eps * eps, None
     for j in range(iters):
-        n, newton = q.shape[0], j >= ic_iters
+        n = q.shape[0]
         fl0 = q.floor()
-        fl = fl0.clamp(lo, hi1)
-        fr = (q - fl).view(n, 2, 1, 1, 1)
-        patch = sampler.gather(torch.addmv(base, fl.to(base.dtype), sampler.stride), sampler.window + 1)
-        fx, fy = fr[:, 0], fr[:, 1]
+        fl = fl0.clamp(lo, hi)
+        fr = q - fl
+        patch = sampler.gather(torch.addmv(base, fl, stride), size)  # n,C,w+1,w+1
+        fx, fy = fr[:, 0].view(n, 1, 1, 1), fr[:, 1].view(n, 1, 1, 1)
         jy = torch.lerp(patch[:, :, :-1], patch[:, :, 1:], fy)
-        win = torch.lerp(jy[..., :-1], jy[..., 1:], fx).view(n, 1, -1)
-        delta = torch.baddbmm(tgh, win, gt.mT, alpha=-1.0).view(n, 2)  # inverse-compositional step
-        if newton:
-            delta = _newton(delta, gt, jy, patch, fx)
+        win = torch.lerp(jy[..., :-1], jy[..., 1:], fx)
+        r = torch.baddbmm(tg, win.view(n, 1, -1), g.mT, alpha=-1.0)  # (T - J) @ g^T
+        delta = torch.bmm(r, h_inv).view(n, 2)  # inverse-compositional step (h_inv is symmetric)
+        if j >= ic_iters:
+            delta = _newton(r, delta, g, h_inv, jy, patch, fx)
         q = q + delta
         d2 = torch.linalg.vecdot(delta, delta)
-        done = (d2 <= eps2) | (fl != fl0).any(-1)
+        conv = d2 <= eps2
+        done = conv | (fl != fl0).any(-1)  # converged, or left the sampleable area
         if j > ic_iters:
-            done = done | (d2 >= d2_prev)
+            done |= d2 > 0.25 * d2_prev  # Newton converges fast: a step not halved means no convergence
         d2_prev = d2
         if j == iters - 1 or bool(done.any()):
             q_out[ids] = q
-            out = ((q < lo) | (q >= hi)).any(-1)
-            code[ids] = torch.where(out, _LOST, (d2 <= eps2).to(torch.int8))
+            conv_out[ids] = conv
             keep = (~done).nonzero().squeeze(1)
             if keep.numel() == 0:
                 break
             ids, q, base, d2_prev = ids[keep], q[keep], base[keep], d2[keep]
-            gt, tgh = gt.index_select(0, keep), tgh.index_select(0, keep)
-    return q_out, code
+            g, tg, h_inv = g.index_select(0, keep), tg.index_select(0, keep), h_inv.index_select(0, keep)
+    return q_out, conv_out
 
 
 def lk_track_flat(
@@ -204,7 +212,7 @@ def lk_track_flat(
     iters: int = 30,
     eps: float = 0.01,
     min_eig: float = 1e-4,
-    ic_iters: int = 4,
+    ic_iters: int = 2,
     with_residual: bool = True,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Pyramidal LK on a flat list of P points, each in its own image of the pyramids' batch.
@@ -229,17 +237,17 @@ def lk_track_flat(
             x = x0 * scale
             centre = torch.round(x)
             frac = x - centre
-            gt, tgh, degenerate = _template(s_prev, centre, s_prev.base(level, img), min_eig)
+            g, tg, h_inv, degenerate = _template(s_prev, centre, s_prev.base(level, img), min_eig)
             track = (~degenerate).nonzero().squeeze(1)
             rows = sel[track]
-            q, code = _iterate(
-                s_next, level, guess[rows] * scale - frac[track], gt.index_select(0, track),
-                tgh.index_select(0, track), s_next.base(level, img[track]), iters=iters, eps=eps, ic_iters=ic_iters,
+            q, conv = _iterate(
+                s_next, level, guess[rows] * scale - frac[track], g.index_select(0, track), tg.index_select(0, track),
+                h_inv.index_select(0, track), s_next.base(level, img[track]), iters=iters, eps=eps, ic_iters=ic_iters,
             )  # fmt: skip
             guess[rows] = (q + frac[track]) / scale
             if level == 0:
                 status[sel] = False
-                status[rows] = code == _CONVERGED
+                status[rows] = conv
         status &= (guess >= 0).all(-1) & (guess[:, 0] <= w0 - 1) & (guess[:, 1] <= h0 - 1)
         residual = torch.zeros(points.shape[0], dtype=points.dtype)
         good = status.nonzero().squeeze(1)
@@ -279,7 +287,7 @@ def pyramidal_lk(
     init: Tensor | None = None,
     valid: Tensor | None = None,
     min_eig: float = 1e-4,
-    ic_iters: int = 4,
+    ic_iters: int = 2,
 ) -> LKResult:
     """Track points from prev to next with pyramidal Lucas–Kanade (translation per window).
 

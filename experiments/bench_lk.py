@@ -1,0 +1,125 @@
+"""Benchmark the combined LK + TIM tracker (issue 4, Speed): torch vs OpenCV on the same four LK passes.
+
+The combined tracker runs intensity and SIM LK forward and backward (4 passes) on 300 Shi-Tomasi corners of
+a 640x480 pair. OpenCV does the same four ``cv2.calcOpticalFlowPyrLK`` calls (same window, levels and
+criteria, uint8 images). Both run interleaved in one process; the table gives wall-clock ms (median and
+minimum over the repeats) and the ratio. Two torch rows: the tracker on prepared frames, and the
+steady-state cost per frame (``prepare_frame`` of the new frame + tracker), which is what compares with
+OpenCV (it builds its pyramids inside each call). Then the batched throughput for B = 1, 4, 8.
+
+    python experiments/bench_lk.py                     # 1 thread, 300 features, 40 repeats
+    python experiments/bench_lk.py --threads 2 --repeats 100
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import platform  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from torchtrack.image.flow import CombinedTracker, prepare_frame  # noqa: E402
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+def load_pairs(seq: str, count: int, n_features: int):
+    """count consecutive pairs (gray, sim) of a sequence, as (B, 1, H, W) tensors, and 300 corners (B, N, 2)."""
+    from torchtrack.image.shape_index import compute_sim
+
+    folder = DATA / seq
+    names = [ln.split()[1] for ln in (folder / "rgb.txt").read_text().splitlines() if not ln.startswith("#")]
+    dnames = [ln.split()[1] for ln in (folder / "depth.txt").read_text().splitlines() if not ln.startswith("#")]
+    line = [ln for ln in (folder / "intrinsics.txt").read_text().splitlines() if not ln.startswith("#")][0]
+    fx, fy, cx, cy, scale = map(float, line.split())
+    K = torch.tensor([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    grays, sims, pts = [], [], []
+    for i in range(count + 1):
+        g = cv2.cvtColor(cv2.imread(str(folder / names[i])), cv2.COLOR_BGR2GRAY)
+        d = cv2.imread(str(folder / dnames[i]), cv2.IMREAD_UNCHANGED).astype(np.float32) / scale
+        grays.append(torch.from_numpy(g).float()[None] / 255.0)
+        sims.append(compute_sim(torch.from_numpy(d)[None, None], K[None]).image[0])
+        if i < count:
+            c = cv2.goodFeaturesToTrack(g, n_features, 0.001, 5).reshape(-1, 2)
+            pts.append(torch.from_numpy(c[:n_features]))
+    n = min(len(p) for p in pts)
+    gray, sim = torch.stack(grays), torch.stack(sims)
+    return gray[:-1], sim[:-1], gray[1:], sim[1:], torch.stack([p[:n] for p in pts])
+
+
+def opencv_four_passes(prev_u8, next_u8, pts, args):
+    """Intensity and SIM, forward and backward: the combined tracker's four LK calls, per sequence."""
+    for s in range(len(pts)):
+        x0 = pts[s].reshape(-1, 1, 2)
+        for k in range(2):
+            x1, _, _ = cv2.calcOpticalFlowPyrLK(prev_u8[k][s], next_u8[k][s], x0, None, **args)
+            cv2.calcOpticalFlowPyrLK(next_u8[k][s], prev_u8[k][s], x1, None, **args)
+
+
+def timed(fn, repeats):
+    out = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        out.append(time.perf_counter() - t)
+    return np.array(out) * 1e3
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--repeats", type=int, default=40)
+    ap.add_argument("--features", type=int, default=300)
+    ap.add_argument("--seq", default="sun3d_fragment1")
+    ap.add_argument("--window", type=int, default=21)
+    ap.add_argument("--levels", type=int, default=3)
+    a = ap.parse_args()
+    torch.set_num_threads(a.threads)
+    cv2.setNumThreads(a.threads)
+    print(f"# bench_lk: {platform.processor() or platform.machine()}, torch {torch.__version__}, OpenCV "
+          f"{cv2.__version__}, {a.threads} thread(s), window {a.window}, levels {a.levels}, 30 iters, eps 0.01")  # fmt: skip
+    gray0, sim0, gray1, sim1, pts = load_pairs(a.seq, 8, a.features)
+    tracker = CombinedTracker(window=a.window, levels=a.levels)
+    args = dict(
+        winSize=(a.window, a.window), maxLevel=a.levels - 1, minEigThreshold=1e-4,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
+    )  # fmt: skip
+
+    def u8(x):
+        return [(x[s, 0] * 255).round().clamp(0, 255).to(torch.uint8).numpy() for s in range(x.shape[0])]
+
+    print(f"\n{a.seq}, {pts.shape[1]} features, 640x480, combined tracker = 4 LK passes (ms, wall clock)\n")
+    print("| B | torch tracker (prepared frames) | torch per frame (prepare + track) | OpenCV 4 passes | "
+          "ratio per frame / OpenCV | torch ms per sequence |")  # fmt: skip
+    print("|---|---|---|---|---|---|")
+    for b in (1, 4, 8):
+        f0 = prepare_frame(gray0[:b], sim0[:b], a.levels)
+        f1 = prepare_frame(gray1[:b], sim1[:b], a.levels)
+        p = pts[:b]
+        prev_u8, next_u8 = [u8(gray0[:b]), u8(sim0[:b])], [u8(gray1[:b]), u8(sim1[:b])]
+        p_np = p.numpy()
+        rows = {"track": [], "frame": [], "cv": []}
+        for _ in range(3):
+            tracker(f0, f1, p)
+        for _ in range(a.repeats):  # interleaved, so load changes hit both sides alike
+            rows["track"].append(timed(lambda: tracker(f0, f1, p), 1)[0])
+            rows["frame"].append(timed(lambda: tracker(f0, prepare_frame(gray1[:b], sim1[:b], a.levels), p), 1)[0])
+            rows["cv"].append(timed(lambda: opencv_four_passes(prev_u8, next_u8, p_np, args), 1)[0])
+        med = {k: float(np.median(v)) for k, v in rows.items()}
+        mn = {k: float(np.min(v)) for k, v in rows.items()}
+        print(f"| {b} | {med['track']:.1f} (min {mn['track']:.1f}) | {med['frame']:.1f} (min {mn['frame']:.1f}) | "
+              f"{med['cv']:.1f} (min {mn['cv']:.1f}) | {med['frame'] / med['cv']:.2f} (min/min "
+              f"{mn['frame'] / mn['cv']:.2f}) | {med['frame'] / b:.1f} |")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()

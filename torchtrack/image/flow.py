@@ -1,0 +1,247 @@
+"""The combined intensity + SIM feature tracker with template inverse matching (paper §III-C, eq. (10)).
+
+Steps of §III-C, per feature: (I) track with pyramidal LK on a) intensity and b) the SIM image;
+(II) track each result back and take the TIM error d_TIM = ||x - x'|| (eq. 10); (III) keep the tracker
+with the smaller d_TIM; (IV) drop the feature when that d_TIM is above a threshold or the track failed
+(left the image, degenerate window, no convergence). Dropping features without depth at the new
+position is the caller's job.
+
+Each frame is prepared once (:func:`prepare_frame`): intensity and SIM are stacked into one pyramid, so
+the two forward passes run as one batched LK call, and so do the two backward passes; the frame's
+pyramid is the next call's template. ``backend="opencv"`` runs ``cv2.calcOpticalFlowPyrLK`` with the
+same parameters on the 8-bit images instead (a reference for comparisons).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal, NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchtrack.image.lk import lk_track_flat
+from torchtrack.image.pyramid import Pyramid, build_pyramid
+
+Mode = Literal["combined", "intensity", "sim"]
+_CHANNELS = {"combined": (0, 1), "intensity": (0,), "sim": (1,)}
+
+
+@dataclass
+class FlowFrame:
+    """One frame prepared for tracking, built once and used as next, then as prev.
+
+    Attributes:
+        images: (K, B, 1, H, W) the tracked images, K = 2 (intensity, SIM) or 1 (intensity only).
+        pyramid: LK pyramid of the K * B images stacked as (K * B, 1, H, W): image k * B + b is channel k of
+            sequence b.
+    """
+
+    images: Tensor
+    pyramid: Pyramid
+    _u8: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def batch(self) -> int:
+        return self.images.shape[1]
+
+    @property
+    def has_sim(self) -> bool:
+        return self.images.shape[0] == 2
+
+    def u8(self, k: int, b: int) -> np.ndarray:
+        """Channel k of sequence b as an (H, W) uint8 image (for the OpenCV backend), cached."""
+        if (k, b) not in self._u8:
+            img = (self.images[k, b, 0] * 255.0).round().clamp(0, 255)
+            self._u8[(k, b)] = img.to(torch.uint8).numpy()
+        return self._u8[(k, b)]
+
+
+def prepare_frame(gray: Tensor, sim: Tensor | None = None, levels: int = 3, *, max_window: int = 31) -> FlowFrame:
+    """Prepare a frame for the combined tracker: build the intensity and SIM pyramids once.
+
+    Args:
+        gray: (B, 1, H, W) intensity in [0, 1].
+        sim: (B, 1, H, W) SIM image in [0, 1] (``shape_index.sim_image``), or None for intensity only.
+        levels: pyramid levels L (OpenCV maxLevel = L - 1).
+        max_window: the largest LK window the frame must support.
+    """
+    if gray.ndim != 4 or gray.shape[1] != 1:
+        raise ValueError(f"prepare_frame: gray must be (B, 1, H, W), got {tuple(gray.shape)}")
+    if sim is not None and sim.shape != gray.shape:
+        raise ValueError(f"prepare_frame: sim must match gray {tuple(gray.shape)}, got {tuple(sim.shape)}")
+    images = torch.stack([gray, sim]) if sim is not None else gray[None]
+    images = images.float()
+    return FlowFrame(images, build_pyramid(images.flatten(0, 1), levels, window=max_window))
+
+
+class TrackResult(NamedTuple):
+    """Per feature (all (B, N)): the combined tracker's output.
+
+    points: (B, N, 2) position in the next frame from the winning tracker (input where not tracked).
+    valid: kept: valid input, tracked, inside the image, d_TIM <= threshold.
+    d_tim: d_TIM of the winner (eq. 10), +inf where not tracked. d_tim_int, d_tim_sim: of each tracker.
+    winner: int64, 0 intensity, 1 SIM. status_int, status_sim: each tracker's forward and backward success.
+    """
+
+    points: Tensor
+    valid: Tensor
+    d_tim: Tensor
+    d_tim_int: Tensor
+    d_tim_sim: Tensor
+    winner: Tensor
+    status_int: Tensor
+    status_sim: Tensor
+
+
+def _inside(points: Tensor, h: int, w: int) -> Tensor:
+    return (points >= 0).all(-1) & (points[..., 0] <= w - 1) & (points[..., 1] <= h - 1)
+
+
+def _track_torch(prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tensor, channels, lk_kwargs):
+    """Forward and backward LK for each channel k in channels: (fwd points, status, d_tim), each (K, B, N[, 2])."""
+    b, n = points.shape[:2]
+    k = len(channels)
+    image = torch.tensor(channels)[:, None, None] * b + torch.arange(b)[None, :, None]  # K,B,1
+    image = image.expand(k, b, n).reshape(-1)
+    pts = points.float().expand(k, b, n, 2).reshape(-1, 2)
+    sel = valid.expand(k, b, n).reshape(-1).nonzero().squeeze(1)
+    fwd_pts, status = pts.clone(), torch.zeros(pts.shape[0], dtype=torch.bool)
+    x0, img = pts[sel], image[sel]
+    x1, ok, _ = lk_track_flat(prev.pyramid, next.pyramid, x0, img, x0, with_residual=False, **lk_kwargs)
+    fwd_pts[sel] = x1
+    good = ok.nonzero().squeeze(1)
+    back, ok_back, _ = lk_track_flat(  # template inverse matching: from the result back to prev
+        next.pyramid, prev.pyramid, x1[good], img[good], x1[good], with_residual=False, **lk_kwargs
+    )
+    d_tim = torch.full((pts.shape[0],), float("inf"))
+    rows = sel[good]
+    d_tim[rows] = torch.where(ok_back, torch.linalg.vector_norm(x0[good] - back, dim=-1), float("inf"))  # eq. (10)
+    status[rows] = ok_back
+    return fwd_pts.view(k, b, n, 2), status.view(k, b, n), d_tim.view(k, b, n)
+
+
+def _track_opencv(prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tensor, channels, lk_kwargs):
+    """The same with cv2.calcOpticalFlowPyrLK on uint8 images, looped over channels and sequences."""
+    import cv2
+
+    b, n = points.shape[:2]
+    h, w = prev.images.shape[-2:]
+    win = lk_kwargs["window"]
+    args = dict(
+        winSize=(win, win),
+        maxLevel=lk_kwargs["levels"] - 1,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, lk_kwargs["iters"], lk_kwargs["eps"]),
+        minEigThreshold=lk_kwargs["min_eig"],
+    )
+    fwd_pts = points.float().expand(len(channels), b, n, 2).clone()
+    status = torch.zeros(len(channels), b, n, dtype=torch.bool)
+    d_tim = torch.full((len(channels), b, n), float("inf"))
+    for i, k in enumerate(channels):
+        for s in range(b):
+            sel = valid[s].nonzero().squeeze(1)
+            if sel.numel() == 0:
+                continue
+            x0 = points[s, sel].float().numpy().reshape(-1, 1, 2)
+            x1, st1, _ = cv2.calcOpticalFlowPyrLK(prev.u8(k, s), next.u8(k, s), x0, None, **args)
+            back, st2, _ = cv2.calcOpticalFlowPyrLK(next.u8(k, s), prev.u8(k, s), x1, None, **args)
+            x1t, backt = torch.from_numpy(x1.reshape(-1, 2)), torch.from_numpy(back.reshape(-1, 2))
+            ok = torch.from_numpy((st1[:, 0] == 1) & (st2[:, 0] == 1)) & _inside(x1t, h, w) & _inside(backt, h, w)
+            fwd_pts[i, s, sel] = x1t
+            status[i, s, sel] = ok
+            d = torch.linalg.vector_norm(torch.from_numpy(x0.reshape(-1, 2)) - backt, dim=-1)  # eq. (10)
+            d_tim[i, s, sel] = torch.where(ok, d, float("inf"))
+    return fwd_pts, status, d_tim
+
+
+def combined_track(
+    prev: FlowFrame,
+    next: FlowFrame,
+    points: Tensor,
+    valid: Tensor | None = None,
+    *,
+    mode: Mode = "combined",
+    tim_threshold: float = 1.0,
+    window: int = 21,
+    levels: int = 3,
+    iters: int = 30,
+    eps: float = 0.01,
+    min_eig: float = 1e-4,
+    ic_iters: int = 2,
+    backend: Literal["torch", "opencv"] = "torch",
+) -> TrackResult:
+    """Track features from prev to next with the combined intensity + SIM tracker (§III-C, eq. (10)).
+
+    Args:
+        prev, next: prepared frames (prepare_frame), with SIM unless mode == "intensity".
+        points: (B, N, 2) pixel positions in prev. valid: (B, N) bool (default all).
+        mode: "combined" (paper), "intensity" or "sim" (single trackers, e.g. Table II and EKF-2).
+        tim_threshold: features with d_TIM above this (pixels) are dropped (step IV).
+        window, levels, iters, eps, min_eig, ic_iters: LK parameters (see ``pyramidal_lk``).
+        backend: "torch" (batched) or "opencv" (cv2.calcOpticalFlowPyrLK, for comparisons).
+
+    Returns:
+        TrackResult; d_tim_* and status_* of a tracker that did not run are +inf and False.
+    """
+    if mode not in _CHANNELS:
+        raise ValueError(f"combined_track: mode must be one of {tuple(_CHANNELS)}, got {mode!r}")
+    if points.ndim != 3 or points.shape[-1] != 2 or points.shape[0] != prev.batch:
+        raise ValueError(f"combined_track: points must be (B={prev.batch}, N, 2), got {tuple(points.shape)}")
+    if mode != "intensity" and not (prev.has_sim and next.has_sim):
+        raise ValueError(f"combined_track: mode {mode!r} needs frames prepared with a SIM image")
+    if window > prev.pyramid.max_window or levels > prev.pyramid.levels:
+        raise ValueError(f"combined_track: frames support window <= {prev.pyramid.max_window}, levels <= "
+                         f"{prev.pyramid.levels}; got {window}, {levels}")  # fmt: skip
+    b, n = points.shape[:2]
+    valid = torch.ones(b, n, dtype=torch.bool) if valid is None else valid.bool()
+    channels = _CHANNELS[mode]
+    lk_kwargs = dict(window=window, levels=levels, iters=iters, eps=eps, min_eig=min_eig)
+    if backend == "torch":
+        fwd, status, d_tim = _track_torch(prev, next, points, valid, channels, dict(lk_kwargs, ic_iters=ic_iters))
+    elif backend == "opencv":
+        fwd, status, d_tim = _track_opencv(prev, next, points, valid, channels, lk_kwargs)
+    else:
+        raise ValueError(f"combined_track: backend must be 'torch' or 'opencv', got {backend!r}")
+    pick = (d_tim[-1] < d_tim[0]).long()  # step III: the tracker with the smaller d_TIM (ties: intensity)
+    best = d_tim.gather(0, pick[None])[0]
+    chosen = fwd.gather(0, pick[None, ..., None].expand(1, b, n, 2))[0]
+    winner = torch.tensor(channels)[pick]
+    h, w = prev.images.shape[-2:]
+    keep = valid & torch.isfinite(best) & (best <= tim_threshold) & _inside(chosen, h, w)  # step IV
+    full = {c: (d_tim[i], status[i]) for i, c in enumerate(channels)}
+    none = (torch.full((b, n), float("inf")), torch.zeros(b, n, dtype=torch.bool))
+    (d_int, st_int), (d_sim, st_sim) = full.get(0, none), full.get(1, none)
+    points_out = torch.where(keep[..., None], chosen, points.float()).to(points.dtype)
+    return TrackResult(points_out, keep, best, d_int, d_sim, winner, st_int, st_sim)
+
+
+class CombinedTracker:
+    """Holds the combined tracker's parameters; ``__call__(prev, next, points, valid)`` delegates to
+    :func:`combined_track` and ``prepare(gray, sim)`` to :func:`prepare_frame`."""
+
+    def __init__(
+        self,
+        mode: Mode = "combined",
+        tim_threshold: float = 1.0,
+        window: int = 21,
+        levels: int = 3,
+        iters: int = 30,
+        eps: float = 0.01,
+        min_eig: float = 1e-4,
+        ic_iters: int = 2,
+        backend: Literal["torch", "opencv"] = "torch",
+    ) -> None:
+        if mode not in _CHANNELS or backend not in ("torch", "opencv"):
+            raise ValueError(f"CombinedTracker: bad mode {mode!r} or backend {backend!r}")
+        self.levels = levels
+        self.kwargs = dict(
+            mode=mode, tim_threshold=tim_threshold, window=window, levels=levels, iters=iters, eps=eps,
+            min_eig=min_eig, ic_iters=ic_iters, backend=backend,
+        )  # fmt: skip
+
+    def prepare(self, gray: Tensor, sim: Tensor | None = None) -> FlowFrame:
+        return prepare_frame(gray, sim, self.levels)
+
+    def __call__(self, prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tensor | None = None) -> TrackResult:
+        return combined_track(prev, next, points, valid, **self.kwargs)
