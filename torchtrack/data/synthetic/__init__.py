@@ -21,7 +21,7 @@ import sys
 from torchtrack.data.synthetic.config import KinectNoise, SyntheticConfig
 from torchtrack.data.synthetic.motion import SequencePoses, look_at, sequence_poses
 from torchtrack.data.synthetic.noise import apply_kinect_noise, depth_sigma, edge_holes, quantise_disparity
-from torchtrack.data.synthetic.raycast import RGBD, RayHits, raycast, render_frame, render_pixels
+from torchtrack.data.synthetic.render import RGBD, RayHits, raycast, render_frame, render_pixels
 from torchtrack.data.synthetic.scene import Primitive, Scene, TextureParams, default_scene, make_scene, random_texture
 from torchtrack.data.synthetic.writer import (
     default_cache_root,

@@ -7,7 +7,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchtrack.data.synthetic.config import KinectNoise
-from torchtrack.data.synthetic.raycast import RGBD
+from torchtrack.data.synthetic.render import RGBD
 
 
 def depth_sigma(z: Tensor, k: KinectNoise) -> Tensor:

@@ -194,17 +194,23 @@ def plane_atlas(scene: Scene, k: int) -> Tensor:
 
 
 def plane_rgb(scene: Scene, k: int, u: Tensor, v: Tensor) -> Tensor:
-    """Albedo (3, n) of plane primitive k at local (u, v), each (n,), read from its baked atlas."""
+    """Albedo (n, 3) of plane primitive k at local (u, v), each (n,), read from its baked atlas."""
     hx, hy = scene.primitives[k].size
     grid = torch.stack([u * (1.0 / hx), v * (1.0 / hy)], dim=-1)[None, None]
-    return F.grid_sample(plane_atlas(scene, k), grid, mode="bilinear", align_corners=True)[0, :, 0]
+    out = F.grid_sample(plane_atlas(scene, k), grid, mode="bilinear", align_corners=True)  # 1,3,1,n channels-last
+    return out.permute(0, 2, 3, 1).reshape(-1, 3)
 
 
-def shade(scene: Scene, normal_local: Vec3, R_group_prim: Tensor) -> Tensor | float:
-    """Lambert factor (n,) for unit local normals: ambient + (1 - ambient) max(0, n . l), l in the group frame."""
+def light_local(scene: Scene) -> list[list[float]]:
+    """Per primitive the unit light direction in its local frame (light is fixed in each rigid group)."""
     light = torch.tensor(scene.light_dir, dtype=torch.float64)
-    l_local = (R_group_prim.T @ (light / light.norm())).tolist()
-    cos = normal_local[0] * l_local[0] + normal_local[1] * l_local[1] + normal_local[2] * l_local[2]
+    R = torch.stack([p.T_group_prim[:3, :3].double() for p in scene.primitives])  # P,3,3 group <- local
+    return (R.transpose(1, 2) @ (light / light.norm())).tolist()
+
+
+def shade(scene: Scene, normal_local: Vec3, light: list[float]) -> Tensor | float:
+    """Lambert factor (n,) for unit local normals: ambient + (1 - ambient) max(0, n . l), l local (light_local)."""
+    cos = normal_local[0] * light[0] + normal_local[1] * light[1] + normal_local[2] * light[2]
     if isinstance(cos, float):
         return scene.ambient + (1 - scene.ambient) * max(cos, 0.0)
     return scene.ambient + (1 - scene.ambient) * cos.clamp_min(0)

@@ -18,7 +18,7 @@ from tqdm import tqdm
 from torchtrack.data.synthetic.config import RENDERER_VERSION, SyntheticConfig
 from torchtrack.data.synthetic.motion import sequence_poses
 from torchtrack.data.synthetic.noise import apply_kinect_noise
-from torchtrack.data.synthetic.raycast import render_frame
+from torchtrack.data.synthetic.render import render_frame
 from torchtrack.data.synthetic.scene import default_scene
 from torchtrack.geometry import T_inv, matrix_to_quat_xyzw
 

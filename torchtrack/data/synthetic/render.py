@@ -15,7 +15,14 @@ import torch
 from torch import Tensor
 
 from torchtrack.data.synthetic.scene import Primitive, Scene, pixel_rays
-from torchtrack.data.synthetic.texture import batch_textures, plane_rgb, shade, surface_uv_normal, texture_rgb
+from torchtrack.data.synthetic.texture import (
+    batch_textures,
+    light_local,
+    plane_rgb,
+    shade,
+    surface_uv_normal,
+    texture_rgb,
+)
 from torchtrack.geometry import T_inv
 
 _EPS = 1e-6
@@ -86,63 +93,89 @@ def _hit_cylinder(o: list[float], d: tuple[Tensor, Tensor, Tensor], s: tuple[flo
 _HIT = {"plane": _hit_plane, "sphere": _hit_sphere, "box": _hit_box, "cylinder": _hit_cylinder}
 
 
-def _T_prim_cam(scene: Scene, T_world_cam: Tensor, T_world_obj: Tensor | None) -> list[Tensor]:
-    """Per primitive (4, 4) float64 camera-to-primitive transforms."""
-    if T_world_obj is None and any(p.group == 1 for p in scene.primitives):
+class _PrimPoses(NamedTuple):
+    """Camera-to-primitive transforms of all primitives: T (P, 4, 4) float64, and R, o as Python floats."""
+
+    T: Tensor
+    R: list[list[list[float]]]
+    o: list[list[float]]
+
+
+def _T_prim_cam(scene: Scene, T_world_cam: Tensor, T_world_obj: Tensor | None) -> _PrimPoses:
+    """Per primitive camera-to-primitive transforms, batched (one transform chain for all primitives)."""
+    groups = [p.group for p in scene.primitives]
+    if T_world_obj is None and 1 in groups:
         raise ValueError("render: the scene has a moving object (group 1) but T_world_obj was not given")
     T_cam_world = T_inv(T_world_cam.double())
     T_world_group1 = torch.eye(4, dtype=torch.float64) if T_world_obj is None else T_world_obj.double()
-    T_cam_group = [T_cam_world, T_cam_world @ T_world_group1]
-    return [T_inv(T_cam_group[p.group] @ p.T_group_prim) for p in scene.primitives]
+    T_cam_group = torch.stack([T_cam_world, T_cam_world @ T_world_group1])[torch.tensor(groups, dtype=torch.long)]
+    T = T_inv(T_cam_group @ torch.stack([p.T_group_prim.double() for p in scene.primitives]))
+    T_list = T.tolist()
+    return _PrimPoses(T, [[row[:3] for row in Tk[:3]] for Tk in T_list], [[row[3] for row in Tk[:3]] for Tk in T_list])
 
 
 _NEAR = 1e-3
 
 
-def _screen_box(scene: Scene, prim: Primitive, T_prim_cam: Tensor) -> tuple[int, int, int, int] | None:
-    """Conservative pixel rectangle (v0, v1, u0, u1) covering the primitive; None if it cannot be seen.
-
-    The primitive's local bounding box is clipped against the plane z = _NEAR in the camera (the clipped
-    convex hull is spanned by the corners in front and the crossings of all corner pairs), then projected.
-    Planes are one-sided: seen from behind (camera at local z <= 0) they are culled.
-    """
-    if prim.kind == "plane" and float(T_prim_cam[2, 3]) <= 0:
-        return None
-    half = torch.tensor(prim.size * 3 if prim.kind == "sphere" else prim.size, dtype=torch.float64)
+def _local_box(prim: Primitive) -> list[float]:
+    """Half extents of the primitive's local bounding box."""
+    s = prim.size
+    if prim.kind == "plane":
+        return [s[0], s[1], 0.0]
     if prim.kind == "cylinder":
-        half = torch.stack([half[0], half[0], half[1]])
-    elif prim.kind == "plane":
-        half = torch.cat([half, half.new_zeros(1)])
-    signs = torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=torch.float64)
-    T_cam_prim = T_inv(T_prim_cam)
-    pts = (signs * half) @ T_cam_prim[:3, :3].T + T_cam_prim[:3, 3]  # 8,3 corners in the camera
-    front = pts[:, 2] > _NEAR
-    if not bool(front.any()):
-        return None
-    a, b = pts[:, None], pts[None, :]  # crossings of every corner pair with z = _NEAR
+        return [s[0], s[0], s[1]]
+    return [s[0]] * 3 if prim.kind == "sphere" else list(s)
+
+
+_SIGNS = torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=torch.float64)
+
+
+def _screen_boxes(scene: Scene, T_pc: Tensor) -> list[tuple[int, int, int, int] | None]:
+    """Per primitive a conservative pixel rectangle (v0, v1, u0, u1) covering it; None if it cannot be seen.
+
+    Each local bounding box is clipped against the plane z = _NEAR in the camera (the clipped convex
+    hull is spanned by the corners in front and the crossings of all corner pairs), then projected.
+    Planes are one-sided: seen from behind (camera at local z <= 0) they are culled. Batched over primitives.
+    """
+    T_cp = T_inv(T_pc)  # P,4,4 primitive -> camera
+    half = torch.tensor([_local_box(p) for p in scene.primitives], dtype=torch.float64)  # P,3
+    pts = (_SIGNS * half[:, None]) @ T_cp[:, :3, :3].transpose(1, 2) + T_cp[:, None, :3, 3]  # P,8,3 corners
+    a, b = pts[:, :, None], pts[:, None, :]  # crossings of every corner pair with z = _NEAR
     w = ((_NEAR - a[..., 2]) / (b[..., 2] - a[..., 2])).nan_to_num(-1.0)
-    cross = (a + w[..., None] * (b - a))[(w > 0) & (w < 1)]
-    pts = torch.cat([pts[front], cross])
+    cross = (a + w[..., None] * (b - a)).flatten(1, 2)  # P,64,3
+    use = torch.cat([pts[..., 2] > _NEAR, ((w > 0) & (w < 1)).flatten(1)], dim=1)  # P,72
+    pts = torch.cat([pts, cross], dim=1)
+    z = torch.where(use, pts[..., 2], 1.0)
     K = scene.K.double()
-    u = K[0, 0] * pts[:, 0] / pts[:, 2] + K[0, 2]
-    v = K[1, 1] * pts[:, 1] / pts[:, 2] + K[1, 2]
-    u0, u1 = max(0, int(u.min().clamp(-1e6, 1e6)) - 1), min(scene.width, int(u.max().clamp(-1e6, 1e6)) + 2)
-    v0, v1 = max(0, int(v.min().clamp(-1e6, 1e6)) - 1), min(scene.height, int(v.max().clamp(-1e6, 1e6)) + 2)
-    return (v0, v1, u0, u1) if u0 < u1 and v0 < v1 else None
+    u = (K[0, 0] * pts[..., 0] / z + K[0, 2]).clamp(-1e6, 1e6)
+    v = (K[1, 1] * pts[..., 1] / z + K[1, 2]).clamp(-1e6, 1e6)
+    big = torch.tensor(1e7, dtype=torch.float64)
+    lo_u, hi_u = torch.where(use, u, big).amin(1), torch.where(use, u, -big).amax(1)
+    lo_v, hi_v = torch.where(use, v, big).amin(1), torch.where(use, v, -big).amax(1)
+    backface = torch.tensor([p.kind == "plane" for p in scene.primitives]) & (T_pc[:, 2, 3] <= 0)
+    seen = use.any(1) & ~backface
+    boxes: list[tuple[int, int, int, int] | None] = []
+    for ok, u0, u1, v0, v1 in zip(
+        seen.tolist(), lo_u.tolist(), hi_u.tolist(), lo_v.tolist(), hi_v.tolist(), strict=True
+    ):
+        u0, u1 = max(0, int(u0) - 1), min(scene.width, int(u1) + 2)
+        v0, v1 = max(0, int(v0) - 1), min(scene.height, int(v1) + 2)
+        boxes.append((v0, v1, u0, u1) if ok and u0 < u1 and v0 < v1 else None)
+    return boxes
 
 
-def _local_dirs(scene: Scene, R: Tensor, box: tuple[int, int, int, int]) -> tuple[Tensor, Tensor, Tensor]:
+def _local_dirs(scene: Scene, R: list[list[float]], box: tuple[int, int, int, int]) -> tuple[Tensor, Tensor, Tensor]:
     """Rays of the pixel rectangle box rotated by R (3, 3): three (h, w) components.
 
     Separable: R @ (x_u, y_v, 1) = (R[:, 0] x_u + R[:, 2]) + R[:, 1] y_v, one broadcast add per component.
     """
     v0, v1, u0, u1 = box
     xs, ys = scene.ray_xy()
-    xs, ys, R_ = xs[u0:u1], ys[v0:v1], R.tolist()
-    return tuple((xs * R_[i][0] + R_[i][2])[None, :] + (ys * R_[i][1])[:, None] for i in range(3))
+    xs, ys = xs[u0:u1], ys[v0:v1]
+    return tuple((xs * R[i][0] + R[i][2])[None, :] + (ys * R[i][1])[:, None] for i in range(3))
 
 
-def _cast(scene: Scene, T_pc: list[Tensor], dirs: Tensor | None) -> tuple[Tensor, Tensor]:
+def _cast(scene: Scene, poses: _PrimPoses, dirs: Tensor | None) -> tuple[Tensor, Tensor]:
     """Z-buffer over primitives -> t (h, w) (inf = miss), prim index (h, w) (-1 = miss).
 
     dirs None: the full image grid, each primitive restricted to its screen box. Else rays (1, n, 3).
@@ -150,18 +183,18 @@ def _cast(scene: Scene, T_pc: list[Tensor], dirs: Tensor | None) -> tuple[Tensor
     h, w = (scene.height, scene.width) if dirs is None else dirs.shape[:2]
     zbuf = torch.full((h, w), _INF)
     ids = torch.full((h, w), -1, dtype=torch.int16)  # small ints: cheaper z-buffer writes
-    for k, (prim, T) in enumerate(zip(scene.primitives, T_pc, strict=True)):
-        R = T[:3, :3].float()
-        if dirs is None:
-            box = _screen_box(scene, prim, T)
+    boxes = _screen_boxes(scene, poses.T) if dirs is None else None
+    for k, prim in enumerate(scene.primitives):
+        if boxes is not None:
+            box = boxes[k]
             if box is None:
                 continue
-            d_local = _local_dirs(scene, R, box)
+            d_local = _local_dirs(scene, poses.R[k], box)
         else:
             box = (0, h, 0, w)
-            d_local = tuple(c.contiguous() for c in (dirs @ R.T).unbind(-1))
+            d_local = tuple(c.contiguous() for c in (dirs @ poses.T[k, :3, :3].float().T).unbind(-1))
         v0, v1, u0, u1 = box
-        t = _HIT[prim.kind](T[:3, 3].tolist(), d_local, prim.size)
+        t = _HIT[prim.kind](poses.o[k], d_local, prim.size)
         zc, ic = zbuf[v0:v1, u0:u1], ids[v0:v1, u0:u1]
         closer = t < zc
         torch.minimum(zc, t, out=zc)
@@ -169,55 +202,55 @@ def _cast(scene: Scene, T_pc: list[Tensor], dirs: Tensor | None) -> tuple[Tensor
     return zbuf, ids.long()
 
 
-def _colour(scene: Scene, T_pc: list[Tensor], dx: Tensor, dy: Tensor, t: Tensor, ids: Tensor) -> Tensor:
-    """Shaded texture colour (3, n) of hits at depth t (n,) on primitives ids (n,) along rays (dx, dy, 1).
+def _colour(scene: Scene, poses: _PrimPoses, dx: Tensor, dy: Tensor, t: Tensor, ids: Tensor) -> Tensor:
+    """Shaded texture colour (n, 3) of hits at depth t (n,) on primitives ids (n,) along rays (dx, dy, 1).
 
     Planes read their baked atlas; all other primitives are textured together in one call.
     """
-    rgb = torch.tensor(scene.background_rgb)[:, None].repeat(1, t.shape[0])
+    rgb = torch.tensor(scene.background_rgb)[None].repeat(t.shape[0], 1)  # rows: contiguous scatter
     small = torch.int8 if len(scene.primitives) < 127 else torch.int32  # small ints sort fastest
     order = torch.sort(ids.to(small), stable=True).indices  # pixels grouped by primitive, one pass
     counts = torch.bincount(ids + 1, minlength=len(scene.primitives) + 1).tolist()
     groups = order.split(counts)
+    light = light_local(scene)
     solids: list[tuple[int, Tensor, Tensor, Tensor, Tensor | float]] = []
-    for k, (prim, T) in enumerate(zip(scene.primitives, T_pc, strict=True)):
+    for k, prim in enumerate(scene.primitives):
         idx = groups[k + 1]
         if idx.numel() == 0:
             continue
         z = t.index_select(0, idx)
         x, y = dx.index_select(0, idx).mul_(z), dy.index_select(0, idx).mul_(z)  # hit in the camera
-        R, o = T[:3, :3].tolist(), T[:3, 3].tolist()
+        R, o = poses.R[k], poses.o[k]
         p_local = [R[i][0] * x + R[i][1] * y + R[i][2] * z + o[i] for i in range(2 if prim.kind == "plane" else 3)]
         if prim.kind == "plane":
-            lit = shade(scene, (0.0, 0.0, 1.0), prim.T_group_prim[:3, :3])
-            rgb.index_copy_(1, idx, plane_rgb(scene, k, *p_local) * lit)
+            rgb.index_copy_(0, idx, plane_rgb(scene, k, *p_local) * shade(scene, (0.0, 0.0, 1.0), light[k]))
         else:
             (u, v), n_local = surface_uv_normal(prim, tuple(p_local))
-            solids.append((k, idx, u, v, shade(scene, n_local, prim.T_group_prim[:3, :3])))
+            solids.append((k, idx, u, v, shade(scene, n_local, light[k])))
     if solids:
         ks, idx, u, v, lit = zip(*solids, strict=True)
         which = torch.repeat_interleave(torch.tensor(ks), torch.tensor([len(i) for i in idx]))
         tex = batch_textures([p.texture for p in scene.primitives], which)
         albedo = texture_rgb(scene, tex, torch.cat(u), torch.cat(v))
         lit = torch.cat([torch.as_tensor(x).expand(len(i)) for x, i in zip(lit, idx, strict=True)])
-        rgb.index_copy_(1, torch.cat(idx), torch.stack(albedo) * lit)
+        rgb.index_copy_(0, torch.cat(idx), torch.stack(albedo, dim=1) * lit[:, None])
     return rgb.clamp_(0, 1)
 
 
 def _render_one(scene: Scene, T_world_cam: Tensor, T_world_obj: Tensor | None, pixels: Tensor | None):
     """-> rgb (3, h, w), depth (h, w), prim index (h, w); (h, w) = (H, W) or (1, N) for given pixels (N, 2)."""
-    T_pc = _T_prim_cam(scene, T_world_cam, T_world_obj)
+    poses = _T_prim_cam(scene, T_world_cam, T_world_obj)
     dirs = None if pixels is None else pixel_rays(scene.K, pixels.float())[None]
-    t, ids = _cast(scene, T_pc, dirs)
+    t, ids = _cast(scene, poses, dirs)
     h, w = t.shape
     if pixels is None:
         xs, ys = scene.ray_xy()
         dx, dy = xs.repeat(h), ys.repeat_interleave(w)
     else:
         dx, dy = dirs[0, :, 0], dirs[0, :, 1]
-    rgb = _colour(scene, T_pc, dx, dy, t.reshape(-1), ids.reshape(-1))
+    rgb = _colour(scene, poses, dx, dy, t.reshape(-1), ids.reshape(-1))
     depth = torch.where(ids >= 0, t, torch.zeros_like(t))
-    return rgb.reshape(3, h, w), depth, ids
+    return rgb.reshape(h, w, 3).permute(2, 0, 1).contiguous(), depth, ids
 
 
 def _check_pose(name: str, T: Tensor | None) -> None:
@@ -258,6 +291,5 @@ def render_pixels(
 
 def raycast(scene: Scene, T_world_cam: Tensor, T_world_obj: Tensor | None = None) -> RayHits:
     """Depth (H, W) and primitive index (H, W) of the nearest surface, without shading."""
-    T_pc = _T_prim_cam(scene, T_world_cam, T_world_obj)
-    t, ids = _cast(scene, T_pc, None)
+    t, ids = _cast(scene, _T_prim_cam(scene, T_world_cam, T_world_obj), None)
     return RayHits(torch.where(ids >= 0, t, torch.zeros_like(t)), ids)
