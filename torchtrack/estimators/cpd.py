@@ -70,11 +70,21 @@ def cpd_posterior(
     return Posterior(E, inv_den)
 
 
-def procrustes_step(
-    post: Posterior, src: Tensor, dst: Tensor, scale: bool
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """M-step (Fig. 2): weighted Procrustes. Returns R (B,3,3), t (B,3), s (B,), residual (B,), Np (B,)
-    where residual = sum_nm P_nm |dst_m - s R src_n - t|² (the numerator of the sigma² update)."""
+class MStep(NamedTuple):
+    """M-step result: R (B,3,3), t (B,3), s (B,); resid (B,) = sum_nm P_nm |dst_m - s R src_n - t|² (the numerator
+    of the sigma² update), formed as xPx - 2 s tr(A^T R) + s² YPY; magnitude (B,) = xPx + s² YPY, the size of the
+    terms that cancel in it (its rounding error is ~eps * magnitude); Np (B,) = sum_nm P_nm."""
+
+    R: Tensor
+    t: Tensor
+    s: Tensor
+    resid: Tensor
+    magnitude: Tensor
+    Np: Tensor
+
+
+def procrustes_step(post: Posterior, src: Tensor, dst: Tensor, scale: bool) -> MStep:
+    """M-step (Fig. 2): weighted Procrustes with the reflection correction of Lemma 1; see :class:`MStep`."""
     E, inv_den = post
     Pt1 = E.sum(1) * inv_den  # B,M
     rhs = torch.cat([dst, torch.ones_like(inv_den)[..., None]], -1) * inv_den[..., None]  # B,M,4
@@ -93,7 +103,7 @@ def procrustes_step(
     xPx = (Pt1 * (dst - mu_x[:, None]).square().sum(-1)).sum(-1)
     s = trAR / YPY.clamp_min(torch.finfo(E.dtype).tiny) if scale else torch.ones_like(trAR)
     t = mu_x - s[:, None] * (R @ mu_y[..., None])[..., 0]
-    return R, t, s, xPx - 2 * s * trAR + s * s * YPY, Np
+    return MStep(R, t, s, xPx - 2 * s * trAR + s * s * YPY, xPx + s * s * YPY, Np)
 
 
 def cpd_rigid(
@@ -113,7 +123,8 @@ def cpd_rigid(
     sigma² starts at the mean squared distance over all valid pairs, as in pycpd and the original code (which
     start from the identity; here the pairs are taken after ``T_init``). A sequence stops when the objective Q
     changes by at most ``tol`` per matched point (|Q_k - Q_{k-1}| <= tol * N_P, scale-free: Q/N_P is in nats per
-    point), when sigma² reaches its rounding floor (exact data), or at ``max_iters``. ``w`` in [0, 1) is the
+    point) or by less than its own rounding noise (matters in float32 once sigma² is small), when sigma² reaches
+    its rounding floor (exact data), or at ``max_iters``. ``w`` in [0, 1) is the
     outlier weight; ``scale=True`` also estimates a similarity scale s (else s = 1).
     """
     check_points("src", src, "cpd_rigid")
@@ -147,12 +158,14 @@ def cpd_rigid(
         y, x, sig2 = src[ids], dst[ids], sigma2[ids]
         moved = s[ids, None, None] * (y @ R[ids].transpose(-1, -2)) + t[ids, None]
         post = cpd_posterior(moved, x, valid_src[ids], valid_dst[ids], sig2, w)  # E-step
-        R[ids], t[ids], s[ids], resid, Np = procrustes_step(post, y, x, scale)  # M-step
-        q_new = resid / (2 * sig2) + 1.5 * Np * torch.log(sig2)  # objective at the old sigma² (pycpd's Q)
-        sigma2[ids] = sig2_new = torch.maximum(resid / (3 * Np), sigma2_floor[ids])
+        m = procrustes_step(post, y, x, scale)  # M-step
+        R[ids], t[ids], s[ids] = m.R, m.t, m.s
+        q_new = m.resid / (2 * sig2) + 1.5 * m.Np * torch.log(sig2)  # objective at the old sigma² (pycpd's Q)
+        sigma2[ids] = sig2_new = torch.maximum(m.resid / (3 * m.Np), sigma2_floor[ids])
         iterations[ids] += 1
-        # at the floor the residual is rounding noise: nothing left to gain
-        done = ((q_new - q[ids]).abs() <= tol * Np) | (sig2_new <= sigma2_floor[ids])
+        # changes below the rounding noise of Q (float32 at small sigma²) or at the sigma² floor: nothing to gain
+        q_noise = 10 * torch.finfo(src.dtype).eps * m.magnitude / (2 * sig2)
+        done = ((q_new - q[ids]).abs() <= tol * m.Np + q_noise) | (sig2_new <= sigma2_floor[ids])
         q[ids] = q_new
         converged[ids] = done
         active[ids] = ~done
