@@ -201,6 +201,17 @@ def test_planar_set_exact():
     torch.testing.assert_close(torch.linalg.det(res.T[:, :3, :3]), torch.ones(B, dtype=torch.float64))
 
 
+def test_collinear_or_too_small_sets_keep_T_init():
+    line = torch.linspace(0, 0.3, 20, dtype=torch.float64)[:, None] * torch.tensor([1.0, 0.5, 0.2], dtype=torch.float64)
+    src = torch.stack([line + torch.tensor([0, 0, 1.0], dtype=torch.float64), random_cloud(1, 20, seed=29)[0]])
+    valid = ones(2, 20)
+    valid[1, 2:] = False
+    T_init = random_T(2, seed=30)
+    res = icp(src, src + 0.01, valid, valid, T_init)
+    assert res.valid.tolist() == [False, False] and not res.converged.any()
+    torch.testing.assert_close(res.T, T_init, atol=0, rtol=0)
+
+
 def test_max_iters_zero_returns_init_and_rmse_at_init():
     src = random_cloud(1, 20, seed=22)
     T_init = random_T(1, seed=23)

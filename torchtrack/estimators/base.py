@@ -67,6 +67,26 @@ def not_collinear(points: Tensor, w: Tensor) -> Tensor:
     return (lam[:, 1] > 1e3 * eps * lam[:, 2]) & (lam[:, 2] > 0)
 
 
+def augment_targets(y: Tensor, valid_y: Tensor) -> tuple[Tensor, Tensor]:
+    """Target side of :func:`sq_dists`, reusable across iterations: (B, M, 3) -> ([-2y, 1, |y|^2]^T (B, 5, M),
+    centre (B, 1, 3)), with |y|^2 = inf at padding. y must be finite (e.g. zeroed padding)."""
+    c = y.mean(1, keepdim=True)
+    y = y - c
+    y2 = torch.where(valid_y, y.square().sum(-1), torch.tensor(torch.inf, dtype=y.dtype, device=y.device))
+    return torch.cat([-2 * y, torch.ones_like(y2)[..., None], y2[..., None]], -1).transpose(-1, -2), c
+
+
+def sq_dists_to(x: Tensor, valid_x: Tensor, targets: tuple[Tensor, Tensor], scale: Tensor | None = None) -> Tensor:
+    """Squared distances from x (B, N, 3) to targets from :func:`augment_targets` -> (B, N, M); see :func:`sq_dists`."""
+    y_aug_t, c = targets
+    x = x - c
+    x2 = torch.where(valid_x, x.square().sum(-1), torch.tensor(torch.inf, dtype=x.dtype, device=x.device))
+    x_aug = torch.cat([x, x2[..., None], torch.ones_like(x2)[..., None]], -1)  # B,N,5
+    if scale is not None:
+        x_aug = x_aug * scale[:, None, None]
+    return x_aug @ y_aug_t
+
+
 def sq_dists(x: Tensor, y: Tensor, valid_x: Tensor, valid_y: Tensor, scale: Tensor | None = None) -> Tensor:
     """Pairwise squared distances (B, N, 3), (B, M, 3) -> (B, N, M), +inf where x or y is padded.
 
@@ -75,13 +95,4 @@ def sq_dists(x: Tensor, y: Tensor, valid_x: Tensor, valid_y: Tensor, scale: Tens
     (CPD's -1/(2 sigma^2); then the padding is -inf). Both sets are first shifted by y's mean so that rounding
     scales with their extent, not their distance from the camera; callers needing exact values recompute them.
     """
-    c = y.mean(1, keepdim=True)
-    x, y = x - c, y - c
-    inf = torch.tensor(torch.inf, dtype=x.dtype, device=x.device)
-    x2 = torch.where(valid_x, x.square().sum(-1), inf)
-    y2 = torch.where(valid_y, y.square().sum(-1), inf)
-    x_aug = torch.cat([x, x2[..., None], torch.ones_like(x2)[..., None]], -1)  # B,N,5
-    y_aug = torch.cat([-2 * y, torch.ones_like(y2)[..., None], y2[..., None]], -1)  # B,M,5
-    if scale is not None:
-        y_aug = y_aug * scale[:, None, None]
-    return x_aug @ y_aug.transpose(-1, -2)
+    return sq_dists_to(x, valid_x, augment_targets(y, valid_y), scale)

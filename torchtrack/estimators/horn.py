@@ -81,15 +81,18 @@ def horn(src: Tensor, dst: Tensor, valid: Tensor, weights: Tensor | None = None)
     return horn_weighted(zero_invalid(src, valid), zero_invalid(dst, valid), w)
 
 
-def horn_weighted(src: Tensor, dst: Tensor, w: Tensor) -> PoseEstimate:
-    """:func:`horn` without input checks, for inner loops: finite src, dst (B, N, 3), weights w (B, N) >= 0."""
+def horn_weighted(src: Tensor, dst: Tensor, w: Tensor, check_collinear: bool = True) -> PoseEstimate:
+    """:func:`horn` without input checks, for inner loops: finite src, dst (B, N, 3), weights w (B, N) >= 0.
+    ``check_collinear=False`` only requires 3 positive weights (callers that checked the full sets once)."""
     mu_s, mu_d = masked_mean(src, w), masked_mean(dst, w)  # centroids: t = mu_d - R mu_s
     a, b = src - mu_s[:, None], dst - mu_d[:, None]
     S = (w[..., None] * a).transpose(-1, -2) @ b  # B,3,3, S_ij = sum_n w_n a_ni b_nj
     _, V = torch.linalg.eigh(horn_N_matrix(S))  # ascending eigenvalues
     R = quat_wxyz_to_matrix(V[..., -1])  # eigenvector of the largest eigenvalue maximises sum w d.(q s q*)
     t = mu_d - (R @ mu_s[..., None])[..., 0]
-    ok = ((w > 0).sum(-1) >= 3) & not_collinear(src, w) & not_collinear(dst, w)
+    ok = (w > 0).sum(-1) >= 3
+    if check_collinear:
+        ok = ok & not_collinear(src, w) & not_collinear(dst, w)
     eye = torch.eye(4, dtype=src.dtype, device=src.device).expand(src.shape[0], 4, 4)
     return PoseEstimate(torch.where(ok[:, None, None], make_T(R, t), eye), ok)
 

@@ -16,15 +16,23 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.estimators.base import check_mask, check_points, check_T, sq_dists, zero_invalid
+from torchtrack.estimators.base import (
+    augment_targets,
+    check_mask,
+    check_points,
+    check_T,
+    not_collinear,
+    sq_dists_to,
+    zero_invalid,
+)
 from torchtrack.estimators.horn import horn_weighted
 from torchtrack.geometry import transform_points
 
 
 class ICPResult(NamedTuple):
     """T (B, 4, 4) = T_dst_src; rmse (B,) of the inlier matches at T; iterations (B,) pose updates made;
-    converged (B,) stopping criterion met before ``max_iters``; valid (B,) >= 3 points on each side and >= 3
-    inlier matches at T (T = T_init where not valid)."""
+    converged (B,) stopping criterion met before ``max_iters``; valid (B,) >= 3 non-collinear points on each side
+    and >= 3 inlier matches at T (T = T_init where not valid)."""
 
     T: Tensor
     rmse: Tensor
@@ -34,14 +42,20 @@ class ICPResult(NamedTuple):
 
 
 def nearest_neighbours(
-    src: Tensor, dst: Tensor, valid_src: Tensor, valid_dst: Tensor, max_corr_dist: float | None
+    src: Tensor,
+    dst: Tensor,
+    valid_src: Tensor,
+    valid_dst: Tensor,
+    max_corr_dist: float | None,
+    targets: tuple[Tensor, Tensor] | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """For each src point (B, N, 3) its nearest valid dst point (B, M, 3).
 
     Returns (matched dst point (B, N, 3), squared distance (B, N), inlier (B, N) bool: valid src with a valid
-    match within ``max_corr_dist``).
+    match within ``max_corr_dist``). ``targets``: ``augment_targets(dst, valid_dst)`` when already computed.
     """
-    idx = sq_dists(src, dst, valid_src, valid_dst).argmin(-1)  # B,N; argmin of B,N,M
+    targets = augment_targets(dst, valid_dst) if targets is None else targets
+    idx = sq_dists_to(src, valid_src, targets).argmin(-1)  # B,N; argmin over B,N,M
     matched = torch.take_along_dim(dst, idx[..., None], dim=1)  # B,N,3
     d2min = (src - matched).square().sum(-1)  # exact, not from the expanded form
     inlier = valid_src & valid_dst.any(-1, keepdim=True)
@@ -79,11 +93,13 @@ def icp(
         )
     src, dst = zero_invalid(src, valid_src), zero_invalid(dst, valid_dst)
     ok = (valid_src.sum(-1) >= 3) & (valid_dst.sum(-1) >= 3)
+    ok = ok & not_collinear(src, valid_src.to(src.dtype)) & not_collinear(dst, valid_dst.to(src.dtype))
     # rounding-level floor on the mse, relative to the coordinates' magnitude
     n_dst = valid_dst.sum(-1).clamp_min(1)
     spread2 = (dst.square().sum(-1).sum(-1) / n_dst).clamp_min(torch.finfo(src.dtype).tiny)
     mse_floor = (1e3 * torch.finfo(src.dtype).eps) ** 2 * spread2
 
+    targets = augment_targets(dst, valid_dst)  # dst is fixed: its side of the distance matmul once
     T = T_init.clone()
     active, converged = ok.clone(), torch.zeros_like(ok)
     iterations = torch.zeros(B, dtype=torch.long, device=src.device)
@@ -94,8 +110,9 @@ def icp(
         if ids.numel() == 0:
             break
         s, Tk = src[ids], T[ids]
+        tg = (targets[0][ids], targets[1][ids])
         matched, d2, inlier = nearest_neighbours(
-            transform_points(Tk, s), dst[ids], valid_src[ids], valid_dst[ids], max_corr_dist
+            transform_points(Tk, s), dst[ids], valid_src[ids], valid_dst[ids], max_corr_dist, tg
         )
         n_in[ids] = inlier.sum(-1)
         mse[ids] = mse_k = d2.sum(-1) / n_in[ids].clamp_min(1)
@@ -104,7 +121,7 @@ def icp(
         converged[ids] = done
         if k == max_iters:
             break
-        est = horn_weighted(s, matched, inlier.to(src.dtype))
+        est = horn_weighted(s, matched, inlier.to(src.dtype), check_collinear=False)  # sets checked once above
         go = ~done & est.valid  # too few inlier matches: stop where we are
         T[ids] = torch.where(go[:, None, None], est.T, Tk)
         iterations[ids] += go.long()
