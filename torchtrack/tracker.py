@@ -52,6 +52,14 @@ class StepResult:
     d_tim: Tensor
 
 
+def pad_to(x: Tensor, n: int) -> Tensor:
+    """Pad (or keep) the feature dimension (dim 1) of x to n with zeros (False for masks)."""
+    if x.shape[1] >= n:
+        return x
+    pad = torch.zeros(x.shape[0], n - x.shape[1], *x.shape[2:], dtype=x.dtype, device=x.device)
+    return torch.cat([x, pad], dim=1)
+
+
 def masked_mean(x: Tensor, valid: Tensor) -> Tensor:
     """x (B, N, D), valid (B, N) -> (B, D); zero where nothing is valid."""
     w = valid.to(x.dtype)[..., None]
@@ -152,6 +160,11 @@ class Tracker:
         else:
             T_world_cam = self.T_world_obj @ T_inv(self.T_cam_obj)
         m3, m2 = mask[:, None, None], mask[:, None]
+        if self.pixels is not None:  # selections differ in size: pad old and new to the larger N
+            n = max(self.pixels.shape[1], valid.shape[1])
+            self.pixels, self.valid, self.points_obj = (pad_to(t, n) for t in (self.pixels, self.valid, self.points_obj))
+            feats = feats._replace(pixels=pad_to(feats.pixels, n))
+            valid, points_obj = pad_to(valid, n), pad_to(points_obj, n)
         self.T_world_obj = torch.where(m3, T_world_cam @ T_cam_obj, self.T_world_obj)
         self.T_cam_obj = torch.where(m3, T_cam_obj, self.T_cam_obj)
         self.pixels = feats.pixels if self.pixels is None else torch.where(m2[..., None], feats.pixels, self.pixels)
