@@ -221,11 +221,14 @@ def _colour(scene: Scene, poses: _PrimPoses, dx: Tensor, dy: Tensor, t: Tensor, 
         z = t.index_select(0, idx)
         x, y = dx.index_select(0, idx).mul_(z), dy.index_select(0, idx).mul_(z)  # hit in the camera
         R, o = poses.R[k], poses.o[k]
-        p_local = [R[i][0] * x + R[i][1] * y + R[i][2] * z + o[i] for i in range(2 if prim.kind == "plane" else 3)]
-        if prim.kind == "plane":
-            rgb.index_copy_(0, idx, plane_rgb(scene, k, *p_local) * shade(scene, (0.0, 0.0, 1.0), light[k]))
+        if prim.kind == "plane":  # atlas grid: local (u / hx, v / hy)
+            s = [1.0 / prim.size[0], 1.0 / prim.size[1]]
+            uv = [(R[i][0] * s[i]) * x + (R[i][1] * s[i]) * y + (R[i][2] * s[i]) * z + o[i] * s[i] for i in range(2)]
+            lit = shade(scene, (0.0, 0.0, 1.0), light[k])
+            rgb.index_copy_(0, idx, plane_rgb(scene, k, torch.stack(uv, dim=-1)).mul_(lit))
         else:
-            (u, v), n_local = surface_uv_normal(prim, tuple(p_local))
+            p_local = tuple(R[i][0] * x + R[i][1] * y + R[i][2] * z + o[i] for i in range(3))
+            (u, v), n_local = surface_uv_normal(prim, p_local)
             solids.append((k, idx, u, v, shade(scene, n_local, light[k])))
     if solids:
         ks, idx, u, v, lit = zip(*solids, strict=True)
@@ -244,10 +247,9 @@ def _render_one(scene: Scene, T_world_cam: Tensor, T_world_obj: Tensor | None, p
     t, ids = _cast(scene, poses, dirs)
     h, w = t.shape
     if pixels is None:
-        xs, ys = scene.ray_xy()
-        dx, dy = xs.repeat(h), ys.repeat_interleave(w)
+        dx, dy = scene.ray_xy_flat()
     else:
-        dx, dy = dirs[0, :, 0], dirs[0, :, 1]
+        dx, dy = dirs[0, :, 0].contiguous(), dirs[0, :, 1].contiguous()
     rgb = _colour(scene, poses, dx, dy, t.reshape(-1), ids.reshape(-1))
     depth = torch.where(ids >= 0, t, torch.zeros_like(t))
     return rgb.reshape(h, w, 3).permute(2, 0, 1).contiguous(), depth, ids

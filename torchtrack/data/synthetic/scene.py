@@ -88,6 +88,7 @@ class Scene:
     ambient: float = 0.45
     background_rgb: tuple[float, float, float] = (0.1, 0.1, 0.1)
     _dirs: Tensor | None = field(default=None, repr=False)
+    _xy_flat: tuple[Tensor, Tensor] | None = field(default=None, repr=False)
     _atlas: dict[int, Tensor] = field(default_factory=dict, repr=False)  # baked plane textures, see texture.py
 
     def ray_dirs(self) -> Tensor:
@@ -100,6 +101,13 @@ class Scene:
         """(W,) and (H,) float32 ray slopes (u - cx)/fx and (v - cy)/fy of the pixel columns and rows."""
         d = self.ray_dirs()
         return d[0, :, 0], d[:, 0, 1]
+
+    def ray_xy_flat(self) -> tuple[Tensor, Tensor]:
+        """(H * W,) and (H * W,) float32 contiguous ray slopes x/z and y/z of all pixels, row-major."""
+        if self._xy_flat is None:
+            d = self.ray_dirs()
+            self._xy_flat = (d[..., 0].reshape(-1).contiguous(), d[..., 1].reshape(-1).contiguous())
+        return self._xy_flat
 
 
 def pixel_grid_xy(H: int, W: int) -> Tensor:

@@ -193,11 +193,9 @@ def plane_atlas(scene: Scene, k: int) -> Tensor:
     return scene._atlas[k]
 
 
-def plane_rgb(scene: Scene, k: int, u: Tensor, v: Tensor) -> Tensor:
-    """Albedo (n, 3) of plane primitive k at local (u, v), each (n,), read from its baked atlas."""
-    hx, hy = scene.primitives[k].size
-    grid = torch.stack([u * (1.0 / hx), v * (1.0 / hy)], dim=-1)[None, None]
-    out = F.grid_sample(plane_atlas(scene, k), grid, mode="bilinear", align_corners=True)  # 1,3,1,n channels-last
+def plane_rgb(scene: Scene, k: int, uv_unit: Tensor) -> Tensor:
+    """Albedo (n, 3) of plane primitive k read from its baked atlas at (u / hx, v / hy) in [-1, 1], (n, 2)."""
+    out = F.grid_sample(plane_atlas(scene, k), uv_unit[None, None], mode="bilinear", align_corners=True)  # 1,3,1,n
     return out.permute(0, 2, 3, 1).reshape(-1, 3)
 
 
