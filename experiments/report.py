@@ -75,7 +75,7 @@ def read_frames_csv(path: Path) -> list[dict]:
 
 
 def load_runs(sweep: Path) -> list[Run]:
-    """Every ``SWEEP/<method>/<job>/<seq>/metrics.json``, sorted by (method, sequence)."""
+    """Every ``SWEEP/<method>/<job>/<seq>/metrics.json``, sorted by sequence, then method (table order)."""
     runs = []
     for path in sorted(Path(sweep).glob("*/*/*/metrics.json")):
         method = path.relative_to(sweep).parts[0]
@@ -84,7 +84,11 @@ def load_runs(sweep: Path) -> list[Run]:
         runs.append(Run(method, seq, path.parent, metrics, read_frames_csv(path.parent / "frames.csv")))
     if not runs:
         raise FileNotFoundError(f"no run under {sweep} (expected {sweep}/<method>/<job>/<seq>/metrics.json)")
-    return runs
+    return sorted(runs, key=lambda r: (r.sequence, _order(r.method)))
+
+
+def _order(method: str) -> int:
+    return list(METHODS).index(method) if method in METHODS else len(METHODS)
 
 
 # ----------------------------------------------------------------------------------------------- numbers
@@ -219,7 +223,7 @@ def _cm(metrics: dict, key: str) -> float | None:
 def trajectory_table(runs: list[Run]) -> str:
     """Every run: frames, ATE RMSE (cm), RPE (cm, deg per frame), reprojection (px), fps, re-selections."""
     rows = []
-    for r in sorted(runs, key=lambda r: (r.sequence, list(METHODS).index(r.method) if r.method in METHODS else 99)):
+    for r in sorted(runs, key=lambda r: (r.sequence, _order(r.method))):
         m = r.metrics
         rows.append([r.sequence, label(r.method), str(m.get("frames", "–")), fmt(_cm(m, "ate_rmse_m")), fmt(_cm(m, "rpe_trans_m")),
                      fmt(m.get("rpe_rot_deg"), 3), fmt(mean_reprojection(r)), fmt(m.get("fps"), 1),
