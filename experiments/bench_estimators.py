@@ -101,70 +101,86 @@ def timed_round_robin(fns, repeats):
     return {name: (float(np.min(ts)), float(np.median(ts))) for name, ts in times.items()}
 
 
-def methods(src, dst, valid, T_init, d_max, args, references):
-    """name -> callable returning T (B, 4, 4): ours with their default stopping rules, the references with theirs,
-    then every iterative method for a fixed number of iterations (no stopping test: same work on both sides)."""
-    src_np, dst_np, T_np = src.double().numpy(), dst.double().numpy(), T_init.double().numpy()
-    k_icp, k_cpd = args.fixed_icp, args.fixed_cpd
-    m = {
-        "horn (ours)": lambda: horn(src, dst, valid).T,
-        "icp (ours)": lambda: icp(src, dst, valid, valid, T_init, max_iters=50, tol=1e-6, max_corr_dist=d_max).T,
-        "icp open3d": lambda: open3d_icp(src_np, dst_np, T_np, d_max, 50, 1e-6),
-        "cpd (ours, scale)": lambda: cpd_rigid(src, dst, valid, valid, T_init, w=args.w, tol=1e-5, scale=True).T,
-        "cpd (ours, rigid)": lambda: cpd_rigid(src, dst, valid, valid, T_init, w=args.w, tol=1e-5).T,
-        "cpd pycpd": lambda: pycpd_rigid(src_np, dst_np, 100, args.pycpd_tol, args.w),
-        f"icp (ours) {k_icp} it": lambda: (
-            icp(src, dst, valid, valid, T_init, max_iters=k_icp, tol=0, max_corr_dist=d_max).T
-        ),
-        f"icp open3d {k_icp} it": lambda: open3d_icp(src_np, dst_np, T_np, d_max, k_icp, 0.0),
-        f"cpd (ours, scale) {k_cpd} it": lambda: (
-            cpd_rigid(src, dst, valid, valid, T_init, w=args.w, max_iters=k_cpd, tol=0, scale=True).T
-        ),
-        f"cpd pycpd {k_cpd} it": lambda: pycpd_rigid(src_np, dst_np, k_cpd, 0.0, args.w),
-    }
-    return {k: v for k, v in m.items() if references or not ("open3d" in k or "pycpd" in k)}
-
-
-def iteration_counts(src, dst, valid, T_init, d_max, args):
-    """Mean iterations to convergence of ours (the references do not report theirs the same way)."""
-    r_icp = icp(src, dst, valid, valid, T_init, max_iters=50, tol=1e-6, max_corr_dist=d_max)
-    r_cs = cpd_rigid(src, dst, valid, valid, T_init, w=args.w, tol=1e-5, scale=True)
-    r_cr = cpd_rigid(src, dst, valid, valid, T_init, w=args.w, tol=1e-5)
+def ours(src, dst, valid, T_init, d_max, args, tag):
+    """name -> callable returning T (B, 4, 4): our three methods with their default stopping rules, then the
+    iterative ones for a fixed number of iterations (no stopping test)."""
+    ki, kc = args.fixed_icp, args.fixed_cpd
     return {
-        "icp (ours)": r_icp.iterations.double().mean().item(),
-        "cpd (ours, scale)": r_cs.iterations.double().mean().item(),
-        "cpd (ours, rigid)": r_cr.iterations.double().mean().item(),
+        f"horn (ours{tag})": lambda: horn(src, dst, valid).T,
+        f"icp (ours{tag})": lambda: icp(src, dst, valid, valid, T_init, max_iters=50, tol=1e-6, max_corr_dist=d_max).T,
+        f"cpd (ours{tag}, scale)": lambda: cpd_rigid(src, dst, valid, valid, T_init, w=args.w, tol=1e-5, scale=True).T,
+        f"cpd (ours{tag}, rigid)": lambda: cpd_rigid(src, dst, valid, valid, T_init, w=args.w, tol=1e-5).T,
+        f"icp (ours{tag}) {ki} it": lambda: (
+            icp(src, dst, valid, valid, T_init, max_iters=ki, tol=0, max_corr_dist=d_max).T
+        ),
+        f"cpd (ours{tag}, scale) {kc} it": lambda: (
+            cpd_rigid(src, dst, valid, valid, T_init, w=args.w, max_iters=kc, tol=0, scale=True).T
+        ),
+    }
+
+
+def references(src, dst, T_init, d_max, args):
+    """The same for Open3D's ICP and pycpd (float64, looped over B)."""
+    s_np, d_np, T_np = src.numpy(), dst.numpy(), T_init.numpy()
+    ki, kc = args.fixed_icp, args.fixed_cpd
+    return {
+        "icp open3d": lambda: open3d_icp(s_np, d_np, T_np, d_max, 50, 1e-6),
+        "cpd pycpd": lambda: pycpd_rigid(s_np, d_np, 100, args.pycpd_tol, args.w),
+        f"icp open3d {ki} it": lambda: open3d_icp(s_np, d_np, T_np, d_max, ki, 0.0),
+        f"cpd pycpd {kc} it": lambda: pycpd_rigid(s_np, d_np, kc, 0.0, args.w),
+    }
+
+
+def mean_iterations(src, dst, valid, T_init, d_max, args, tag):
+    """Mean iterations to convergence of ours (the references do not report theirs)."""
+    return {
+        f"icp (ours{tag})": icp(src, dst, valid, valid, T_init, max_iters=50, tol=1e-6, max_corr_dist=d_max).iterations,
+        f"cpd (ours{tag}, scale)": cpd_rigid(src, dst, valid, valid, T_init, w=args.w, scale=True).iterations,
+        f"cpd (ours{tag}, rigid)": cpd_rigid(src, dst, valid, valid, T_init, w=args.w).iterations,
     }
 
 
 def bench_speed(args):
+    """One table: ours in float64 and float32 and the references, all interleaved in the same rounds."""
     print(f"## Speed: B={args.B}, N={args.N} correspondences, 1 mm noise, init = identity (previous pose)\n")
     omp = ", ".join(f"{v}={os.environ[v]}" for v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"))
     print(f"torch {torch.__version__}, torch.set_num_threads({args.threads}), {omp}, {platform.machine()}, "
-          f"{os.cpu_count()} cores; {args.repeats} rounds, methods interleaved within each round")  # fmt: skip
+          f"{os.cpu_count()} cores; {args.repeats} rounds, all methods interleaved within each round")  # fmt: skip
     print("ICP: max_iters 50, tol 1e-6 (relative change of the mse), max_corr_dist 0.1 m; Open3D: max_iteration 50,")
     print("     relative_fitness = relative_rmse = 1e-6 (absolute changes in Open3D's code)")
     print(f"CPD: w={args.w}, max_iters 100, tol 1e-5 nats/point; pycpd: max_iterations 100, tolerance {args.pycpd_tol}")
     print("'k it' rows: exactly k iterations on both sides (no stopping test). References: float64, looped over B.")
     print("ms/frame = batch time / B: min over the rounds (median in brackets); ratios use the min.\n")
-    for dtype in (torch.float64, torch.float32):
-        src, dst, T = make_problem(args.B, args.N, 0.001, 0.0, seed=0, dtype=dtype)
-        valid = torch.ones(args.B, args.N, dtype=torch.bool)
-        T_init = torch.eye(4, dtype=dtype).expand(args.B, 4, 4).clone()
-        fns = methods(src, dst, valid, T_init, 0.1, args, references=dtype == torch.float64)
-        secs = timed_round_robin(fns, args.repeats)
-        iters = iteration_counts(src, dst, valid, T_init, 0.1, args)
-        print(f"### torch {str(dtype).replace('torch.', '')}\n")
-        print("| method | ms/frame min (median) | mean iterations | rot err (deg) | trans err (mm) |")
-        print("|---|---:|---:|---:|---:|")
-        rows = {}
-        for name, fn in fns.items():
-            rows[name] = 1e3 * secs[name][0] / args.B
-            er, et = errors(fn(), T)
-            it = f"{iters[name]:.1f}" if name in iters else name.split()[-2] if name.endswith(" it") else ""
-            print(f"| {name} | {rows[name]:.3f} ({1e3 * secs[name][1] / args.B:.3f}) | {it} | {er:.4f} | {et:.3f} |")
-        print()
-        yield dtype, rows
+    src, dst, T = make_problem(args.B, args.N, 0.001, 0.0, seed=0)
+    valid = torch.ones(args.B, args.N, dtype=torch.bool)
+    T_init = torch.eye(4, dtype=torch.float64).expand(args.B, 4, 4).clone()
+    fns, iters = {}, {}
+    for dtype, tag in ((torch.float64, ""), (torch.float32, " f32")):
+        x, y, T0 = src.to(dtype), dst.to(dtype), T_init.to(dtype)
+        fns |= ours(x, y, valid, T0, 0.1, args, tag)
+        iters |= mean_iterations(x, y, valid, T0, 0.1, args, tag)
+    fns |= references(src, dst, T_init, 0.1, args)
+    secs = timed_round_robin(fns, args.repeats)
+    print("| method | ms/frame min (median) | mean iterations | rot err (deg) | trans err (mm) |")
+    print("|---|---:|---:|---:|---:|")
+    ms = {}
+    for name, fn in fns.items():
+        ms[name] = 1e3 * secs[name][0] / args.B
+        er, et = errors(fn(), T)
+        it = f"{iters[name].double().mean():.1f}" if name in iters else name.split()[-2] if name.endswith(" it") else ""
+        print(f"| {name} | {ms[name]:.3f} ({1e3 * secs[name][1] / args.B:.3f}) | {it} | {er:.4f} | {et:.3f} |")
+    ki, kc = args.fixed_icp, args.fixed_cpd
+    print("\nratios, reference ms / ours ms (> 1: ours faster):\n")
+    print("| reference | ours | ratio (ours float64) | ratio (ours float32) |\n|---|---|---:|---:|")
+    for ref, o in [
+        ("icp open3d", "icp (ours{})"),
+        ("cpd pycpd", "cpd (ours{}, scale)"),
+        ("cpd pycpd", "cpd (ours{}, rigid)"),
+        (f"icp open3d {ki} it", f"icp (ours{{}}) {ki} it"),
+        (f"cpd pycpd {kc} it", f"cpd (ours{{}}, scale) {kc} it"),
+    ]:
+        print(f"| {ref} | {o.format('')} | {ms[ref] / ms[o.format('')]:.2f} | {ms[ref] / ms[o.format(' f32')]:.2f} |")
+    print()
 
 
 def bench_accuracy(args):
@@ -202,22 +218,7 @@ def main():
     p.add_argument("--fixed-cpd", type=int, default=30, help="iterations of the fixed-work CPD rows")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
-    ref = {}
-    for dtype, rows in bench_speed(args):
-        ref = ref or rows  # the references ran with float64
-        ki, kc = args.fixed_icp, args.fixed_cpd
-        pairs = [
-            ("icp open3d", "icp (ours)"),
-            ("cpd pycpd", "cpd (ours, scale)"),
-            ("cpd pycpd", "cpd (ours, rigid)"),
-            (f"icp open3d {ki} it", f"icp (ours) {ki} it"),
-            (f"cpd pycpd {kc} it", f"cpd (ours, scale) {kc} it"),
-        ]
-        name = str(dtype).replace("torch.", "")
-        print(f"ratios, reference ms / ours ms (ours in {name}; > 1: ours faster):")
-        for r, o in pairs:
-            print(f"  {r} / {o}: {ref[r] / rows[o]:.2f}")
-        print()
+    bench_speed(args)
     bench_accuracy(args)
 
 
