@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchtrack.data.alignment import colour_intrinsics, depth_intrinsics, resolve_depth_alignment
 from torchtrack.data.cameras import TUM_DEPTH_SCALE, get_camera
 from torchtrack.data.errors import DataError
 from torchtrack.geometry import intrinsics_matrix, matrix_to_quat_xyzw, quat_xyzw_to_matrix
@@ -261,10 +262,21 @@ class TumSequence:
         T_color_depth: (4, 4) depth-to-colour extrinsic; identity (registered depth) when None.
         intrinsics_depth: (fx, fy, cx, cy) of the depth camera; equal to the colour ones when None.
         max_frames, stride: keep associated frames [::stride][:max_frames].
+        depth_alignment: for depth not registered to colour, used only when neither T_color_depth nor
+            intrinsics_depth is given. "none": depth as given. "auto": estimate the depth-to-colour pixel map
+            from edges on 5 frames spread over the sequence (:func:`torchtrack.data.alignment.estimate_depth_shift`)
+            and apply it when confident and it moves some pixel by >= 2 px. (dx, dy) or (dx, dy, scale): apply
+            colour pixel = c + scale (depth pixel - c) + (dx, dy), c = (cx, cy). Applying sets K_depth
+            (:func:`torchtrack.data.alignment.depth_intrinsics`), T_color_depth stays identity.
+        intrinsics_camera: which camera the given intrinsics (file, preset or explicit) describe when a depth
+            alignment is applied: "colour" (TUM convention; K_depth is derived) or "depth" (K_depth keeps them and
+            the colour K is derived, :func:`torchtrack.data.alignment.colour_intrinsics`; metric for 7-Scenes,
+            whose nominal 585 px are the depth camera's). Only the metric back-projection differs, not the map.
 
     Attributes: name, timestamps (F,) float64, groundtruth (F, 4, 4) float64 (identity where absent),
     gt_valid (F,) bool, K and K_depth (3, 3) float32, T_color_depth (4, 4) float32, depth_scale,
-    rgb_paths, depth_paths.
+    rgb_paths, depth_paths, depth_shift (the estimated or given ShiftEstimate; None for "none", explicit
+    extrinsics or images too small to estimate), depth_aligned (K_depth was set from depth_shift).
     """
 
     def __init__(
@@ -279,6 +291,8 @@ class TumSequence:
         intrinsics_depth: tuple[float, float, float, float] | None = None,
         max_frames: int | None = None,
         stride: int = 1,
+        depth_alignment: str | tuple[float, ...] = "auto",
+        intrinsics_camera: str = "colour",
     ) -> None:
         self.root = Path(root)
         if not self.root.is_dir():
@@ -293,6 +307,8 @@ class TumSequence:
         self.K_depth = intrinsics_matrix(*intrinsics_depth) if intrinsics_depth is not None else self.K.clone()
         self.T_color_depth = self._extrinsic(T_color_depth)
         self._hw: tuple[int, int] | None = None
+        explicit = T_color_depth is not None or intrinsics_depth is not None
+        self._align_depth(depth_alignment, intrinsics_camera, explicit=explicit)
         log.info(
             "%s: %d frames, ground truth for %d, intrinsics from %s, depth_scale %g",
             self.name, len(self), int(self.gt_valid.sum()), source, self.depth_scale,
@@ -339,6 +355,20 @@ class TumSequence:
             raise DataError(f"{self.root}: T_color_depth must be a 4x4 rigid transform, got shape {tuple(T.shape)}")
         return T
 
+    def _align_depth(self, mode, intrinsics_camera: str, *, explicit: bool) -> None:
+        """Set depth_shift, depth_aligned and, when applied, K_depth or K; see the class docstring."""
+        if intrinsics_camera not in ("colour", "depth"):
+            raise ValueError(f"{self.root}: intrinsics_camera must be 'colour' or 'depth', got {intrinsics_camera!r}")
+        if explicit and not isinstance(mode, str):
+            raise ValueError(f"{self.root}: give either depth_alignment {mode!r} or T_color_depth/intrinsics_depth")
+        self.depth_shift, self.depth_aligned = resolve_depth_alignment(
+            "none" if explicit else mode, self.K, lambda i: self._load(i)[:2], len(self), self.name
+        )
+        if self.depth_aligned and intrinsics_camera == "colour":
+            self.K_depth = depth_intrinsics(self.K, self.depth_shift)
+        elif self.depth_aligned:
+            self.K = colour_intrinsics(self.K_depth, self.depth_shift)
+
     @property
     def has_groundtruth(self) -> bool:
         return bool(self.gt_valid.any())
@@ -352,11 +382,15 @@ class TumSequence:
         if not -n <= i < n:
             raise IndexError(f"{self.name}: frame {i} out of range [0, {n})")
         i = i % n
+        rgb, depth, T = self._load(i)
+        return RGBDFrame(rgb, depth, float(self.timestamps[i]), T, bool(self.gt_valid[i]), i)
+
+    def _load(self, i: int) -> tuple[Tensor, Tensor, Tensor]:
+        """(rgb (3, H, W), depth (1, H, W), T_world_cam_gt (4, 4)) of frame i in [0, len)."""
         rgb = load_rgb(self.rgb_paths[i])
         depth = load_depth(self.depth_paths[i], self.depth_scale)
         self._check_size(i, rgb, depth)
-        T = torch.from_numpy(self.groundtruth[i].copy())
-        return RGBDFrame(rgb, depth, float(self.timestamps[i]), T, bool(self.gt_valid[i]), i)
+        return rgb, depth, torch.from_numpy(self.groundtruth[i].copy())
 
     def _check_size(self, i: int, rgb: Tensor, depth: Tensor) -> None:
         if rgb.shape[1:] != depth.shape[1:]:
