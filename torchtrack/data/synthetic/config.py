@@ -53,6 +53,7 @@ class SyntheticConfig:
     ``mode="scene"``: static textured room corner with props, moving camera; ground truth T_world_cam.
     ``mode="object"``: static camera, one compound object moving (rotating about its own centre) in
     front of an optional far background; ground truth T_obj_cam (world := object) and T_cam_obj.
+    ``background`` (object mode only): the room behind the object, else empty space (depth 0).
     Intrinsics left as None are derived from the image size (525 px focal at 640 x 480, centre
     ``(W - 1) / 2, (H - 1) / 2``). Motion: smooth sums of sinusoids whose RMS step per frame is
     ``trans_step_m`` metres and ``rot_step_deg`` degrees.

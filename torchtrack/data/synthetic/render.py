@@ -43,7 +43,12 @@ class RayHits(NamedTuple):
     prim: Tensor
 
 
+# Intersections in the primitive's local frame: rays o + t d with origin o (3 floats) and directions
+# d = (dx, dy, dz), each (h, w); they return the nearest t > 0 per ray, inf where it misses.
+
+
 def _hit_plane(o: list[float], d: tuple[Tensor, Tensor, Tensor], s: tuple[float, ...]) -> Tensor:
+    """Rectangle z = 0, |x| <= s[0], |y| <= s[1]. Overwrites d (temporaries of the caller)."""
     dx, dy, dz = d
     t = dz.reciprocal_().mul_(-o[2])  # dz is a temporary of the caller: reuse its memory
     hit = t > _EPS
@@ -54,6 +59,7 @@ def _hit_plane(o: list[float], d: tuple[Tensor, Tensor, Tensor], s: tuple[float,
 
 
 def _hit_sphere(o: list[float], d: tuple[Tensor, Tensor, Tensor], s: tuple[float, ...]) -> Tensor:
+    """Sphere of radius s[0] about the origin: the near root of |o + t d|^2 = r^2."""
     dx, dy, dz = (c.double() for c in d)  # quadrics cancel badly near silhouettes in float32
     a = dx * dx + dy * dy + dz * dz
     b = o[0] * dx + o[1] * dy + o[2] * dz
@@ -64,6 +70,7 @@ def _hit_sphere(o: list[float], d: tuple[Tensor, Tensor, Tensor], s: tuple[float
 
 
 def _hit_box(o: list[float], d: tuple[Tensor, Tensor, Tensor], s: tuple[float, ...]) -> Tensor:
+    """Box |x| <= s[0], |y| <= s[1], |z| <= s[2] (Kay-Kajiya slabs)."""
     t_near, t_far = None, None
     for oi, di, hi in zip(o, d, s, strict=True):  # slab method, one axis at a time
         inv = 1.0 / di
@@ -75,6 +82,7 @@ def _hit_box(o: list[float], d: tuple[Tensor, Tensor, Tensor], s: tuple[float, .
 
 
 def _hit_cylinder(o: list[float], d: tuple[Tensor, Tensor, Tensor], s: tuple[float, ...]) -> Tensor:
+    """Capped cylinder x^2 + y^2 <= s[0]^2, |z| <= s[1]: nearer of the side and the cap facing o."""
     r, hh = s
     dx, dy, dz = (c.double() for c in d)
     a = dx * dx + dy * dy
@@ -270,6 +278,8 @@ def render_frame(scene: Scene, T_world_cam: Tensor, T_world_obj: Tensor | None =
     Returns:
         RGBD with rgb (3, H, W) / (B, 3, H, W) in [0, 1] and depth (1, H, W) / (B, 1, H, W) exact z-depth
         in metres, 0 where no surface is hit. Batches loop over B (each frame is already vectorised).
+    A frame is many small operations: one torch thread (``torch.set_num_threads(1)``) is fastest on a
+    shared machine (``render_sequence`` does this by default).
     """
     _check_pose("T_world_cam", T_world_cam)
     _check_pose("T_world_obj", T_world_obj)

@@ -165,7 +165,9 @@ def sequence_name(cfg: SyntheticConfig) -> str:
     return f"synth-{cfg.mode}-{cfg.frames}f-seed{cfg.seed}-{cfg.noise}-{cfg.digest()}"
 
 
-def ensure_sequence(cfg: SyntheticConfig, cache_root: str | Path | None = None, *, progress: bool = False) -> Path:
+def ensure_sequence(
+    cfg: SyntheticConfig, cache_root: str | Path | None = None, *, progress: bool = False, threads: int | None = 1
+) -> Path:
     """Path of cfg's sequence under cache_root, rendering it first only if no complete copy exists.
 
     The folder name carries the config digest, so any parameter change renders a new folder. Safe
@@ -176,7 +178,7 @@ def ensure_sequence(cfg: SyntheticConfig, cache_root: str | Path | None = None, 
     if (path / "SOURCE.txt").is_file():
         return path
     try:
-        return render_sequence(cfg, path, progress=progress)
+        return render_sequence(cfg, path, progress=progress, threads=threads)
     except (ValueError, OSError):
         if (path / "SOURCE.txt").is_file():  # another process finished it first
             return path
