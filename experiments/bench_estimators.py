@@ -26,7 +26,9 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from torchtrack.estimators import cpd_rigid, horn, icp  # noqa: E402
+from torchtrack.estimators.cpd import cpd_rigid  # noqa: E402
+from torchtrack.estimators.horn import horn  # noqa: E402
+from torchtrack.estimators.icp import icp  # noqa: E402
 from torchtrack.geometry import make_T, rotation_angle, so3_exp, transform_points  # noqa: E402
 
 

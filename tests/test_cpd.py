@@ -4,7 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from torchtrack.estimators import CPDEstimator, CPDResult, cpd_rigid, horn
+from torchtrack.estimators import CPDEstimator, CPDResult
+from torchtrack.estimators.cpd import cpd_rigid
+from torchtrack.estimators.horn import horn
 from torchtrack.geometry import make_T, rotation_angle, so3_exp, transform_points
 
 

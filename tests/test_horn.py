@@ -6,7 +6,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from torchtrack.estimators import HornEstimator, PoseEstimate, horn
+from torchtrack.estimators import HornEstimator, PoseEstimate
+from torchtrack.estimators.horn import horn
 from torchtrack.geometry import make_T, rotation_angle, se3_exp, so3_exp, so3_log, transform_points
 
 TOL = {torch.float32: 2e-5, torch.float64: 1e-10}
@@ -213,3 +214,17 @@ def test_estimator_equals_function_and_keeps_T_prev():
     unweighted = HornEstimator(use_weights=False)(src, noisy, valid, T_prev, w)
     torch.testing.assert_close(unweighted[:2], horn(src, noisy, valid).T[:2])
     assert (unweighted[:2] - horn(src, noisy, valid, w).T[:2]).abs().max() > 1e-6  # the weights were ignored
+
+
+def test_estimator_classes_resolve_by_module_path():
+    """conf/tracker/*.yaml name the classes by module path; the package must not shadow those submodules."""
+    from hydra.utils import get_class
+
+    from torchtrack.estimators import CPDEstimator, ICPEstimator
+
+    for path, cls in [
+        ("torchtrack.estimators.horn.HornEstimator", HornEstimator),
+        ("torchtrack.estimators.icp.ICPEstimator", ICPEstimator),
+        ("torchtrack.estimators.cpd.CPDEstimator", CPDEstimator),
+    ]:
+        assert get_class(path) is cls

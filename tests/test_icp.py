@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from torchtrack.estimators import ICPEstimator, ICPResult, horn, icp
+from torchtrack.estimators import ICPEstimator, ICPResult
+from torchtrack.estimators.horn import horn
+from torchtrack.estimators.icp import icp
 from torchtrack.geometry import make_T, rotation_angle, so3_exp, transform_points
 
 
