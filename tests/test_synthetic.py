@@ -316,6 +316,18 @@ def test_default_scene_is_well_covered_and_textured():
     assert {p.kind for p in scene.primitives} == {"plane", "box", "sphere", "cylinder"}
 
 
+def test_object_mode_without_background_has_depth_only_on_the_object():
+    cfg = SyntheticConfig(mode="object", background=False, **SMALL)
+    scene, poses = default_scene(cfg), sequence_poses(cfg)
+    assert all(p.group == 1 for p in scene.primitives)
+    frame = render_frame(scene, poses.T_world_cam[0], poses.T_world_obj[0])
+    valid = frame.depth > 0
+    assert 0.03 < float(valid.float().mean()) < 0.3 and float(frame.depth[valid].max()) < 1.3
+    assert torch.equal(
+        frame.rgb[:, ~valid[0]], torch.tensor(scene.background_rgb)[:, None].expand(3, int((~valid).sum()))
+    )
+
+
 def test_determinism_same_seed_identical_files_different_seed_different(tmp_path):
     tiny = dict(width=64, height=48, frames=2, noise="kinect")
     a = render_sequence(SyntheticConfig(seed=3, **tiny), tmp_path / "a")
