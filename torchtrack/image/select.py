@@ -95,7 +95,7 @@ def normalise_cornerness(
     R: Tensor, eligible: Tensor, ph: int, pw: int, gh: int, gw: int, quantile: float = 0.9
 ) -> Tensor:
     """Per-frame, per-channel normalisation of the module docstring: R (B, C, H, W) -> C in [0, 1)."""
-    r = R.clamp_min(0.0) * eligible
+    r = R.clamp_min(0.0).mul_(eligible)
     patch_max = _patches(r, ph, pw, gh, gw, 0.0).amax(dim=(3, 5)).flatten(2)  # B,C,P
     pos = patch_max > 0
     sorted_max = torch.where(pos, patch_max, torch.full_like(patch_max, float("inf"))).sort(dim=-1).values
@@ -103,19 +103,21 @@ def normalise_cornerness(
     k = ((n - 1).clamp_min(0).to(R.dtype) * quantile).round().long()
     s = sorted_max.gather(-1, k)  # the quantile of the positive patch maxima
     s = torch.where(n > 0, s, torch.ones_like(s))[..., None]  # B,C,1,1
-    rho = (r / s).sqrt().sqrt()  # contrast-linear: Harris grows as contrast^4
-    return rho / (1.0 + rho)
+    rho = r.div_(s).sqrt_().sqrt_()  # contrast-linear: Harris grows as contrast^4
+    return rho / (rho + 1.0)
 
 
 def _eligible(depth: Tensor, roi: Tensor | None, sim_valid: Tensor | None, border: int) -> Tensor:
-    m = (depth > 0).to(depth.dtype)
+    m = depth > 0
     if roi is not None:
-        m = m * roi
+        m &= roi
     if sim_valid is not None:
-        m = m * sim_valid
+        m &= sim_valid
     if border > 0:
-        m = F.pad(m[..., border:-border, border:-border], (border, border, border, border))
-    return m
+        for dim in (-1, -2):
+            m.narrow(dim, 0, border).zero_()
+            m.narrow(dim, m.shape[dim] - border, border).zero_()
+    return m.to(depth.dtype)
 
 
 def _patch_maxima(C: Tensor, ph: int, pw: int, gh: int, gw: int) -> tuple[Tensor, Tensor]:
@@ -179,8 +181,9 @@ def cornerness_maps(
     Cn = normalise_cornerness(R, eligible, *patches)
     c_int = Cn[:, :1]
     c_sim = Cn[:, 1:] if sim is not None else torch.zeros_like(c_int)
-    C = lam * c_int + (1.0 - lam) * c_sim  # eq. (9)
-    return CornernessMaps(C=C * eligible + (eligible - 1.0), c_int=c_int, c_sim=c_sim, eligible=eligible)
+    C = torch.add(c_int * lam, c_sim, alpha=1.0 - lam) if sim is not None else c_int * lam  # eq. (9)
+    C = C.mul_(eligible).add_(eligible).sub_(1.0)  # -1 where not eligible
+    return CornernessMaps(C=C, c_int=c_int, c_sim=c_sim, eligible=eligible)
 
 
 def select_features(

@@ -92,14 +92,14 @@ def _binomial(x: Tensor, passes: int) -> Tensor:
 
 
 def _grow(mask: Tensor, radius: int) -> Tensor:
-    """Dilate a float {0, 1} mask (..., h, w) by a (2 radius + 1)^2 square, separable maxima of shifts."""
-    for _ in range(radius):
-        p = F.pad(mask, (1, 1))
-        mask = torch.maximum(torch.maximum(p[..., :-2], p[..., 2:]), mask)
-    for _ in range(radius):
-        p = F.pad(mask, (0, 0, 1, 1))
-        mask = torch.maximum(torch.maximum(p[..., :-2, :], p[..., 2:, :]), mask)
-    return mask
+    """Dilate a float {0, 1} mask (..., h, w) by a (2 radius + 1)^2 square: box sums by cumulative sums."""
+    if radius <= 0:
+        return mask
+    k = 2 * radius + 1
+    c = F.pad(mask, (radius + 1, radius)).cumsum(-1)
+    m = c[..., k:] - c[..., :-k]
+    c = F.pad(m, (0, 0, radius + 1, radius)).cumsum(-2)
+    return ((c[..., k:, :] - c[..., :-k, :]) > 0.5).to(mask.dtype)
 
 
 def _depth_edges(z: Tensor, has: Tensor, max_step: float) -> Tensor:
@@ -114,16 +114,19 @@ def _depth_edges(z: Tensor, has: Tensor, max_step: float) -> Tensor:
 
 
 def _upsample(x: Tensor, d: int, H: int, W: int) -> Tensor:
-    """Linear upsampling of samples taken at pixels (d i, d j) back to the (H, W) grid (edge-clamped)."""
+    """Linear upsampling of samples taken at pixels (d i, d j) to the (H, W) grid (edge-clamped).
+
+    A NaN sample makes every pixel that mixes it NaN; a pixel on a sample takes only that sample.
+    """
     if d == 1:
         return x
-    h, w = x.shape[-2:]
-    t = torch.arange(d, dtype=x.dtype, device=x.device) / d  # fractional offsets 0, 1/d, ...
-    step = F.pad(x[..., 1:] - x[..., :-1], (0, 1))  # along w; 0 past the edge
-    x = torch.addcmul(x.unsqueeze(-1), step.unsqueeze(-1), t).reshape(*x.shape[:-1], w * d)
-    step = F.pad(x[..., 1:, :] - x[..., :-1, :], (0, 0, 0, 1))  # along h
-    x = torch.addcmul(x.unsqueeze(-2), step.unsqueeze(-2), t[:, None]).reshape(*x.shape[:-2], h * d, w * d)
-    return x[..., :H, :W]
+    t = [k / d for k in range(1, d)]
+    nxt = torch.cat([x[..., 1:], x[..., -1:]], dim=-1)
+    x = torch.stack([x] + [torch.lerp(x, nxt, tk) for tk in t], dim=-1)  # ..., h, w, d
+    x = x.reshape(*x.shape[:-2], -1)
+    nxt = torch.cat([x[..., 1:, :], x[..., -1:, :]], dim=-2)
+    x = torch.stack([x] + [torch.lerp(x, nxt, tk) for tk in t], dim=-2)  # ..., h, d, W
+    return x.reshape(*x.shape[:-3], -1, x.shape[-1])[..., :H, :W]
 
 
 def _curvatures(ws: Tensor, K: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -211,14 +214,14 @@ def shape_index(
     si = 0.5 - torch.atan2(mean_c, disc) / math.pi  # eq. (8)
     curv = (2.0 * mean_c * mean_c - gauss_c).clamp_min(0.0).sqrt().nan_to_num(0.0) * ok
     ok = ok * (curv >= min_curvature).to(z.dtype) * (cos_inc >= math.cos(math.radians(max_incidence))).to(z.dtype)
-    si = (si.nan_to_num(fill) - fill) * ok + fill
+    si = torch.where(ok > 0, si, torch.full_like(si, math.nan))  # NaN marks masked samples through the upsampling
 
-    if d > 1:  # upsample; a pixel between samples is valid when all the samples it mixes are
-        si, ok = _upsample(torch.stack([si - fill, ok], dim=1), d, H, W).unbind(1)
-        ok = (ok > 0.999).to(ok.dtype)
-        si = si * ok + fill
-        curv = curv.repeat_interleave(d, dim=-2).repeat_interleave(d, dim=-1)[..., :H, :W]  # nearest
-    return ShapeIndex(si=si.unsqueeze(1), valid=ok.unsqueeze(1) > 0, curvedness=curv.unsqueeze(1))
+    if d > 1:  # a pixel between samples is valid when all the samples it mixes are
+        si = _upsample(si, d, H, W)
+        h, w = curv.shape[-2:]
+        curv = curv[:, :, None, :, None].expand(B, h, d, w, d).reshape(B, h * d, w * d)[:, :H, :W]  # nearest
+    valid = ~torch.isnan(si)
+    return ShapeIndex(si=si.nan_to_num(fill).unsqueeze(1), valid=valid.unsqueeze(1), curvedness=curv.unsqueeze(1))
 
 
 def sim_image(sim: ShapeIndex | Tensor, valid: Tensor | None = None, *, fill: float = 0.5) -> Tensor:
@@ -242,7 +245,8 @@ def sim_image(sim: ShapeIndex | Tensor, valid: Tensor | None = None, *, fill: fl
 def compute_sim(depth: Tensor, K: Tensor, **kwargs) -> SIM:
     """One call for the per-frame pipeline: ``shape_index(depth, K, **kwargs)`` and its ``sim_image``."""
     s = shape_index(depth, K, **kwargs)
-    return SIM(si=s.si, valid=s.valid, image=sim_image(s.si))
+    image = (s.si * 255.0).round_().div_(255.0)  # SI and fill are in [0, 1]: sim_image without its clamp
+    return SIM(si=s.si, valid=s.valid, image=image)
 
 
 class ShapeIndexMap:
