@@ -120,8 +120,8 @@ def _template(sampler: _Sampler, centre: Tensor, base: Tensor, min_eig: float):
     """Template data at integer centres (n, 2), once per point and level.
 
     Returns g (n, 2, C*K) unscaled gradients, tg = T @ g^T (n, 1, 2), h_inv (n, 2, 2) the inverse of the
-    gradient matrix g @ g^T divided by _GRAD_SCALE (so that h_inv @ (tg - J @ g^T) is the LK step in pixels),
-    and a degenerate mask (n,): smallest eigenvalue below min_eig in OpenCV's units.
+    gradient matrix H = g @ g^T divided by _GRAD_SCALE (so that h_inv @ (tg - J @ g^T) is the LK step in
+    pixels), det(H) (n,), and a degenerate mask (n,): smallest eigenvalue below min_eig in OpenCV's units.
     """
     patch = sampler.integer(centre, base, extra=1)
     n, c, m = patch.shape[:3]
@@ -138,14 +138,15 @@ def _template(sampler: _Sampler, centre: Tensor, base: Tensor, min_eig: float):
     degenerate = lam * (_GRAD_SCALE**2 * 255.0**2 / 1024.0 / sampler.window**2) < min_eig
     h_inv, det = _inverse_2x2(h, 1.0 / _GRAD_SCALE)
     degenerate |= ~(det > 0.0)
-    return g, a[:, :, 2].reshape(n, 1, 2), h_inv, degenerate
+    return g, a[:, :, 2].reshape(n, 1, 2), h_inv, det, degenerate
 
 
-def _newton(r: Tensor, step: Tensor, g: Tensor, h_inv: Tensor, jy: Tensor, patch: Tensor, fx: Tensor) -> Tensor:
+def _newton(r: Tensor, step: Tensor, g: Tensor, h_det: Tensor, jy: Tensor, patch: Tensor, fx: Tensor) -> Tensor:
     """Newton step on the normal equations R(q) = (T - J(q)) @ g^T = r (n, 1, 2), whose inverse-compositional
     step is ``step`` = r @ h_inv: M^-1 r with M = dR/dq = -g @ dJ/dq^T (n, 2, 2), from the exact derivatives of
     the bilinear window: d/dx from the y-interpolated patch jy (n, C, w, w+1), d/dy from the raw patch
-    (n, C, w+1, w+1). Where h_inv @ M is far from the identity (det < 0.01) the step stays ``step``."""
+    (n, C, w+1, w+1). Where H^-1 M is far from the identity (det < 0.01; H = g @ g^T has determinant h_det)
+    the step stays ``step``."""
     n = r.shape[0]
     djx = jy[..., 1:] - jy[..., :-1]
     dpy = patch[:, :, 1:] - patch[:, :, :-1]
@@ -153,11 +154,11 @@ def _newton(r: Tensor, step: Tensor, g: Tensor, h_inv: Tensor, jy: Tensor, patch
     m = torch.bmm(g, torch.stack([djx.view(n, -1), djy.view(n, -1)], 1).mT)  # n,2,2 (unscaled)
     m_inv, det = _inverse_2x2(m)
     newton = torch.bmm(r, m_inv.mT).view(n, 2)
-    ok = det * torch.linalg.det(h_inv) > 0.01 / _GRAD_SCALE  # det(h_inv @ M) with the scales
+    ok = det > (0.01 * _GRAD_SCALE) * h_det  # det(H^-1 M) > 0.01 with the gradients' scale
     return torch.where(ok.view(n, 1), newton, step)
 
 
-def _iterate(sampler, level, q, g, tg, h_inv, base, *, iters, eps, ic_iters):
+def _iterate(sampler, level, q, g, tg, h_inv, h_det, base, *, iters, eps, ic_iters):
     """LK iterations with per-point early stop for window centres q (P, 2) in level pixels.
 
     A point stops when its update is at most eps (converged), or, in the Newton phase, when its update
@@ -181,7 +182,7 @@ def _iterate(sampler, level, q, g, tg, h_inv, base, *, iters, eps, ic_iters):
         r = torch.baddbmm(tg, win.view(n, 1, -1), g.mT, alpha=-1.0)  # (T - J) @ g^T
         delta = torch.bmm(r, h_inv).view(n, 2)  # inverse-compositional step (h_inv is symmetric)
         if j >= ic_iters:
-            delta = _newton(r, delta, g, h_inv, jy, patch, fx)
+            delta = _newton(r, delta, g, h_det, jy, patch, fx)
         q = q + delta
         d2 = torch.linalg.vecdot(delta, delta)
         conv = d2 <= eps2
@@ -195,7 +196,7 @@ def _iterate(sampler, level, q, g, tg, h_inv, base, *, iters, eps, ic_iters):
             keep = (~done).nonzero().squeeze(1)
             if keep.numel() == 0:
                 break
-            ids, q, base, d2_prev = ids[keep], q[keep], base[keep], d2[keep]
+            ids, q, base, d2_prev, h_det = ids[keep], q[keep], base[keep], d2[keep], h_det[keep]
             g, tg, h_inv = g.index_select(0, keep), tg.index_select(0, keep), h_inv.index_select(0, keep)
     return q_out, conv_out
 
@@ -237,12 +238,13 @@ def lk_track_flat(
             x = x0 * scale
             centre = torch.round(x)
             frac = x - centre
-            g, tg, h_inv, degenerate = _template(s_prev, centre, s_prev.base(level, img), min_eig)
+            g, tg, h_inv, h_det, degenerate = _template(s_prev, centre, s_prev.base(level, img), min_eig)
             track = (~degenerate).nonzero().squeeze(1)
             rows = sel[track]
             q, conv = _iterate(
                 s_next, level, guess[rows] * scale - frac[track], g.index_select(0, track), tg.index_select(0, track),
-                h_inv.index_select(0, track), s_next.base(level, img[track]), iters=iters, eps=eps, ic_iters=ic_iters,
+                h_inv.index_select(0, track), h_det[track], s_next.base(level, img[track]), iters=iters, eps=eps,
+                ic_iters=ic_iters,
             )  # fmt: skip
             guess[rows] = (q + frac[track]) / scale
             if level == 0:

@@ -28,7 +28,7 @@ class Pyramid:
     Attributes:
         images: L tensors (B, C, H_l, W_l); level 0 is the input, H_l = ceil(H_{l-1} / 2).
         flat: (C * R * S,) buffer, the contiguous flattening of (C, R, S): every level and image,
-            replicate-padded by ``pad`` pixels; image b of level l occupies rows ``row_start[l, b]`` to
+            padded by ``pad`` pixels (reflect-101, as OpenCV's pyramids; replicated on levels smaller than the pad); image b of level l occupies rows ``row_start[l, b]`` to
             ``row_start[l, b] + H_l + 2 pad`` and columns ``0`` to ``W_l + 2 pad`` of each channel plane.
         row_start: (L, B) int64 first buffer row of each level and image.
         stride: S, the row stride (W + 2 pad). plane: R * S, the channel stride.
@@ -64,26 +64,52 @@ class Pyramid:
         return int(h), int(w)
 
 
-def pyr_down(image: Tensor) -> Tensor:
-    """(B, C, H, W) -> (B, C, ceil(H/2), ceil(W/2)): 5x5 binomial blur, keep even pixels; equals cv2.pyrDown
-    (reflect-101 border). Written as strided sums of shifted views: the blur is only evaluated where it is
-    kept, which is 30x faster on CPU than a full-resolution kornia.filters.filter2d_separable."""
-    h, w = image.shape[-2:]
+def _pyr_down_padded(p: Tensor, out: Tensor | None = None) -> Tensor:
+    """pyrDown of the inside of p (..., H + 4, W + 4), a view with a 2-pixel border already filled; strided sums
+    of shifted views, so that the blur is only evaluated where it is kept."""
+    h, w = p.shape[-2] - 4, p.shape[-1] - 4
     ho, wo = (h + 1) // 2, (w + 1) // 2
-    p = F.pad(image, (2, 2, 2, 2), mode="reflect")
-    even = slice(2, 2 + 2 * wo, 2)
     t = torch.add(
         p[..., 0 : 2 * wo : 2] + p[..., 4 : 4 + 2 * wo : 2],
         p[..., 1 : 1 + 2 * wo : 2] + p[..., 3 : 3 + 2 * wo : 2],
         alpha=4.0,
     )
-    t.add_(p[..., even], alpha=6.0)  # rows: [1 4 6 4 1] at even columns
+    t.add_(p[..., 2 : 2 + 2 * wo : 2], alpha=6.0)  # rows: [1 4 6 4 1] at even columns
     out = torch.add(
         t[..., 0 : 2 * ho : 2, :] + t[..., 4 : 4 + 2 * ho : 2, :],
         t[..., 1 : 1 + 2 * ho : 2, :] + t[..., 3 : 3 + 2 * ho : 2, :],
         alpha=4.0,
+        out=out,
     )
     return out.add_(t[..., 2 : 2 + 2 * ho : 2, :], alpha=6.0).mul_(1.0 / 256.0)
+
+
+def pyr_down(image: Tensor) -> Tensor:
+    """(..., H, W) -> (..., ceil(H/2), ceil(W/2)): 5x5 binomial blur, keep even pixels; equals cv2.pyrDown
+    (reflect-101 border). 30x faster on CPU than a full-resolution kornia.filters.filter2d_separable."""
+    h, w = image.shape[-2:]
+    p = F.pad(image.reshape(-1, 1, h, w), (2, 2, 2, 2), mode="reflect" if min(h, w) > 2 else "replicate")
+    return _pyr_down_padded(p.view(*image.shape[:-2], h + 4, w + 4))
+
+
+def _fill_border(block: Tensor, pad: int, h: int, w: int) -> None:
+    """Fill the pad-wide border of a padded (..., h + 2 pad, S) block around its (h, w) inside: reflect-101 as
+    OpenCV's pyramids where the level is larger than the pad, else replicate; columns past w + 2 pad are zeroed."""
+    wp = w + 2 * pad
+    rows = block[..., pad : pad + h, :]
+    if w > pad:
+        rows[..., :pad] = rows[..., pad + 1 : 2 * pad + 1].flip(-1)
+        rows[..., pad + w : wp] = rows[..., w - 1 : pad + w - 1].flip(-1)
+    else:
+        rows[..., :pad] = rows[..., pad : pad + 1]
+        rows[..., pad + w : wp] = rows[..., pad + w - 1 : pad + w]
+    if h > pad:
+        block[..., :pad, :wp] = block[..., pad + 1 : 2 * pad + 1, :wp].flip(-2)
+        block[..., pad + h :, :wp] = block[..., h - 1 : pad + h - 1, :wp].flip(-2)
+    else:
+        block[..., :pad, :wp] = block[..., pad : pad + 1, :wp]
+        block[..., pad + h :, :wp] = block[..., pad + h - 1 : pad + h, :wp]
+    block[..., wp:] = 0.0
 
 
 def build_pyramid(image: Tensor, levels: int, *, window: int = 21) -> Pyramid:
@@ -101,20 +127,31 @@ def build_pyramid(image: Tensor, levels: int, *, window: int = 21) -> Pyramid:
         raise ValueError(f"build_pyramid: image must be a float (B, C, H, W) tensor, got {tuple(image.shape)}")
     if levels < 1 or window < 3 or window % 2 == 0:
         raise ValueError(f"build_pyramid: need levels >= 1 and an odd window >= 3, got {levels}, {window}")
+    pad = window // 2 + 3  # window + 1 px for bilinear weights + 1 px for gradients + 1 px slack
+    b, c, h, w = image.shape
+    sizes = [(h, w)]
+    for _ in range(levels - 1):
+        sizes.append(((sizes[-1][0] + 1) // 2, (sizes[-1][1] + 1) // 2))
+    heights = [hl + 2 * pad for hl, _ in sizes]
+    starts = torch.tensor([0] + heights[:-1]).cumsum(0) * b  # first buffer row of each level
     with torch.inference_mode():
-        pad = window // 2 + 3  # window + 1 px for bilinear weights + 1 px for gradients + 1 px slack
-        images = [image]
-        for _ in range(levels - 1):
-            images.append(pyr_down(images[-1]))
-        b, c, h, w = image.shape
-        heights = [x.shape[-2] + 2 * pad for x in images]
-        starts = torch.tensor([0] + heights[:-1]).cumsum(0) * b  # first row of each level
-        buf = image.new_empty(c, sum(heights) * b, w + 2 * pad)
-        for level, x in enumerate(images):
-            hp, wp = heights[level], x.shape[-1] + 2 * pad
-            rows = slice(int(starts[level]), int(starts[level]) + b * hp)
-            dst = buf[:, rows].view(c, b, hp, -1)
-            dst[..., :wp] = F.pad(x, (pad,) * 4, mode="replicate").transpose(0, 1)
-            dst[..., wp:] = 0.0
-        row_start = starts[:, None] + torch.arange(b)[None, :] * torch.tensor(heights)[:, None]
+        buf = image.new_empty(c, sum(heights) * b, w + 2 * pad)  # channel-major: (C, B, rows, S) per level
+        images, prev = [image], None
+        for level, (hl, wl) in enumerate(sizes):
+            block = buf[:, int(starts[level]) : int(starts[level]) + b * heights[level]].view(c, b, heights[level], -1)
+            dst = block[..., pad : pad + hl, pad : pad + wl]
+            if level == 0:
+                dst.copy_(image.transpose(0, 1))
+            elif min(sizes[level - 1]) > 2:  # the previous level's border is reflect-101 (as cv2.pyrDown's)
+                images.append(
+                    _pyr_down_padded(
+                        prev[..., pad - 2 : -pad + 2, pad - 2 : pad + sizes[level - 1][1] + 2], out=dst
+                    ).transpose(0, 1)
+                )
+            else:
+                images.append(pyr_down(prev[..., pad:-pad, pad : pad + sizes[level - 1][1]]).transpose(0, 1))
+                dst.copy_(images[-1].transpose(0, 1))
+            _fill_border(block, pad, hl, wl)
+            prev = block
+    row_start = starts[:, None] + torch.arange(b)[None, :] * torch.tensor(heights)[:, None]
     return Pyramid(images, buf.view(-1), row_start, stride=w + 2 * pad, plane=buf[0].numel(), pad=pad)
