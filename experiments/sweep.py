@@ -321,7 +321,8 @@ def main(argv: list[str] | None = None) -> int:
             rc = subprocess.call(cmd)
             if rc != 0:
                 log.error("%s: multirun exited with %d; its unfinished jobs stay to-do (see its logs)", name, rc)
-    write_summary(out, args, extra, commands, plan)
+    if not args.dry_run:
+        write_summary(out, args, extra, commands, plan)
     left = [f"{m}/{s}" for m in args.methods for s in args.sequences if not is_finished(out, m, s)]
     if left and not args.dry_run:
         log.error("unfinished: %s (run the same command again to retry only these)", ", ".join(left))
