@@ -15,6 +15,7 @@ from pathlib import Path
 import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from hydra.utils import instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
@@ -61,6 +62,8 @@ def build_tracker(cfg: DictConfig) -> Tracker:
         backend=instantiate(cfg.tracker.backend),
         reselect_fraction=cfg.tracker.reselect_fraction,
         min_features=cfg.tracker.min_features,
+        edge_step=cfg.tracker.get("edge_step"),
+        max_residual_px=cfg.tracker.get("max_residual_px"),
     )
 
 
@@ -75,6 +78,8 @@ def app(cfg: DictConfig) -> None:
         log.info("tracking %d sequence(s) into %s", len(sequences), out)
         results = run_tracker(tracker, sequences, out, plots=cfg.plots)
     except (DataError, FileNotFoundError) as e:
+        if HydraConfig.get().mode == RunMode.MULTIRUN:
+            raise  # let the launcher record this job's failure and run the others
         log.error("%s", e)
         sys.exit(2)
     for r in results:

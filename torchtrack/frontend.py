@@ -63,6 +63,19 @@ class FrontEnd:
         return PreparedFrame(gray, depth, sim, flow)
 
 
+def smooth_depth_mask(depth: Tensor, max_rel_step: float = 0.03, radius: int = 2) -> Tensor:
+    """(B, 1, H, W) bool: depth present in the whole (2r+1)^2 window and within ``max_rel_step`` of its range.
+
+    Features on occlusion boundaries get the depth of the wrong surface: their model point then drifts
+    away from the 2D track under parallax. This mask keeps the selection off such pixels.
+    """
+    k = 2 * radius + 1
+    hi = torch.nn.functional.max_pool2d(depth, k, stride=1, padding=radius)
+    lo = -torch.nn.functional.max_pool2d(torch.where(depth > 0, -depth, -torch.full_like(depth, 1e9)), k, 1, radius)
+    holes = torch.nn.functional.max_pool2d((depth <= 0).float(), k, stride=1, padding=radius) > 0
+    return ~holes & (hi - lo <= max_rel_step * depth)
+
+
 def measure_points(prepared: PreparedFrame, frame: FrameBatch, pixels: Tensor) -> tuple[Tensor, Tensor]:
     """3D measurements X_d of eq. (6) at colour pixels (B, N, 2) -> (points (B, N, 3) in the depth camera, has_depth (B, N)).
 

@@ -23,7 +23,7 @@ from torch import Tensor
 from torchtrack.data.frame import FrameBatch
 from torchtrack.estimation import Observation, PoseBackend
 from torchtrack.filter.weighting import WeightingInputs
-from torchtrack.frontend import FrontEnd, PreparedFrame, measure_points
+from torchtrack.frontend import FrontEnd, PreparedFrame, measure_points, smooth_depth_mask
 from torchtrack.geometry import T_inv, make_T, project, transform_points
 
 
@@ -66,13 +66,6 @@ def masked_mean(x: Tensor, valid: Tensor) -> Tensor:
     return (x * w).sum(1) / w.sum(1).clamp_min(1)
 
 
-def reprojection_error(K: Tensor, T_color_obj: Tensor, points_obj: Tensor, pixels: Tensor, valid: Tensor) -> Tensor:
-    """Mean reprojection error of eq. (16), (B,) pixels: mean_i || x_i - pi(K T X_o,i) || over valid features."""
-    proj = project(K, transform_points(T_color_obj, points_obj))
-    err = torch.where(valid, (proj - pixels).norm(dim=-1), torch.zeros_like(pixels[..., 0]))
-    return err.sum(1) / valid.sum(1).clamp_min(1)
-
-
 class Tracker:
     """Model-free RGB-D rigid tracker (paper §III), batched over B sequences in lockstep.
 
@@ -86,6 +79,10 @@ class Tracker:
         backend: the pose estimator (fusion EKF or a registration baseline).
         reselect_fraction: take a new model when fewer than this fraction of the model's features survive.
         min_features: ... or fewer than this many.
+        edge_step: improvement (None = paper): select only where the depth in a 5x5 window varies by less
+            than this fraction of the depth (no features on occlusion boundaries).
+        max_residual_px: improvement (None = paper): drop features whose pixel is farther than this from
+            the model point reprojected with the updated pose (slipped tracks, non-rigid or wrong depth).
     """
 
     def __init__(
@@ -99,12 +96,15 @@ class Tracker:
         backend: PoseBackend,
         reselect_fraction: float = 0.5,
         min_features: int = 12,
+        edge_step: float | None = None,
+        max_residual_px: float | None = None,
     ) -> None:
         if not 0.0 <= reselect_fraction < 1.0:
             raise ValueError(f"reselect_fraction must be in [0, 1), got {reselect_fraction}")
         self.frontend, self.region, self.select = frontend, region, select
         self.flow, self.weighting, self.backend = flow, weighting, backend
         self.reselect_fraction, self.min_features = reselect_fraction, min_features
+        self.edge_step, self.max_residual_px = edge_step, max_residual_px
         self.prev: PreparedFrame | None = None
 
     def step(self, frame: FrameBatch) -> StepResult:
@@ -121,6 +121,8 @@ class Tracker:
         T_cam_obj = self.backend(obs).double()  # eqs. (2)-(7), (15)
         T_cam_obj = torch.where(frame.active[:, None, None], T_cam_obj, self.T_cam_obj)
         self.pixels, self.valid, self.T_cam_obj, self.timestamp = track.points, valid, T_cam_obj, frame.timestamp
+        if self.max_residual_px is not None:
+            self.valid = valid = valid & (self._residuals(frame) <= self.max_residual_px)
         result = self._result(frame, track.winner, track.d_tim)
         n = valid.sum(1)
         reselect = frame.active & ((n < self.reselect_fraction * self.n_model) | (n < self.min_features))
@@ -149,7 +151,10 @@ class Tracker:
 
     def _new_model(self, frame: FrameBatch, cur: PreparedFrame, mask: Tensor) -> None:
         """Take the current frame as the model of the sequences in ``mask`` (B,): PCM features, pose, chain."""
-        feats = self.select(cur.gray, cur.depth, frame.K, roi=self.region(cur.depth), sim=cur.sim)  # eq. (9)
+        roi = self.region(cur.depth)
+        if self.edge_step is not None:
+            roi = roi & smooth_depth_mask(cur.depth, self.edge_step)
+        feats = self.select(cur.gray, cur.depth, frame.K, roi=roi, sim=cur.sim)  # eq. (9)
         points_d, has_depth = measure_points(cur, frame, feats.pixels)
         valid = feats.valid & has_depth
         centroid = masked_mean(points_d, valid)
@@ -174,10 +179,16 @@ class Tracker:
         self.n_model = n if self.n_model is None else torch.where(mask, n, self.n_model)
         self.backend.reset(self.T_cam_obj, mask)
 
+    def _residuals(self, frame: FrameBatch) -> Tensor:
+        """(B, N) pixel distance between tracked features and model points reprojected with the current pose."""
+        T_color_obj = (frame.T_color_depth.double() @ self.T_cam_obj).float()
+        proj = project(frame.K, transform_points(T_color_obj, self.points_obj))
+        return torch.nan_to_num((proj - self.pixels).norm(dim=-1), nan=float("inf"))
+
     def _result(self, frame: FrameBatch, winner: Tensor | None, d_tim: Tensor | None) -> StepResult:
         B, N = self.valid.shape
-        T_color_obj = (frame.T_color_depth.double() @ self.T_cam_obj).float()
-        err = reprojection_error(frame.K, T_color_obj, self.points_obj, self.pixels, self.valid)
+        res = torch.where(self.valid, self._residuals(frame), torch.zeros_like(self.pixels[..., 0]))
+        err = res.sum(1) / self.valid.sum(1).clamp_min(1)  # mean reprojection error, eq. (16)
         return StepResult(
             T_cam_obj=self.T_cam_obj,
             T_world_cam=self.T_world_obj @ T_inv(self.T_cam_obj),
