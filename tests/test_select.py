@@ -218,6 +218,8 @@ def test_empty_roi_gives_no_features():
 # ---------------------------------------------------------------------------------------------- batching
 def assert_batched_equals_looped(gray, depth, K, **kw):
     batched = select_features(gray, depth, K, **kw)
+    whole = select_features(gray, depth, K, cpu_chunk=None, **kw)  # one pass over the batch, no chunks
+    assert all(torch.allclose(x.float(), y.float(), atol=1e-5) for x, y in zip(batched, whole, strict=True))
     for b in range(gray.shape[0]):
         one = select_features(gray[b : b + 1], depth[b : b + 1], K[b : b + 1], **kw)
         n = one.valid.shape[1]

@@ -46,16 +46,18 @@ def sobel(image: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _binomial_window(x: Tensor, passes: int) -> Tensor:
-    """``passes`` [1, 2, 1] / 4 filters per axis with reflect border (in-place adds: few allocations)."""
+    """``passes`` [1, 2, 1] / 4 filters per axis with reflect border. ``x`` is a temporary of the caller and is
+    overwritten: the passes ping-pong between it and one more buffer (few large allocations)."""
+    y = torch.empty_like(x)
     for dim in (-1, -2):
         n = x.shape[dim]
         for _ in range(passes):
-            y = x * 0.5
+            torch.mul(x, 0.5, out=y)
             y.narrow(dim, 1, n - 1).add_(x.narrow(dim, 0, n - 1), alpha=0.25)
             y.narrow(dim, 0, n - 1).add_(x.narrow(dim, 1, n - 1), alpha=0.25)
             y.narrow(dim, 0, 1).add_(x.narrow(dim, 1, 1), alpha=0.25)  # reflect: x[-1] = x[1]
             y.narrow(dim, n - 1, 1).add_(x.narrow(dim, n - 2, 1), alpha=0.25)
-            x = y
+            x, y = y, x
     return x
 
 

@@ -204,6 +204,7 @@ def select_features(
     require_sim: bool = True,
     corner_kwargs: dict | None = None,
     sim_kwargs: dict | None = None,
+    cpu_chunk: int | None = 1,
 ) -> Features:
     """Spatio-textural feature selection (eq. 9); method and normalisation in the module docstring.
 
@@ -227,6 +228,9 @@ def select_features(
             False lets planar areas compete with C_SIM = 0).
         corner_kwargs: keyword arguments of :func:`torchtrack.image.corners.harris`.
         sim_kwargs: keyword arguments of :func:`torchtrack.image.shape_index.shape_index` (when computed here).
+        cpu_chunk: on CPU, frames go through the per-pixel maps this many at a time (None = all at once).
+            A whole batch of full-frame temporaries overflows the caches and, with glibc's default malloc,
+            is page-faulted afresh on every call; per-frame chunks are faster. Results are identical.
 
     Returns:
         Features, N = the largest number of selected features over the batch (or ``max_features``).
@@ -246,23 +250,37 @@ def select_features(
     if 2 * border >= min(H, W):
         raise ValueError(f"select_features: border {border} leaves no pixel of a {H}x{W} image")
 
-    maps = cornerness_maps(
-        gray, depth, K, roi=roi, sim=sim, lam=lam, patches=(ph, pw, gh, gw), border=border,
-        require_sim=require_sim, corner_kwargs=corner_kwargs, sim_kwargs=sim_kwargs,
-    )  # fmt: skip
-    C, c_int, c_sim = maps.C, maps.c_int, maps.c_sim
     n_max = gh * gw if max_features is None else max_features
-    if spread:
-        pixels, value = _patch_maxima(C, ph, pw, gh, gw)
-    else:
-        pixels, value = _local_maxima(C, nms_radius, n_max)
-    return _finish(pixels, value, c_int, c_sim, depth, K, n_max, min_cornerness)
+    step = B if (cpu_chunk is None or gray.device.type != "cpu") else max(1, cpu_chunk)
+    parts = []
+    for s in range(0, B, step):  # chunks of frames on CPU (see cpu_chunk); one pass on other devices
+        sl = slice(s, s + step)
+        maps = cornerness_maps(
+            gray[sl], depth[sl], K[sl], roi=None if roi is None else roi[sl],
+            sim=None if sim is None else type(sim)(*(t[sl] for t in sim)), lam=lam, patches=(ph, pw, gh, gw),
+            border=border, require_sim=require_sim, corner_kwargs=corner_kwargs, sim_kwargs=sim_kwargs,
+        )  # fmt: skip
+        if spread:
+            pixels, value = _patch_maxima(maps.C, ph, pw, gh, gw)
+        else:
+            pixels, value = _local_maxima(maps.C, nms_radius, n_max)
+        parts.append((pixels, value, _gather_map(maps.c_int, pixels), _gather_map(maps.c_sim, pixels)))
+    candidates = [torch.cat(x) for x in zip(*parts, strict=True)]
+    return _finish(*candidates, depth, K, n_max, min_cornerness)
 
 
 def _finish(
-    pixels: Tensor, value: Tensor, c_int: Tensor, c_sim: Tensor, depth: Tensor, K: Tensor, n_max: int, min_c: float
+    pixels: Tensor,
+    value: Tensor,
+    c_int: Tensor,
+    c_sim: Tensor,
+    depth: Tensor,
+    K: Tensor,
+    n_max: int,
+    min_c: float,
 ) -> Features:
-    """Sort by (valid, C) descending, pad to the batch's largest count, back-project."""
+    """Candidates (B, P, ...) -> Features: sort by (valid, C) descending, pad to the batch's largest count,
+    back-project."""
     valid = value > max(min_c, 0.0)
     order = torch.where(valid, value, torch.full_like(value, -1.0)).argsort(dim=-1, descending=True, stable=True)
     N = max(1, min(n_max, int(valid.sum(-1).max())))
@@ -277,8 +295,8 @@ def _finish(
         pixels=pixels,
         points=points,
         cornerness=value.clamp_min(0.0) * vf,
-        cornerness_int=_gather_map(c_int, pixels) * vf,
-        cornerness_sim=_gather_map(c_sim, pixels) * vf,
+        cornerness_int=c_int.gather(1, order) * vf,
+        cornerness_sim=c_sim.gather(1, order) * vf,
         valid=valid,
     )
 
@@ -300,6 +318,7 @@ class FeatureSelector:
         require_sim: bool = True,
         corner_kwargs: dict | None = None,
         sim_kwargs: dict | None = None,
+        cpu_chunk: int | None = 1,
     ) -> None:
         if not 0.0 <= lam <= 1.0:
             raise ValueError(f"FeatureSelector: lam must be in [0, 1], got {lam}")
@@ -315,6 +334,7 @@ class FeatureSelector:
             require_sim=require_sim,
             corner_kwargs=dict(corner_kwargs or {}),
             sim_kwargs=dict(sim_kwargs or {}),
+            cpu_chunk=cpu_chunk,
         )
 
     def __call__(self, gray: Tensor, depth: Tensor, K: Tensor, *, roi: Tensor | None = None, sim=None) -> Features:
