@@ -183,7 +183,7 @@ def table(rows: list[dict]) -> str:
     for r in rows:
         o, p, q = r["ours"] or {}, r["peer"] or {}, r["ratio"]
         cells = [r["sequence"], str(r["frames"])]
-        for k, scale, d in (("ate_rmse_m", 1e3, 1), ("rpe_trans_m", 1e3, 2), ("rpe_rot_deg", 1.0, 3)):
+        for k, scale, d in (("ate_rmse_m", 1e3, 2), ("rpe_trans_m", 1e3, 2), ("rpe_rot_deg", 1.0, 3)):
             cells += [fmt(o.get(k), scale, d), fmt(p.get(k), scale, d), fmt(q.get(k), 1.0, 2)]
         cells += [str(o.get("reselections", "–")), fmt(o.get("fps"), 1, 1), fmt(p.get("fps"), 1, 1)]
         cells.append(r["verdict"] if "error" not in r else f"error: {r['error']}")
@@ -271,6 +271,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     rows = []
+    print("\n".join(table([]).splitlines()[:2]), flush=True)
     for root in roots:
         log.info("== %s", root)
         rows.append(evaluate_one(root, args, overrides))
