@@ -21,6 +21,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse  # noqa: E402
 import platform  # noqa: E402
 import time  # noqa: E402
+from functools import partial  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import cv2  # noqa: E402
@@ -65,13 +66,35 @@ def opencv_four_passes(prev_u8, next_u8, pts, args):
             cv2.calcOpticalFlowPyrLK(next_u8[k][s], prev_u8[k][s], x1, None, **args)
 
 
-def timed(fn, repeats):
-    out = []
-    for _ in range(repeats):
-        t = time.perf_counter()
+def timed(fn) -> tuple[float, float]:
+    """(wall-clock ms, this thread's CPU ms) of one call: CPU time does not count time the shared machine gave
+    to other processes, wall clock does."""
+    w, c = time.perf_counter(), time.thread_time()
+    fn()
+    return (time.perf_counter() - w) * 1e3, (time.thread_time() - c) * 1e3
+
+
+def bench_batch(b, tracker, data, args, levels, repeats):
+    gray0, sim0, gray1, sim1, pts = data
+    f0, f1 = prepare_frame(gray0[:b], sim0[:b], levels), prepare_frame(gray1[:b], sim1[:b], levels)
+    p = pts[:b]
+
+    def u8(x):
+        return [(x[s, 0] * 255).round().clamp(0, 255).to(torch.uint8).numpy() for s in range(x.shape[0])]
+
+    prev_u8, next_u8, p_np = [u8(gray0[:b]), u8(sim0[:b])], [u8(gray1[:b]), u8(sim1[:b])], p.numpy()
+    runs = {
+        "track": partial(tracker, f0, f1, p),
+        "frame": lambda: tracker(f0, prepare_frame(gray1[:b], sim1[:b], levels), p),
+        "cv": partial(opencv_four_passes, prev_u8, next_u8, p_np, args),
+    }
+    for fn in runs.values():
         fn()
-        out.append(time.perf_counter() - t)
-    return np.array(out) * 1e3
+    rows = {k: [] for k in runs}
+    for _ in range(repeats):  # interleaved, so that load changes hit both sides alike
+        for k, fn in runs.items():
+            rows[k].append(timed(fn))
+    return {k: np.array(v) for k, v in rows.items()}  # repeats x (wall, cpu)
 
 
 def main() -> None:
@@ -86,39 +109,28 @@ def main() -> None:
     torch.set_num_threads(a.threads)
     cv2.setNumThreads(a.threads)
     print(f"# bench_lk: {platform.processor() or platform.machine()}, torch {torch.__version__}, OpenCV "
-          f"{cv2.__version__}, {a.threads} thread(s), window {a.window}, levels {a.levels}, 30 iters, eps 0.01")  # fmt: skip
-    gray0, sim0, gray1, sim1, pts = load_pairs(a.seq, 8, a.features)
+          f"{cv2.__version__}, {a.threads} thread(s), window {a.window}, levels {a.levels}, 30 iters, eps 0.01, "
+          f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")  # fmt: skip
+    data = load_pairs(a.seq, 8, a.features)
     tracker = CombinedTracker(window=a.window, levels=a.levels)
     args = dict(
         winSize=(a.window, a.window), maxLevel=a.levels - 1, minEigThreshold=1e-4,
         criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
     )  # fmt: skip
-
-    def u8(x):
-        return [(x[s, 0] * 255).round().clamp(0, 255).to(torch.uint8).numpy() for s in range(x.shape[0])]
-
-    print(f"\n{a.seq}, {pts.shape[1]} features, 640x480, combined tracker = 4 LK passes (ms, wall clock)\n")
-    print("| B | torch tracker (prepared frames) | torch per frame (prepare + track) | OpenCV 4 passes | "
-          "ratio per frame / OpenCV | torch ms per sequence |")  # fmt: skip
+    print(f"\n{a.seq}, {data[4].shape[1]} features per sequence, 640x480, combined tracker = 4 LK passes "
+          f"(intensity and SIM, forward and backward). Median over {a.repeats} interleaved repeats, ms; "
+          "CPU = this thread's CPU time (robust to other processes), wall = wall clock.\n")  # fmt: skip
+    print("| B | torch: track (prepared frames) | torch: per frame (prepare + track) | OpenCV: 4 passes | "
+          "ratio per frame / OpenCV | torch per sequence (per frame) |")  # fmt: skip
     print("|---|---|---|---|---|---|")
     for b in (1, 4, 8):
-        f0 = prepare_frame(gray0[:b], sim0[:b], a.levels)
-        f1 = prepare_frame(gray1[:b], sim1[:b], a.levels)
-        p = pts[:b]
-        prev_u8, next_u8 = [u8(gray0[:b]), u8(sim0[:b])], [u8(gray1[:b]), u8(sim1[:b])]
-        p_np = p.numpy()
-        rows = {"track": [], "frame": [], "cv": []}
-        for _ in range(3):
-            tracker(f0, f1, p)
-        for _ in range(a.repeats):  # interleaved, so load changes hit both sides alike
-            rows["track"].append(timed(lambda: tracker(f0, f1, p), 1)[0])
-            rows["frame"].append(timed(lambda: tracker(f0, prepare_frame(gray1[:b], sim1[:b], a.levels), p), 1)[0])
-            rows["cv"].append(timed(lambda: opencv_four_passes(prev_u8, next_u8, p_np, args), 1)[0])
-        med = {k: float(np.median(v)) for k, v in rows.items()}
-        mn = {k: float(np.min(v)) for k, v in rows.items()}
-        print(f"| {b} | {med['track']:.1f} (min {mn['track']:.1f}) | {med['frame']:.1f} (min {mn['frame']:.1f}) | "
-              f"{med['cv']:.1f} (min {mn['cv']:.1f}) | {med['frame'] / med['cv']:.2f} (min/min "
-              f"{mn['frame'] / mn['cv']:.2f}) | {med['frame'] / b:.1f} |")  # fmt: skip
+        r = bench_batch(b, tracker, data, args, a.levels, a.repeats)
+        med = {k: np.median(v, axis=0) for k, v in r.items()}  # (wall, cpu)
+
+        cell = {k: f"CPU {v[1]:.1f} / wall {v[0]:.1f}" for k, v in med.items()}
+        ratio = med["frame"] / med["cv"]
+        print(f"| {b} | {cell['track']} | {cell['frame']} | {cell['cv']} | CPU {ratio[1]:.2f} / wall {ratio[0]:.2f} "
+              f"| CPU {med['frame'][1] / b:.1f} / wall {med['frame'][0] / b:.1f} |")  # fmt: skip
 
 
 if __name__ == "__main__":

@@ -143,7 +143,7 @@ def _template(sampler: _Sampler, centre: Tensor, base: Tensor, min_eig: float):
 
 def _newton(r: Tensor, step: Tensor, g: Tensor, h_det: Tensor, jy: Tensor, patch: Tensor, fx: Tensor) -> Tensor:
     """Newton step on the normal equations R(q) = (T - J(q)) @ g^T = r (n, 1, 2), whose inverse-compositional
-    step is ``step`` = r @ h_inv: M^-1 r with M = dR/dq = -g @ dJ/dq^T (n, 2, 2), from the exact derivatives of
+    step is ``step`` = r @ h_inv: M^-1 r with M = -dR/dq = g @ dJ/dq^T (n, 2, 2), from the exact derivatives of
     the bilinear window: d/dx from the y-interpolated patch jy (n, C, w, w+1), d/dy from the raw patch
     (n, C, w+1, w+1). Where H^-1 M is far from the identity (det < 0.01; H = g @ g^T has determinant h_det)
     the step stays ``step``."""
@@ -151,10 +151,11 @@ def _newton(r: Tensor, step: Tensor, g: Tensor, h_det: Tensor, jy: Tensor, patch
     djx = jy[..., 1:] - jy[..., :-1]
     dpy = patch[:, :, 1:] - patch[:, :, :-1]
     djy = torch.lerp(dpy[..., :-1], dpy[..., 1:], fx)
-    m = torch.bmm(g, torch.stack([djx.view(n, -1), djy.view(n, -1)], 1).mT)  # n,2,2 (unscaled)
-    m_inv, det = _inverse_2x2(m)
-    newton = torch.bmm(r, m_inv.mT).view(n, 2)
-    ok = det > (0.01 * _GRAD_SCALE) * h_det  # det(H^-1 M) > 0.01 with the gradients' scale
+    g_t = g.mT
+    m_t = torch.cat([torch.bmm(djx.view(n, 1, -1), g_t), torch.bmm(djy.view(n, 1, -1), g_t)], 1)  # M^T (unscaled)
+    m_t_inv, det = _inverse_2x2(m_t)
+    newton = torch.bmm(r, m_t_inv).view(n, 2)
+    ok = det > (0.01 * _GRAD_SCALE) * h_det  # det(H^-1 M) > 0.01, with the gradients' scale
     return torch.where(ok.view(n, 1), newton, step)
 
 
