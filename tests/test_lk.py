@@ -223,6 +223,18 @@ def test_batched_equals_looped_and_pyramids_equal_tensors():
     torch.testing.assert_close(again.points, batched.points, atol=0, rtol=0)
 
 
+def test_float64_index_arithmetic_for_large_buffers(monkeypatch):
+    """Buffers of 2^24 elements and more index in float64 (float32 is exact below): same tracks."""
+    import torchtrack.image.lk as lk
+
+    i0, i1, pts, _ = warped_pair(np.eye(2), np.array([0.8, -1.9]), n=40)
+    ref = pyramidal_lk(i0, i1, pts)
+    monkeypatch.setattr(lk, "_EXACT_F32", 16)
+    out = pyramidal_lk(i0, i1, pts)
+    torch.testing.assert_close(out.points, ref.points, atol=1e-5, rtol=0)
+    assert (out.status == ref.status).all()
+
+
 def test_channels_tracked_jointly():
     """Two channels carrying the same shifted texture track like one; a blank second channel changes nothing."""
     i0, i1, pts, true = warped_pair(np.eye(2), np.array([1.25, -0.5]), n=60)

@@ -1,18 +1,26 @@
-"""Batched pyramidal Lucas–Kanade (Bouguet) and template inverse matching, eq. (10).
+"""Batched pyramidal Lucas–Kanade (Bouguet) and template inverse matching, paper §III-C, eq. (10).
 
-Translation LK in the inverse-compositional form: per point and level, the template window, its
-gradients and the 2x2 gradient matrix are gathered once; each iteration samples the next image once (one
-gather of an integer (w+1)x(w+1) patch and two lerps: all window pixels share one pair of bilinear
-weights) and applies the precomputed inverse Hessian. All points of all images form one flat list that is
-compacted as points stop (per-point early stop); there is no Python loop over points.
+Translation LK, per point and pyramid level (coarse to fine, the result of a level seeding the next):
+- template, once: the w x w window of the previous image around the point, its Scharr gradients g and the
+  gradient matrix H = g g^T (degenerate, as OpenCV, when its smallest eigenvalue is below min_eig);
+- iterations: one integer (w+1)^2 patch of the next image per point, gathered by a single ``index_select``
+  over rows of the packed pyramid buffer, interpolated by two lerps (all window pixels share one pair of
+  bilinear weights), and the inverse-compositional step H^-1 g (T - J).
+All points of all images form one flat list that is compacted as points stop (per-point early stop); there
+is no Python loop over points, and images stacked in the batch (intensity and SIM) share every call.
 
-Two choices differ from OpenCV's ``calcOpticalFlowPyrLK`` (both keep its fixed point):
+Differences from OpenCV's ``calcOpticalFlowPyrLK`` (same pyramid, gradients, window and criteria; tracks
+agree to about 0.001 px on real frames):
 - the template window is centred on the pixel nearest to the point (no template interpolation); the
   estimated displacement is added to the point's exact sub-pixel position;
-- after ``ic_iters`` iterations at a level, the points still moving take Newton steps on the same normal
-  equations, using the next image's gradients (one gather of three planes instead of one): the slowly
-  sliding points that make OpenCV's loop run to ``iters`` converge in a few steps. ``ic_iters >= iters``
-  gives plain inverse-compositional iterations.
+- from iteration ``ic_iters`` of a level on, a point takes Newton steps on the same normal equations
+  R(q) = g (T - J(q)) = 0, with the exact Jacobian of the bilinear window: the fixed point is unchanged, but
+  the points that slide slowly (where OpenCV's loop crawls to ``iters``) converge in a step or two, and a
+  point whose Newton step is not at least halved is stopped as not converging. OpenCV reports such points as
+  tracked after ``iters`` iterations; here ``status`` requires convergence (update <= eps) and an end point
+  inside the image. ``ic_iters >= iters`` gives plain inverse-compositional iterations (no ping-pong rule).
+On CPU the per-iteration cost is dominated by the number of tensor operations, not by arithmetic, so the
+stopping rules matter as much as the sampling: they cut the iterations of a 300-point call from ~90 to ~20.
 
 References: J.-Y. Bouguet, "Pyramidal Implementation of the Lucas Kanade Feature Tracker", Intel, 2000;
 S. Baker, I. Matthews, "Lucas-Kanade 20 Years On", IJCV 2004; R. Liu et al., "Online Determination of
@@ -170,13 +178,14 @@ def _iterate(sampler, level, q, g, tg, h_inv, h_det, base, *, iters, eps, ic_ite
     lo, hi = sampler.bounds(level)
     q_out, conv_out = q.clone(), torch.zeros(q.shape[0], dtype=torch.bool)
     ids = torch.arange(q.shape[0])
-    size, stride, eps2, d2_prev = sampler.window + 1, sampler.stride.to(q.dtype), eps * eps, None
+    size, stride, eps2, d2_prev = sampler.window + 1, sampler.stride, eps * eps, None
+    exact = sampler.dtype == q.dtype  # else float64 index arithmetic (buffers of 2^24 elements and more)
     for j in range(iters):
         n = q.shape[0]
         fl0 = q.floor()
         fl = fl0.clamp(lo, hi)
         fr = q - fl
-        patch = sampler.gather(torch.addmv(base, fl, stride), size)  # n,C,w+1,w+1
+        patch = sampler.gather(torch.addmv(base, fl if exact else fl.to(base.dtype), stride), size)  # n,C,w+1,w+1
         fx, fy = fr[:, 0].view(n, 1, 1, 1), fr[:, 1].view(n, 1, 1, 1)
         jy = torch.lerp(patch[:, :, :-1], patch[:, :, 1:], fy)
         win = torch.lerp(jy[..., :-1], jy[..., 1:], fx)
@@ -291,6 +300,7 @@ def pyramidal_lk(
     valid: Tensor | None = None,
     min_eig: float = 1e-4,
     ic_iters: int = 2,
+    with_residual: bool = True,
 ) -> LKResult:
     """Track points from prev to next with pyramidal Lucas–Kanade (translation per window).
 
@@ -303,6 +313,7 @@ def pyramidal_lk(
         init: (B, N, 2) initial guess in next (default: points). valid: (B, N) bool, False entries are skipped.
         min_eig: threshold on the gradient matrix's smallest eigenvalue in OpenCV's units (minEigThreshold).
         ic_iters: inverse-compositional iterations per level before Newton steps (see the module docstring).
+        with_residual: compute the residual (one more window sample per point); zeros otherwise.
 
     Returns:
         LKResult(points (B, N, 2), status (B, N), residual (B, N)).
@@ -332,6 +343,7 @@ def pyramidal_lk(
     out[sel], status[sel], residual[sel] = lk_track_flat(
         prev_p, next_p, pts[sel], image_index[sel], guess[sel],
         window=window, levels=levels, iters=iters, eps=eps, min_eig=min_eig, ic_iters=ic_iters,
+        with_residual=with_residual,
     )  # fmt: skip
     return LKResult(out.view(b, n, 2).to(points.dtype), status.view(b, n), residual.view(b, n))
 
@@ -339,10 +351,11 @@ def pyramidal_lk(
 def forward_backward(
     prev: Tensor | Pyramid, next: Tensor | Pyramid, points: Tensor, **kwargs
 ) -> tuple[LKResult, Tensor, Tensor]:
-    """Template inverse matching: track prev -> next, then the result back next -> prev.
+    """Template inverse matching: track prev -> next, then the result back next -> prev (from no prior).
 
     Args:
         prev, next, points: as pyramidal_lk; kwargs are passed to both passes (init and valid only forward).
+            Pass pyramids (build_pyramid) to build each image's pyramid once.
 
     Returns:
         (forward LKResult, back_points (B, N, 2) in prev, d_tim (B, N)): d_TIM = ||x - x'||, eq. (10), +inf
@@ -352,7 +365,7 @@ def forward_backward(
     prev_p, next_p = _as_pyramid(prev, levels, window, "prev"), _as_pyramid(next, levels, window, "next")
     fwd = pyramidal_lk(prev_p, next_p, points, **kwargs)
     kwargs.pop("init", None)
-    kwargs["valid"] = fwd.status
+    kwargs.update(valid=fwd.status, with_residual=False)
     bwd = pyramidal_lk(next_p, prev_p, fwd.points, **kwargs)
     d_tim = torch.linalg.vector_norm(points - bwd.points, dim=-1)  # eq. (10)
     d_tim = torch.where(fwd.status & bwd.status, d_tim, torch.full_like(d_tim, float("inf")))
