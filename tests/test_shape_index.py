@@ -101,6 +101,8 @@ def test_shapes_dtypes_and_range():
     out = compute_sim(d, K)
     assert isinstance(out, SIM)
     assert torch.equal(out.si, s.si) and torch.equal(out.valid, s.valid)
+    odd = shape_index(d[..., :301, :457], K)  # sizes not divisible by the decimation
+    assert odd.si.shape == odd.valid.shape == odd.curvedness.shape == (2, 1, 301, 457)
 
 
 @pytest.mark.parametrize(

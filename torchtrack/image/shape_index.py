@@ -175,7 +175,7 @@ def shape_index(
         depth: (B, 1, H, W) metres, 0 = no measurement.
         K: (B, 3, 3) intrinsics of the depth image.
         smooth_sigma: Gaussian sigma (input pixels) of the normalised smoothing of inverse depth
-            (a binomial filter with this variance); 0 = none.
+            (a binomial filter of about this sigma); 0 = none.
         min_curvature: curvedness in 1/m below which a pixel is near-planar and masked
             (5 /m: flatter than a sphere of 0.2 m radius; with the default smoothing, the noise of
             Kinect-class depth on walls and floors stays mostly below it).
