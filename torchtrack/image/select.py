@@ -43,7 +43,7 @@ class Features(NamedTuple):
         points: (B, N, 3) camera coordinates, back-projection of the raw depth at the pixels.
         cornerness: (B, N) combined normalised cornerness C of eq. (9), in [0, 1).
         cornerness_int: (B, N) normalised intensity cornerness.
-        cornerness_sim: (B, N) normalised SIM cornerness (0 when no SIM was used).
+        cornerness_sim: (B, N) normalised SIM cornerness (0 when lam = 1: no SIM used).
         valid: (B, N) bool; invalid entries are all zeros.
     """
 
@@ -60,7 +60,7 @@ class CornernessMaps(NamedTuple):
 
     Attributes:
         C: combined cornerness of eq. (9) in [0, 1) on eligible pixels, -1 elsewhere.
-        c_int, c_sim: normalised intensity and SIM cornerness (c_sim is 0 without a SIM).
+        c_int, c_sim: normalised intensity and SIM cornerness (c_sim is 0 when lam = 1).
         eligible: float {0, 1}: in the region of interest, with depth, with a valid SIM when required,
             at least ``border`` pixels from the image edge.
     """
@@ -168,7 +168,9 @@ def cornerness_maps(
     sim_kwargs: dict | None = None,
 ) -> CornernessMaps:
     """Steps 1-3 of the module docstring (arguments as :func:`select_features`; ``patches`` from :func:`patch_shape`)."""
-    if sim is None and lam < 1.0:
+    if lam == 1.0:
+        sim = None  # pure intensity: the SIM is neither needed nor required
+    elif sim is None:
         sim = compute_sim(depth, K, **(sim_kwargs or {}))
     gray = gray.float()
     if sim is not None:
@@ -176,7 +178,7 @@ def cornerness_maps(
         images = torch.cat([gray, sim_img], dim=1)
     else:
         images = gray
-    eligible = _eligible(depth, roi, sim.valid if (sim is not None and lam < 1.0 and require_sim) else None, border)
+    eligible = _eligible(depth, roi, sim.valid if (sim is not None and require_sim) else None, border)
     R = harris(images, **(corner_kwargs or {}))  # B,1|2,H,W
     Cn = normalise_cornerness(R, eligible, *patches)
     c_int = Cn[:, :1]
