@@ -17,15 +17,8 @@ import torch
 import torch.nn.functional as F
 
 from torchtrack.data import DataError, TumSequence
-from torchtrack.data.alignment import (
-    ShiftEstimate,
-    colour_intrinsics,
-    depth_edges,
-    depth_intrinsics,
-    estimate_depth_shift,
-    intensity_edges,
-    masked_ncc,
-)
+from torchtrack.data.alignment import ShiftEstimate, colour_intrinsics, depth_intrinsics, estimate_depth_shift
+from torchtrack.data.edge_match import depth_edges, intensity_edges, masked_ncc
 from torchtrack.geometry import backproject, intrinsics_matrix, project, warp_depth
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -200,7 +193,8 @@ def test_exact_recovery_when_intensity_edges_are_depth_edges(rendered, truth):
     """Gray = a function of depth: every colour edge is a depth edge, so the map is recovered exactly."""
     _, depth, c = rendered
     gray = (0.5 / depth.clamp_min(0.1)).clamp(0, 1)
-    est = estimate_depth_shift(gray, unregister(depth, c, truth[:2], truth[2]), centre=c)
+    d = unregister(depth, c, truth[:2], truth[2])
+    est = estimate_depth_shift(gray, d, centre=c, min_spread=0.0)  # props in the middle: allow the scale anyway
     assert est.confident and est.frames == est.frames_agreeing == 3, est
     assert abs(est.dx - truth[0]) < 0.5 and abs(est.dy - truth[1]) < 0.5 and abs(est.scale - truth[2]) < 0.005, est
     assert est.score > 0.85 > est.score_at_zero
@@ -221,6 +215,19 @@ def test_rendered_colour_shift_recovered_and_registered_left_alone(rendered):
     assert abs(est.dx - base.dx + 10) < 1 and abs(est.dy - base.dy - 8) < 1, (est, base)
     shift_only = estimate_depth_shift(gray_of(rgb), unregister(depth, c, (-10, 8)), centre=c, scale_range=None)
     assert abs(shift_only.dx - est.dx) < 0.5 and abs(shift_only.dy - est.dy) < 0.5
+
+
+def test_single_object_scene_is_left_alone():
+    """One textured object in front of a far room (registered, 320 x 240): its depth edges form one compact
+    contour, whose magnification is confounded with the object's texture; no map may be applied."""
+    from torchtrack.data.synthetic import SyntheticConfig, default_scene, render_frame, sequence_poses
+
+    cfg = SyntheticConfig(width=320, height=240, frames=12, seed=0, mode="object", noise="none")
+    poses = sequence_poses(cfg)
+    idx = [0, 3, 6, 9, 11]
+    out = render_frame(default_scene(cfg), poses.T_world_cam[idx], poses.T_world_obj[idx])
+    est = estimate_depth_shift(gray_of(out.rgb), out.depth, centre=(cfg.cx, cfg.cy))
+    assert est.scale == 1.0 and (not est.confident or est.max_displacement() < 2.0), est
 
 
 def test_estimate_is_deterministic_and_list_equals_batch(rendered):

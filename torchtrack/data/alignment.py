@@ -11,14 +11,16 @@ K_depth = (fx / s, fy / s, cx_d, cy_d) and projecting through the colour K gives
 cx_d = c_x + (cx - c_x - dx) / s (the same for y); for s = 1 and c = (cx, cy), cx_d = cx - dx. The tracker's
 front end then registers depth with :func:`torchtrack.geometry.warp_depth` (see :func:`depth_intrinsics`).
 
-Estimation: a depth-discontinuity map (relative depth gradient, holes excluded by a support mask) is matched to
-the smoothed intensity gradient magnitude by masked normalised cross-correlation (NCC) over integer shifts, via
-FFT, in a grid of tiles; each tile's NCC surface is averaged over the frames, its peak refined to sub-pixel by a
-parabola. The map (s, t) is fitted to the tile shifts by least squares (iteratively dropping outlier tiles) and
-accepted only when warping the depth edges by it clearly raises their NCC with the intensity edges at zero shift.
+Estimation (:func:`estimate_depth_shift`): a depth-discontinuity map is matched to the intensity gradient
+magnitude by masked normalised cross-correlation (NCC) over integer shifts, via FFT, averaged over a few frames,
+coarse to fine: on a coarse level over a grid of scales and the whole shift window, on a finer level around the
+best, with parabolic sub-pixel refinement. The map is applied only when it clearly raises the edge NCC.
 
-References: J. P. Lewis, "Fast normalized cross-correlation", Vision Interface 1995; D. Padfield, "Masked object
-registration in the Fourier domain", IEEE TIP 2012 (masked NCC via FFT).
+Limits: the map ignores parallax. With Kinect v1's ~2.5 cm colour-IR baseline a point at depth z is displaced by
+about 525 * 0.025 / z px (13 px at 1 m, 4 px at 3 m), so the fitted shift holds for the scene's typical depth and
+is off by a few pixels for much nearer or farther surfaces; modelling it needs T_color_depth with the baseline.
+
+Edge maps and the masked NCC live in :mod:`torchtrack.data.edge_match`.
 """
 
 from __future__ import annotations
@@ -30,9 +32,9 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
+from torchtrack.data.edge_match import EdgeLevel, area_pool, parabola_offset, surface_peak
 from torchtrack.data.errors import DataError
 
 log = logging.getLogger(__name__)
@@ -77,95 +79,6 @@ class ShiftEstimate(NamedTuple):
         )
 
 
-# ----------------------------------------------------------------------------------------------- edge maps
-
-
-def _gaussian_blur(x: Tensor, sigma: float) -> Tensor:
-    """(B, 1, H, W) -> separable Gaussian blur, replicate border."""
-    r = max(1, math.ceil(3 * sigma))
-    t = torch.arange(-r, r + 1, dtype=x.dtype, device=x.device)
-    g = torch.exp(-0.5 * (t / sigma) ** 2)
-    g = g / g.sum()
-    x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="replicate"), g.view(1, 1, 1, -1))
-    return F.conv2d(F.pad(x, (0, 0, r, r), mode="replicate"), g.view(1, 1, -1, 1))
-
-
-def _gradient_norm(x: Tensor) -> Tensor:
-    """(B, 1, H, W) -> |grad x| by central differences, 0 on the border."""
-    out = torch.zeros_like(x)
-    gx = 0.5 * (x[..., 1:-1, 2:] - x[..., 1:-1, :-2])
-    gy = 0.5 * (x[..., 2:, 1:-1] - x[..., :-2, 1:-1])
-    out[..., 1:-1, 1:-1] = torch.sqrt(gx * gx + gy * gy)
-    return out
-
-
-def intensity_edges(gray: Tensor, sigma: float = 1.5) -> Tensor:
-    """Gradient magnitude of the Gaussian-smoothed intensity: gray (B, 1, H, W) in [0, 1] -> (B, 1, H, W)."""
-    return _gradient_norm(_gaussian_blur(gray, sigma))
-
-
-def depth_edges(depth: Tensor, sigma: float = 1.5, low: float = 0.02, high: float = 0.06) -> tuple[Tensor, Tensor]:
-    """Depth-discontinuity map and its support: depth (B, 1, H, W) metres, 0 = none.
-
-    The edge strength is the relative depth gradient |grad z| / z (a 10 cm step reads alike at 1 m and at 4 m
-    after dividing by z... up to the step's relative size), ramped from 0 at ``low`` to 1 at ``high`` per pixel:
-    Kinect disparity quantisation makes relative steps of ~1% on slanted surfaces, true discontinuities
-    are far larger. Smoothed like the intensity edges. Holes carry no edge: a pixel is supported only when its
-    3x3 neighbourhood is fully measured (Kinect holes lie on the shadow side of occlusion boundaries, so
-    their borders are not colour edges at the same place).
-
-    Returns (edges (B, 1, H, W), support (B, 1, H, W) float in {0, 1}).
-    """
-    valid = (depth > 0).to(depth.dtype)
-    support = -F.max_pool2d(-valid, 3, stride=1, padding=1)  # 3x3 erosion
-    rel = _gradient_norm(depth) / depth.clamp_min(1e-6)
-    edges = _gaussian_blur(((rel - low) / (high - low)).clamp(0.0, 1.0) * support, sigma)
-    return edges, support
-
-
-# ----------------------------------------------------------------------------------------------- masked NCC
-
-
-def search_spectra(search: Tensor) -> Tensor:
-    """(N, h, w) search images -> (N, 2, h, w // 2 + 1) spectra of search and search^2, for :func:`masked_ncc`."""
-    return torch.fft.rfft2(torch.stack([search, search * search], dim=1))
-
-
-def masked_ncc(template: Tensor, mask: Tensor, search: Tensor, max_shift: int) -> Tensor:
-    """Masked NCC of a template with a search image at every integer shift, via FFT.
-
-    template, mask: (N, h, w); mask in {0, 1} and zero within ``max_shift`` = m of the border (so that the FFT's
-    circular correlation never wraps). search: (N, h, w), or its :func:`search_spectra` (N, 2, h, w // 2 + 1).
-    Returns (N, 2m+1, 2m+1): entry [n, m + dy, m + dx] is the NCC over the mask of template(p) with
-    search(p + (dx, dy)); 0 where either side has no variance.
-    """
-    h, w = template.shape[-2:]
-    m = max_shift
-    X = search_spectra(search) if search.dim() == 3 else search
-    n = mask.sum(dim=(-2, -1), keepdim=True).clamp_min(1.0)
-    t = (template - (template * mask).sum(dim=(-2, -1), keepdim=True) / n) * mask  # zero mean on the mask
-    A = torch.fft.rfft2(torch.stack([t, mask], dim=1)).conj()  # N,2,h,w//2+1
-    c = torch.fft.irfft2(torch.stack([A[:, 0] * X[:, 0], A[:, 1] * X[:, 0], A[:, 1] * X[:, 1]], dim=1), s=(h, w))
-    iy = torch.arange(-m, m + 1, device=c.device) % h
-    ix = torch.arange(-m, m + 1, device=c.device) % w
-    c = c[:, :, iy][:, :, :, ix]  # N,3,2m+1,2m+1: sum t*S_s, sum M*S_s, sum M*S_s^2
-    var_s = (c[:, 2] - c[:, 1] ** 2 / n.view(-1, 1, 1)).clamp_min(0.0)
-    var_t = (t * t).sum(dim=(-2, -1)).view(-1, 1, 1)
-    denom = torch.sqrt(var_t * var_s)
-    return torch.where(denom > 1e-12, c[:, 0] / denom.clamp_min(1e-12), torch.zeros_like(denom))
-
-
-def _parabola_offset(minus: float, centre: float, plus: float, limit: float = 0.5) -> float:
-    """Offset of the vertex of the parabola through samples at -1, 0, +1 from the middle one, clamped to +-limit."""
-    curv = minus - 2 * centre + plus
-    if curv >= 0:  # not a maximum: keep the best sample
-        return 0.0 if centre >= max(minus, plus) else (limit if plus > minus else -limit)
-    return max(-limit, min(limit, 0.5 * (minus - plus) / curv))
-
-
-# ----------------------------------------------------------------------------------------------- the map
-
-
 def _as_batch(x: Tensor | Sequence[Tensor], name: str) -> Tensor:
     if isinstance(x, Tensor):
         x = x[None] if x.dim() == 3 else x
@@ -176,60 +89,6 @@ def _as_batch(x: Tensor | Sequence[Tensor], name: str) -> Tensor:
     return x.float()
 
 
-def _pool2(gray: Tensor, depth: Tensor) -> tuple[Tensor, Tensor]:
-    """Halve the resolution by 2x2 area averages; depth only where the whole block is measured (no hole leaks)."""
-    full = -F.max_pool2d(-(depth > 0).to(depth.dtype), 2)
-    return F.avg_pool2d(gray, 2), F.avg_pool2d(depth, 2) * full
-
-
-class _Level:
-    """Edge maps of B frames at 1/r of the full resolution (gray, depth: (B, 1, h, w) already pooled by r)."""
-
-    def __init__(self, gray: Tensor, depth: Tensor, r: int, sigma: float, centre: tuple[float, float]) -> None:
-        self.r = r
-        edges, support = depth_edges(depth, sigma)
-        self.depth_maps = torch.cat([edges, support], 1)  # B,2,h,w
-        self.intensity = intensity_edges(gray, sigma)[:, 0]
-        self.spectra = search_spectra(self.intensity)
-        self.centre = ((centre[0] - (r - 1) / 2) / r, (centre[1] - (r - 1) / 2) / r)  # pixel centres of the blocks
-        h, w = depth.shape[-2:]
-        self.ys, self.xs = torch.meshgrid(
-            torch.arange(h, dtype=depth.dtype), torch.arange(w, dtype=depth.dtype), indexing="ij"
-        )
-
-    def _warped(self, s: float, t: tuple[float, float], m: int) -> tuple[Tensor, Tensor]:
-        """Depth edges and support resampled into the colour grid by the map (s, t in full-resolution pixels):
-        out(u) = in(centre + (u - centre - t) / s), bilinear; support kept where fully supported; border m cleared."""
-        (c_x, c_y), (h, w) = self.centre, self.xs.shape
-        u = c_x + (self.xs - c_x - t[0] / self.r) / s
-        v = c_y + (self.ys - c_y - t[1] / self.r) / s
-        grid = torch.stack([2 * u / (w - 1) - 1, 2 * v / (h - 1) - 1], -1)
-        x = self.depth_maps
-        x = F.grid_sample(x, grid.expand(len(x), h, w, 2), mode="bilinear", padding_mode="zeros", align_corners=True)
-        D, M = x[:, 0], (x[:, 1] > 0.999).to(x.dtype)
-        M[:, :m], M[:, h - m :], M[:, :, :m], M[:, :, w - m :] = 0, 0, 0, 0
-        return D, M
-
-    def ncc(self, s: float, t: tuple[float, float], m: int) -> Tensor:
-        """(B, 2m+1, 2m+1) NCC surfaces of the depth edges after the map (s, t), residual shifts in level px."""
-        return masked_ncc(*self._warped(s, t, m), self.spectra, m)
-
-    def ncc_at_zero(self, s: float, t: tuple[float, float], m: int) -> float:
-        """Frame-averaged NCC of the mapped depth edges with the intensity edges at the same pixel."""
-        D, M = self._warped(s, t, m)
-        n = M.sum((-2, -1), keepdim=True).clamp_min(1.0)
-        a = (D - (D * M).sum((-2, -1), keepdim=True) / n) * M
-        b = (self.intensity - (self.intensity * M).sum((-2, -1), keepdim=True) / n) * M
-        ncc = (a * b).sum((-2, -1)) / ((a * a).sum((-2, -1)) * (b * b).sum((-2, -1))).sqrt().clamp_min(1e-12)
-        return float(ncc.mean())
-
-
-def _peak(S: Tensor) -> tuple[int, int, float]:
-    """(2m+1, 2m+1) surface -> (ix, iy, value) of its maximum."""
-    k = int(S.argmax())
-    return k % S.shape[-1], k // S.shape[-1], float(S.flatten()[k])
-
-
 def estimate_depth_shift(
     gray: Tensor | Sequence[Tensor],
     depth: Tensor | Sequence[Tensor],
@@ -238,7 +97,9 @@ def estimate_depth_shift(
     scale_range: tuple[float, float] | None = (0.85, 1.15),
     centre: tuple[float, float] | None = None,
     min_gain: float = 0.15,
+    min_score: float = 0.15,
     min_scale_gain: float = 0.1,
+    min_spread: float = 0.18,
     agree_px: float = 2.0,
     sigma: float = 1.0,
 ) -> ShiftEstimate:
@@ -254,18 +115,23 @@ def estimate_depth_shift(
         min_scale_gain: a scale other than 1 is kept only when its coarse NCC peak beats the best pure shift's by
             this relative margin (content such as shading can bias the edges by a pixel, which a free scale would
             absorb when the depth edges cover little of the image).
-        min_gain, agree_px: confidence rule, below.
+        min_spread: the scale is fitted only when the depth edges spread over the image: their edge-weighted
+            position standard deviation is >= min_spread of the image side in x and in y (uniform: 0.29; the
+            scale of one compact contour, e.g. a single object, is confounded with its texture).
+        min_gain, min_score, agree_px: confidence rule, below.
         sigma: Gaussian smoothing of both edge maps, in pixels of the working resolution.
 
-    Coarse to fine: at 1/4 resolution every scale of a 0.025 grid and every shift in the window is scored by the
-    frame-averaged masked NCC (:func:`masked_ncc`), and the best scale is refined by a parabola through its
-    neighbours; at 1/2 resolution shifts within +-6 px of the coarse one are scored again at that scale, and the
-    peak is refined by parabolas in x and y.
+    Coarse to fine, on area-averaged images (fine level ~240 px high: 1/2 resolution at 640 x 480; coarse level
+    half that): on the coarse level every scale of a 0.025 grid and every shift in the window is scored by the
+    frame-averaged masked NCC (:func:`~torchtrack.data.edge_match.masked_ncc`), and the best scale is refined by a parabola through its
+    neighbours; on the fine level shifts within +-3 fine pixels of the coarse one are scored again at that scale,
+    and the peak is refined by parabolas in x and y.
 
-    ``confident`` holds when all three do: the map raises the frame-averaged edge NCC at zero shift by a relative
-    gain, ``score - score_at_zero >= min_gain * score`` with ``score > 0`` (registered depth: gain ~0); the peak
-    is not on the border of the shift window or the scale range; and at least half of the frames put their own
-    NCC peak within ``agree_px`` pixels of the averaged peak.
+    ``confident`` holds when all of these do: the map raises the frame-averaged edge NCC at zero shift by a
+    relative gain, ``score - score_at_zero >= min_gain * score`` (registered depth: gain ~0); the edges then
+    actually correlate, ``score >= min_score`` (scenes whose depth discontinuities are all holes, or hold a few
+    edges only, score ~0.05); the peak is not on the border of the shift window or the scale range; and at
+    least half of the frames put their own NCC peak within ``agree_px`` pixels of the averaged peak.
 
     Returns a :class:`ShiftEstimate` (full-resolution pixels).
     """
@@ -278,36 +144,52 @@ def estimate_depth_shift(
     if scale_range is not None and not 0 < scale_range[0] < scale_range[1]:
         raise ValueError(f"estimate_depth_shift: scale_range must be (min, max) with 0 < min < max, got {scale_range}")
     c = ((W - 1) / 2, (H - 1) / 2) if centre is None else (float(centre[0]), float(centre[1]))
-    # coarse: 1/4 resolution, scales on a grid, the whole shift window; parabola in s through the best three
-    g2, d2 = _pool2(g, d)
-    lo, m, step = _Level(*_pool2(g2, d2), 4, sigma, c), max_shift // 4, 0.025
-    n_s = 0 if scale_range is None else max(2, round((scale_range[1] - scale_range[0]) / step))
-    scales = torch.linspace(scale_range[0], scale_range[1], n_s + 1).tolist() if n_s else [1.0]
-    peaks = [_peak(lo.ncc(s, (0.0, 0.0), m).mean(0)) for s in scales]
+    rf = max(1, round(min(H, W) / 240))  # fine level ~240 px high, coarse level half that
+    g_f, d_f = area_pool(g, d, rf)
+    hi, lo = EdgeLevel(g_f, d_f, rf, sigma, c), EdgeLevel(*area_pool(g_f, d_f, 2), 2 * rf, sigma, c)
+    m = max_shift // (2 * rf)
+    scales = [1.0]
+    if scale_range is not None and hi.spread() >= min_spread:
+        scales = torch.linspace(*scale_range, max(2, round((scale_range[1] - scale_range[0]) / 0.025)) + 1).tolist()
+    s, t0, on_border = _coarse_search(lo, scales, m, min_scale_gain)
+    t, n_agree = _fine_shift(hi, s, t0, agree_px)
+    score, score0 = hi.ncc_at_zero(s, t, 2 * m), hi.ncc_at_zero(1.0, (0.0, 0.0), 2 * m)
+    gain = score - score0 >= min_gain * score and score >= min_score
+    confident = gain and not on_border and 2 * n_agree >= B
+    return ShiftEstimate(t[0], t[1], s, score, score0, bool(confident), c, B, n_agree, (H, W))
+
+
+def _coarse_search(lo: EdgeLevel, scales: list[float], m: int, min_scale_gain: float) -> tuple[float, tuple, bool]:
+    """Every scale, every shift in [-m, m]^2 on the coarse level -> (scale, shift (full-res px), peak on border).
+
+    A scale other than 1 is kept only when its peak beats the pure shift's by ``min_scale_gain`` (relative);
+    the best scale is refined by a parabola through its neighbours.
+    """
+    peaks = [surface_peak(lo.ncc(s, (0.0, 0.0), m).mean(0)) for s in scales]
     j = max(range(len(scales)), key=lambda i: peaks[i][2])
     one = min(range(len(scales)), key=lambda i: abs(scales[i] - 1.0))
     if abs(scales[one] - 1.0) < 1e-6 and peaks[j][2] < (1 + min_scale_gain) * peaks[one][2]:
-        j, n_s, scales, peaks = 0, 0, [1.0], [peaks[one]]  # Occam: a pure shift explains the edges about as well
-    t0 = (4.0 * (peaks[j][0] - m), 4.0 * (peaks[j][1] - m))
-    on_border = not (0 < peaks[j][0] < 2 * m and 0 < peaks[j][1] < 2 * m) or (n_s and j in (0, n_s))
+        j, scales, peaks = 0, [1.0], [peaks[one]]  # Occam: a pure shift explains the edges about as well
+    ix, iy, _ = peaks[j]
+    on_border = not (0 < ix < 2 * m and 0 < iy < 2 * m) or (len(scales) > 1 and j in (0, len(scales) - 1))
     s = scales[j]
-    if n_s and not on_border:
-        s += (scales[1] - scales[0]) * _parabola_offset(peaks[j - 1][2], peaks[j][2], peaks[j + 1][2])
-    # fine: 1/2 resolution, residual shifts within +-6 px of the coarse shift, parabolas in x and y
-    hi, mf = _Level(g2, d2, 2, sigma, c), 3
+    if len(scales) > 1 and not on_border:
+        s += (scales[1] - scales[0]) * parabola_offset(peaks[j - 1][2], peaks[j][2], peaks[j + 1][2])
+    return s, (lo.r * (ix - m), lo.r * (iy - m)), on_border
+
+
+def _fine_shift(hi: EdgeLevel, s: float, t0: tuple, agree_px: float, mf: int = 3) -> tuple[tuple[float, float], int]:
+    """Residual shifts within +-mf fine pixels of t0 at scale s, parabolas in x and y -> (shift, frames agreeing)."""
     surf = hi.ncc(s, t0, mf)  # B,2mf+1,2mf+1
-    ix, iy, _ = _peak(surf.mean(0))
     S = surf.mean(0)
+    ix, iy, _ = surface_peak(S)
     dx, dy = float(ix - mf), float(iy - mf)
     if 0 < ix < 2 * mf and 0 < iy < 2 * mf:
-        dx += _parabola_offset(float(S[iy, ix - 1]), float(S[iy, ix]), float(S[iy, ix + 1]))
-        dy += _parabola_offset(float(S[iy - 1, ix]), float(S[iy, ix]), float(S[iy + 1, ix]))
-    t = (t0[0] + 2 * dx, t0[1] + 2 * dy)
+        dx += parabola_offset(float(S[iy, ix - 1]), float(S[iy, ix]), float(S[iy, ix + 1]))
+        dy += parabola_offset(float(S[iy - 1, ix]), float(S[iy, ix]), float(S[iy + 1, ix]))
     own = surf.flatten(1).argmax(1)  # each frame's own peak
-    agree = ((own % (2 * mf + 1) - ix).abs() * 2 <= agree_px) & ((own // (2 * mf + 1) - iy).abs() * 2 <= agree_px)
-    score, score0 = hi.ncc_at_zero(s, t, 2 * m), hi.ncc_at_zero(1.0, (0.0, 0.0), 2 * m)
-    confident = score > 0 and score - score0 >= min_gain * score and not on_border and 2 * int(agree.sum()) >= B
-    return ShiftEstimate(t[0], t[1], s, score, score0, bool(confident), c, B, int(agree.sum()), (H, W))
+    near = ((own % (2 * mf + 1) - ix).abs() * hi.r <= agree_px) & ((own // (2 * mf + 1) - iy).abs() * hi.r <= agree_px)
+    return (t0[0] + hi.r * dx, t0[1] + hi.r * dy), int(near.sum())
 
 
 def _map_params(K: Tensor, est, where: str) -> tuple[float, float, float, float, float]:
