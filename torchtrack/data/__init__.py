@@ -1,5 +1,6 @@
-"""Data: TUM-layout RGB-D reader, camera presets, lockstep batching of B sequences (FrameBatch)."""
+"""Data: TUM-layout RGB-D reader, camera presets, lockstep batching of B sequences (FrameBatch), depth alignment."""
 
+from torchtrack.data.alignment import ShiftEstimate, colour_intrinsics, depth_intrinsics, estimate_depth_shift
 from torchtrack.data.batching import RGBDSequence, SequenceBatch, iterate_batched
 from torchtrack.data.cameras import CAMERAS, TUM_DEPTH_SCALE, CameraPreset, get_camera
 from torchtrack.data.errors import DataError
@@ -19,6 +20,7 @@ from torchtrack.data.tum import (
 
 __all__ = [
     "CAMERAS", "TUM_DEPTH_SCALE", "CameraPreset", "DataError", "FrameBatch", "RGBDFrame", "RGBDSequence",
-    "SequenceBatch", "Trajectory", "TumSequence", "associate", "get_camera", "iterate_batched", "load_depth",
-    "load_rgb", "nearest_within", "read_list_file", "read_tum_trajectory", "write_tum_trajectory",
+    "SequenceBatch", "ShiftEstimate", "Trajectory", "TumSequence", "associate", "colour_intrinsics",
+    "depth_intrinsics", "estimate_depth_shift", "get_camera", "iterate_batched", "load_depth", "load_rgb",
+    "nearest_within", "read_list_file", "read_tum_trajectory", "write_tum_trajectory",
 ]  # fmt: skip
