@@ -43,7 +43,10 @@ def build_sequences(data: DictConfig) -> list[TumSequence]:
     if data.root is None:
         raise DataError("data.root is not set: pass data.root=DIR (or data.root=[DIR1,DIR2])")
     roots = list(data.root) if isinstance(data.root, ListConfig) else [data.root]
-    extra = {k: data.get(k) for k in ("camera", "depth_scale", "max_dt") if data.get(k) is not None}
+    extra = {k: data.get(k) for k in ("camera", "depth_scale", "max_dt", "intrinsics_camera") if data.get(k) is not None}
+    if data.get("depth_alignment") is not None:
+        align = data.depth_alignment
+        extra["depth_alignment"] = tuple(align) if isinstance(align, ListConfig) else align
     if data.get("intrinsics") is not None:
         extra["intrinsics"] = tuple(data.intrinsics)
     if data.get("T_color_depth") is not None:
