@@ -147,6 +147,15 @@ def test_identical_frames_zero_tim_and_valid_mask():
     assert res.d_tim[valid].max() <= 1e-4 and torch.isinf(res.d_tim[~valid]).all()
 
 
+def test_no_features_and_no_valid_features():
+    f0, f1, pts, _ = split_scene((0.5, 0.5))
+    empty = combined_track(f0, f1, pts[:, :0])
+    assert empty.points.shape == (1, 0, 2) and empty.valid.shape == (1, 0)
+    none = combined_track(f0, f1, pts, torch.zeros(1, 80, dtype=torch.bool))
+    assert not none.valid.any() and torch.isinf(none.d_tim).all()
+    torch.testing.assert_close(none.points, pts)
+
+
 # ---------------------------------------------------------------------------------------------- batching, class
 def test_batched_equals_looped_and_class_equals_function():
     scenes = [split_scene(t, seed=s) for s, t in enumerate([(1.2, 0.4), (-0.6, 2.1)])]

@@ -168,7 +168,7 @@ def combined_track(
     iters: int = 30,
     eps: float = 0.01,
     min_eig: float = 1e-4,
-    ic_iters: int = 2,
+    ic_iters: int = 3,
     backend: Literal["torch", "opencv"] = "torch",
 ) -> TrackResult:
     """Track features from prev to next with the combined intensity + SIM tracker (§III-C, eq. (10)).
@@ -229,7 +229,7 @@ class CombinedTracker:
         iters: int = 30,
         eps: float = 0.01,
         min_eig: float = 1e-4,
-        ic_iters: int = 2,
+        ic_iters: int = 3,
         backend: Literal["torch", "opencv"] = "torch",
     ) -> None:
         if mode not in _CHANNELS or backend not in ("torch", "opencv"):

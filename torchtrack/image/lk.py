@@ -178,6 +178,8 @@ def _iterate(sampler, level, q, g, tg, h_inv, h_det, base, *, iters, eps, ic_ite
     lo, hi = sampler.bounds(level)
     q_out, conv_out = q.clone(), torch.zeros(q.shape[0], dtype=torch.bool)
     ids = torch.arange(q.shape[0])
+    if q.shape[0] == 0:
+        return q_out, conv_out
     size, stride, eps2, d2_prev = sampler.window + 1, sampler.stride, eps * eps, None
     exact = sampler.dtype == q.dtype  # else float64 index arithmetic (buffers of 2^24 elements and more)
     for j in range(iters):
@@ -223,7 +225,7 @@ def lk_track_flat(
     iters: int = 30,
     eps: float = 0.01,
     min_eig: float = 1e-4,
-    ic_iters: int = 2,
+    ic_iters: int = 3,
     with_residual: bool = True,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Pyramidal LK on a flat list of P points, each in its own image of the pyramids' batch.
@@ -243,7 +245,7 @@ def lk_track_flat(
         guess, status = init.clone(), inside.clone()
         sel = inside.nonzero().squeeze(1)
         x0, img = points[sel], image_index[sel]
-        for level in reversed(range(levels)):
+        for level in reversed(range(levels) if sel.numel() else ()):
             scale = 0.5**level
             x = x0 * scale
             centre = torch.round(x)
@@ -299,7 +301,7 @@ def pyramidal_lk(
     init: Tensor | None = None,
     valid: Tensor | None = None,
     min_eig: float = 1e-4,
-    ic_iters: int = 2,
+    ic_iters: int = 3,
     with_residual: bool = True,
 ) -> LKResult:
     """Track points from prev to next with pyramidal Lucas–Kanade (translation per window).
