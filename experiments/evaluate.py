@@ -202,6 +202,9 @@ def footnotes(rows: list[dict]) -> str:
     notes += [
         f"{name}: ATE only ({why})." for name, why in ATE_ONLY.items() if any(r["sequence"] == name for r in rows)
     ]
+    walls = [f"{r['sequence']} {r['ours_wall_s']:.0f} s" for r in rows if "ours_wall_s" in r]
+    if walls:
+        notes.append("Wall time of ours (tracking, outputs and plots): " + ", ".join(walls) + ".")
     met = [r["met"] for r in rows if r.get("met") is not None]
     if met:
         notes.append(f"Target met on {sum(met)} of {len(met)} sequences.")
