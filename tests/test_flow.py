@@ -62,7 +62,7 @@ def split_scene(t: tuple[float, float], seed: int = 0):
 def test_smoke_shapes_and_prepare():
     f0, f1, pts, _ = split_scene((0.7, -0.4))
     assert isinstance(f0, FlowFrame) and f0.has_sim and f0.batch == 1
-    assert f0.pyramid.batch == 2 and f0.images.shape == (2, 1, 1, H, W)  # intensity and SIM stacked
+    assert f0.pyramid.batch == 2 and [x.shape for x in f0.images] == [(1, 1, H, W)] * 2  # intensity and SIM
     res = combined_track(f0, f1, pts)
     assert isinstance(res, TrackResult)
     for x in (res.valid, res.d_tim, res.d_tim_int, res.d_tim_sim, res.winner, res.status_int, res.status_sim):

@@ -33,27 +33,27 @@ class FlowFrame:
     """One frame prepared for tracking, built once and used as next, then as prev.
 
     Attributes:
-        images: (K, B, 1, H, W) the tracked images, K = 2 (intensity, SIM) or 1 (intensity only).
+        images: the K tracked (B, 1, H, W) images: (intensity, SIM) or (intensity,).
         pyramid: LK pyramid of the K * B images stacked as (K * B, 1, H, W): image k * B + b is channel k of
             sequence b.
     """
 
-    images: Tensor
+    images: tuple[Tensor, ...]
     pyramid: Pyramid
     _u8: dict = field(default_factory=dict, repr=False)
 
     @property
     def batch(self) -> int:
-        return self.images.shape[1]
+        return self.images[0].shape[0]
 
     @property
     def has_sim(self) -> bool:
-        return self.images.shape[0] == 2
+        return len(self.images) == 2
 
     def u8(self, k: int, b: int) -> np.ndarray:
         """Channel k of sequence b as an (H, W) uint8 image (for the OpenCV backend), cached."""
         if (k, b) not in self._u8:
-            img = (self.images[k, b, 0] * 255.0).round().clamp(0, 255)
+            img = (self.images[k][b, 0] * 255.0).round().clamp(0, 255)
             self._u8[(k, b)] = img.to(torch.uint8).numpy()
         return self._u8[(k, b)]
 
@@ -71,9 +71,8 @@ def prepare_frame(gray: Tensor, sim: Tensor | None = None, levels: int = 3, *, m
         raise ValueError(f"prepare_frame: gray must be (B, 1, H, W), got {tuple(gray.shape)}")
     if sim is not None and sim.shape != gray.shape:
         raise ValueError(f"prepare_frame: sim must match gray {tuple(gray.shape)}, got {tuple(sim.shape)}")
-    images = torch.stack([gray, sim]) if sim is not None else gray[None]
-    images = images.float()
-    return FlowFrame(images, build_pyramid(images.flatten(0, 1), levels, window=max_window))
+    images = (gray.float(), sim.float()) if sim is not None else (gray.float(),)
+    return FlowFrame(images, build_pyramid(images, levels, window=max_window))
 
 
 class TrackResult(NamedTuple):
@@ -127,7 +126,7 @@ def _track_opencv(prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tenso
     import cv2
 
     b, n = points.shape[:2]
-    h, w = prev.images.shape[-2:]
+    h, w = prev.images[0].shape[-2:]
     win = lk_kwargs["window"]
     args = dict(
         winSize=(win, win),
@@ -207,7 +206,7 @@ def combined_track(
     best = d_tim.gather(0, pick[None])[0]
     chosen = fwd.gather(0, pick[None, ..., None].expand(1, b, n, 2))[0]
     winner = torch.tensor(channels)[pick]
-    h, w = prev.images.shape[-2:]
+    h, w = prev.images[0].shape[-2:]
     keep = valid & torch.isfinite(best) & (best <= tim_threshold) & _inside(chosen, h, w)  # step IV
     full = {c: (d_tim[i], status[i]) for i, c in enumerate(channels)}
     none = (torch.full((b, n), float("inf")), torch.zeros(b, n, dtype=torch.bool))

@@ -14,6 +14,7 @@ images are sampled by a single call. Gradients are taken on the gathered patches
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -26,7 +27,7 @@ class Pyramid:
     """L-level Gaussian pyramid of a (B, C, H, W) image batch, packed for LK.
 
     Attributes:
-        images: L tensors (B, C, H_l, W_l); level 0 is the input, H_l = ceil(H_{l-1} / 2).
+        images: L tensors (B, C, H_l, W_l), views into the buffer; H_l = ceil(H_{l-1} / 2).
         flat: (C * R * S,) buffer, the contiguous flattening of (C, R, S): every level and image,
             padded by ``pad`` pixels (reflect-101, as OpenCV's pyramids; replicated on levels smaller than the pad); image b of level l occupies rows ``row_start[l, b]`` to
             ``row_start[l, b] + H_l + 2 pad`` and columns ``0`` to ``W_l + 2 pad`` of each channel plane.
@@ -112,36 +113,42 @@ def _fill_border(block: Tensor, pad: int, h: int, w: int) -> None:
     block[..., wp:] = 0.0
 
 
-def build_pyramid(image: Tensor, levels: int, *, window: int = 21) -> Pyramid:
+def build_pyramid(image: Tensor | Sequence[Tensor], levels: int, *, window: int = 21) -> Pyramid:
     """Build the LK pyramid of an image batch; do it once per frame.
 
     Args:
-        image: (B, C, H, W) float, e.g. intensity in [0, 1]. The C channels are tracked jointly by LK.
+        image: (B, C, H, W) float, e.g. intensity in [0, 1], or a sequence of such batches (same C, H, W),
+            stacked along B without an intermediate copy. The C channels are tracked jointly by LK.
         levels: number of levels L >= 1 (L = 1: no pyramid; OpenCV's maxLevel is L - 1).
         window: the largest LK window (odd, pixels) the pyramid must support; sets the padding.
 
     Returns:
         Pyramid with L levels, to pass to every LK call on this frame.
     """
-    if image.ndim != 4 or not image.is_floating_point():
-        raise ValueError(f"build_pyramid: image must be a float (B, C, H, W) tensor, got {tuple(image.shape)}")
+    parts = [image] if isinstance(image, Tensor) else list(image)
+    if any(x.ndim != 4 or not x.is_floating_point() or x.shape[1:] != parts[0].shape[1:] for x in parts):
+        raise ValueError(f"build_pyramid: image must be float (B, C, H, W), got {[tuple(x.shape) for x in parts]}")
     if levels < 1 or window < 3 or window % 2 == 0:
         raise ValueError(f"build_pyramid: need levels >= 1 and an odd window >= 3, got {levels}, {window}")
     pad = window // 2 + 3  # window + 1 px for bilinear weights + 1 px for gradients + 1 px slack
-    b, c, h, w = image.shape
+    b, (c, h, w) = sum(x.shape[0] for x in parts), parts[0].shape[1:]
     sizes = [(h, w)]
     for _ in range(levels - 1):
         sizes.append(((sizes[-1][0] + 1) // 2, (sizes[-1][1] + 1) // 2))
     heights = [hl + 2 * pad for hl, _ in sizes]
     starts = torch.tensor([0] + heights[:-1]).cumsum(0) * b  # first buffer row of each level
     with torch.inference_mode():
-        buf = image.new_empty(c, sum(heights) * b, w + 2 * pad)  # channel-major: (C, B, rows, S) per level
-        images, prev = [image], None
+        buf = parts[0].new_empty(c, sum(heights) * b, w + 2 * pad)  # channel-major: (C, B, rows, S) per level
+        images, prev = [], None
         for level, (hl, wl) in enumerate(sizes):
             block = buf[:, int(starts[level]) : int(starts[level]) + b * heights[level]].view(c, b, heights[level], -1)
             dst = block[..., pad : pad + hl, pad : pad + wl]
             if level == 0:
-                dst.copy_(image.transpose(0, 1))
+                first = 0
+                for x in parts:
+                    dst[:, first : first + x.shape[0]].copy_(x.transpose(0, 1))
+                    first += x.shape[0]
+                images.append(dst.transpose(0, 1))
             elif min(sizes[level - 1]) > 2:  # the previous level's border is reflect-101 (as cv2.pyrDown's)
                 images.append(
                     _pyr_down_padded(
