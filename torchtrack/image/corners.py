@@ -46,16 +46,28 @@ def sobel(image: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _binomial_window(x: Tensor, passes: int) -> Tensor:
-    """``passes`` [1, 2, 1] / 4 filters per axis with reflect border. ``x`` is a temporary of the caller and is
-    overwritten: the passes ping-pong between it and one more buffer (few large allocations)."""
+    """``passes`` [1, 2, 1] / 4 filters per axis with reflect border, pairs of them as one [1, 4, 6, 4, 1] / 16
+    filter (the same result: reflection commutes with symmetric filters). ``x`` is a temporary of the caller
+    and is overwritten: the passes ping-pong between it and one more buffer (few large allocations; the
+    stage is memory-bound)."""
     y = torch.empty_like(x)
     for dim in (-1, -2):
         n = x.shape[dim]
-        for _ in range(passes):
-            torch.mul(x, 0.5, out=y)
+        for taps in [5] * (passes // 2) + [3] * (passes % 2):
+            if taps == 5:
+                torch.mul(x, 0.375, out=y)
+                y.narrow(dim, 2, n - 2).add_(x.narrow(dim, 0, n - 2), alpha=0.0625)
+                y.narrow(dim, 0, n - 2).add_(x.narrow(dim, 2, n - 2), alpha=0.0625)
+                # reflect: x[-1] = x[1], x[-2] = x[2], x[n] = x[n-2], x[n+1] = x[n-3]
+                y.narrow(dim, 0, 1).add_(x.narrow(dim, 2, 1), alpha=0.0625)
+                y.narrow(dim, 1, 1).add_(x.narrow(dim, 1, 1), alpha=0.0625)
+                y.narrow(dim, n - 1, 1).add_(x.narrow(dim, n - 3, 1), alpha=0.0625)
+                y.narrow(dim, n - 2, 1).add_(x.narrow(dim, n - 2, 1), alpha=0.0625)
+            else:
+                torch.mul(x, 0.5, out=y)
             y.narrow(dim, 1, n - 1).add_(x.narrow(dim, 0, n - 1), alpha=0.25)
             y.narrow(dim, 0, n - 1).add_(x.narrow(dim, 1, n - 1), alpha=0.25)
-            y.narrow(dim, 0, 1).add_(x.narrow(dim, 1, 1), alpha=0.25)  # reflect: x[-1] = x[1]
+            y.narrow(dim, 0, 1).add_(x.narrow(dim, 1, 1), alpha=0.25)
             y.narrow(dim, n - 1, 1).add_(x.narrow(dim, n - 2, 1), alpha=0.25)
             x, y = y, x
     return x
