@@ -42,7 +42,8 @@ _EXACT_F32 = 2**24  # float32 index arithmetic is exact below this
 class LKResult(NamedTuple):
     """Result of pyramidal LK.
 
-    points: (B, N, 2) tracked positions in the next image (pixels, x right, y down); the input where not tracked.
+    points: (B, N, 2) positions in the next image (pixels, x right, y down): where the track ran but failed, its
+        last position; the input where it did not run (invalid, outside the image, degenerate window).
     status: (B, N) bool, tracked: valid input, inside the image, not degenerate, converged, ended inside the image.
     residual: (B, N) mean absolute intensity difference over the final window (0 where not tracked).
     """
@@ -236,7 +237,8 @@ def lk_track_flat(
         init: (P, 2) initial guess of the positions in next.
 
     Returns:
-        points (P, 2) in next, status (P,) bool, residual (P,) (zeros unless with_residual).
+        points (P, 2) in next (the input where not tracked), status (P,) bool, residual (P,) (zeros unless
+        with_residual).
     """
     with torch.inference_mode():
         s_prev, s_next = _Sampler(prev, window), _Sampler(next, window)
@@ -244,30 +246,42 @@ def lk_track_flat(
         inside = (points >= 0).all(-1) & (points[:, 0] <= w0 - 1) & (points[:, 1] <= h0 - 1)
         guess, status = init.clone(), inside.clone()
         sel = inside.nonzero().squeeze(1)
+        # The finest template first: a point degenerate there fails whatever the coarse levels find, so it is
+        # not tracked at all (OpenCV tracks it through the coarse levels, then reports it as failed).
         x0, img = points[sel], image_index[sel]
+        frac0 = x0 - torch.round(x0)
+        if sel.numel():
+            fine = _template(s_prev, x0 - frac0, s_prev.base(0, img), min_eig)
+            ok = (~fine[-1]).nonzero().squeeze(1)
+            sel, x0, img, frac0 = sel[ok], x0[ok], img[ok], frac0[ok]
+            fine = [t.index_select(0, ok) for t in fine[:-1]]
+        tracked = torch.zeros_like(status)
+        tracked[sel] = True
+        status[:] = False
         for level in reversed(range(levels) if sel.numel() else ()):
             scale = 0.5**level
-            x = x0 * scale
-            centre = torch.round(x)
-            frac = x - centre
-            g, tg, h_inv, h_det, degenerate = _template(s_prev, centre, s_prev.base(level, img), min_eig)
-            track = (~degenerate).nonzero().squeeze(1)
+            if level == 0:
+                track, frac, (g, tg, h_inv, h_det) = torch.arange(sel.numel()), frac0, fine
+            else:
+                x = x0 * scale
+                frac = x - torch.round(x)
+                g, tg, h_inv, h_det, degenerate = _template(s_prev, x - frac, s_prev.base(level, img), min_eig)
+                track = (~degenerate).nonzero().squeeze(1)  # degenerate at a coarse level: skip the level (OpenCV)
+                g, tg, h_inv, h_det = g[track], tg[track], h_inv[track], h_det[track]
             rows = sel[track]
             q, conv = _iterate(
-                s_next, level, guess[rows] * scale - frac[track], g.index_select(0, track), tg.index_select(0, track),
-                h_inv.index_select(0, track), h_det[track], s_next.base(level, img[track]), iters=iters, eps=eps,
-                ic_iters=ic_iters,
+                s_next, level, guess[rows] * scale - frac[track], g, tg, h_inv, h_det,
+                s_next.base(level, img[track]), iters=iters, eps=eps, ic_iters=ic_iters,
             )  # fmt: skip
             guess[rows] = (q + frac[track]) / scale
             if level == 0:
-                status[sel] = False
                 status[rows] = conv
         status &= (guess >= 0).all(-1) & (guess[:, 0] <= w0 - 1) & (guess[:, 1] <= h0 - 1)
         residual = torch.zeros(points.shape[0], dtype=points.dtype)
         good = status.nonzero().squeeze(1)
         if with_residual and good.numel():
             residual[good] = _residual(s_prev, s_next, points[good], guess[good], image_index[good])
-        guess = torch.where(inside[:, None], guess, points)
+        guess = torch.where(tracked[:, None], guess, points)
     return guess.clone(), status.clone(), residual.clone()
 
 
