@@ -1,18 +1,17 @@
 """Batched pyramidal Lucas–Kanade (Bouguet) and template inverse matching, paper §III-C, eq. (10).
 
 Translation LK, per point and pyramid level (coarse to fine, the result of a level seeding the next):
-- template, once: the w x w window of the previous image around the point, its Scharr gradients g and the
-  gradient matrix H = g g^T (degenerate, as OpenCV, when its smallest eigenvalue is below min_eig);
+- template, once: the w x w window of the previous image around the point (bilinear, as all windows), its
+  Scharr gradients g and the gradient matrix H = g g^T (degenerate, as OpenCV, when its smallest eigenvalue
+  is below min_eig); the finest level's first, so that points degenerate there are not tracked at all;
 - iterations: one integer (w+1)^2 patch of the next image per point, gathered by a single ``index_select``
   over rows of the packed pyramid buffer, interpolated by two lerps (all window pixels share one pair of
   bilinear weights), and the inverse-compositional step H^-1 g (T - J).
 All points of all images form one flat list that is compacted as points stop (per-point early stop); there
 is no Python loop over points, and images stacked in the batch (intensity and SIM) share every call.
 
-Differences from OpenCV's ``calcOpticalFlowPyrLK`` (same pyramid, gradients, window and criteria; tracks
-agree to about 0.001 px on real frames):
-- the template window is centred on the pixel nearest to the point (no template interpolation); the
-  estimated displacement is added to the point's exact sub-pixel position;
+The difference from OpenCV's ``calcOpticalFlowPyrLK`` (same pyramid, gradients, window, criteria and
+fixed point; tracks agree to about 0.0002 px on real frames) is in the stopping:
 - from iteration ``ic_iters`` of a level on, a point takes Newton steps on the same normal equations
   R(q) = g (T - J(q)) = 0, with the exact Jacobian of the bilinear window: the fixed point is unchanged, but
   the points that slide slowly (where OpenCV's loop crawls to ``iters``) converge in a step or two, and a
@@ -89,10 +88,6 @@ class _Sampler:
         idx = (start.to(torch.int32).view(-1, 1) + offsets).view(-1)
         return view.index_select(0, idx).view(start.shape[0], self.c, size, size)
 
-    def integer(self, centre: Tensor, base: Tensor, extra: int) -> Tensor:
-        """(n, C, w + 2 extra, w + 2 extra) windows at integer centres (n, 2)."""
-        return self.gather(torch.addmv(base, centre.to(self.dtype), self.stride), self.window + 2 * extra)
-
     def bilinear(self, q: Tensor, base: Tensor, extra: int) -> Tensor:
         """(n, C, w + 2 extra, w + 2 extra) windows bilinearly sampled at sub-pixel centres q (n, 2)."""
         n = q.shape[0]
@@ -125,14 +120,14 @@ def _inverse_2x2(m: Tensor, scale: Tensor | float = 1.0) -> tuple[Tensor, Tensor
     return adj.mul_((scale / det).view(n, 1)).view(n, 2, 2), det
 
 
-def _template(sampler: _Sampler, centre: Tensor, base: Tensor, min_eig: float):
-    """Template data at integer centres (n, 2), once per point and level.
+def _template(sampler: _Sampler, x: Tensor, base: Tensor, min_eig: float):
+    """Template data at sub-pixel points x (n, 2) (level pixels), once per point and level.
 
     Returns g (n, 2, C*K) unscaled gradients, tg = T @ g^T (n, 1, 2), h_inv (n, 2, 2) the inverse of the
     gradient matrix H = g @ g^T divided by _GRAD_SCALE (so that h_inv @ (tg - J @ g^T) is the LK step in
     pixels), det(H) (n,), and a degenerate mask (n,): smallest eigenvalue below min_eig in OpenCV's units.
     """
-    patch = sampler.integer(centre, base, extra=1)
+    patch = sampler.bilinear(x, base, extra=1)  # the window and a 1-pixel rim for the gradients
     n, c, m = patch.shape[:3]
     win = patch.new_empty(n, 3, c, m - 2, m - 2)  # [gx, gy, T]: one bmm gives the Hessian and g @ T
     _gradients(patch, win)
@@ -249,11 +244,10 @@ def lk_track_flat(
         # The finest template first: a point degenerate there fails whatever the coarse levels find, so it is
         # not tracked at all (OpenCV tracks it through the coarse levels, then reports it as failed).
         x0, img = points[sel], image_index[sel]
-        frac0 = x0 - torch.round(x0)
         if sel.numel():
-            fine = _template(s_prev, x0 - frac0, s_prev.base(0, img), min_eig)
+            fine = _template(s_prev, x0, s_prev.base(0, img), min_eig)
             ok = (~fine[-1]).nonzero().squeeze(1)
-            sel, x0, img, frac0 = sel[ok], x0[ok], img[ok], frac0[ok]
+            sel, x0, img = sel[ok], x0[ok], img[ok]
             fine = [t.index_select(0, ok) for t in fine[:-1]]
         tracked = torch.zeros_like(status)
         tracked[sel] = True
@@ -261,19 +255,17 @@ def lk_track_flat(
         for level in reversed(range(levels) if sel.numel() else ()):
             scale = 0.5**level
             if level == 0:
-                track, frac, (g, tg, h_inv, h_det) = torch.arange(sel.numel()), frac0, fine
+                track, (g, tg, h_inv, h_det) = torch.arange(sel.numel()), fine
             else:
-                x = x0 * scale
-                frac = x - torch.round(x)
-                g, tg, h_inv, h_det, degenerate = _template(s_prev, x - frac, s_prev.base(level, img), min_eig)
+                g, tg, h_inv, h_det, degenerate = _template(s_prev, x0 * scale, s_prev.base(level, img), min_eig)
                 track = (~degenerate).nonzero().squeeze(1)  # degenerate at a coarse level: skip the level (OpenCV)
                 g, tg, h_inv, h_det = g[track], tg[track], h_inv[track], h_det[track]
             rows = sel[track]
             q, conv = _iterate(
-                s_next, level, guess[rows] * scale - frac[track], g, tg, h_inv, h_det,
-                s_next.base(level, img[track]), iters=iters, eps=eps, ic_iters=ic_iters,
+                s_next, level, guess[rows] * scale, g, tg, h_inv, h_det, s_next.base(level, img[track]),
+                iters=iters, eps=eps, ic_iters=ic_iters,
             )  # fmt: skip
-            guess[rows] = (q + frac[track]) / scale
+            guess[rows] = q / scale
             if level == 0:
                 status[rows] = conv
         status &= (guess >= 0).all(-1) & (guess[:, 0] <= w0 - 1) & (guess[:, 1] <= h0 - 1)
@@ -286,10 +278,9 @@ def lk_track_flat(
 
 
 def _residual(s_prev: _Sampler, s_next: _Sampler, x0: Tensor, x1: Tensor, img: Tensor) -> Tensor:
-    """Mean |J - T| over the final level-0 window (the objective LK minimised), (P,)."""
-    centre = torch.round(x0)
-    t = s_prev.integer(centre, s_prev.base(0, img), extra=0)
-    j = s_next.bilinear(x1 - (x0 - centre), s_next.base(0, img), extra=0)
+    """Mean |J - T| over the final level-0 windows (the objective LK minimised), (P,)."""
+    t = s_prev.bilinear(x0, s_prev.base(0, img), extra=0)
+    j = s_next.bilinear(x1, s_next.base(0, img), extra=0)
     return (j - t).abs().flatten(1).mean(-1)
 
 
