@@ -13,7 +13,6 @@ import sys
 from pathlib import Path
 
 import hydra
-import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from hydra.utils import instantiate
@@ -22,6 +21,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from torchtrack.data.errors import DataError
 from torchtrack.data.tum import TumSequence
 from torchtrack.run import run_tracker
+from torchtrack.runtime import configure
 from torchtrack.tracker import Tracker
 
 log = logging.getLogger("torchtrack")
@@ -73,8 +73,7 @@ def build_tracker(cfg: DictConfig) -> Tracker:
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
 def app(cfg: DictConfig) -> None:
     out = Path(HydraConfig.get().runtime.output_dir)
-    if cfg.threads:
-        torch.set_num_threads(int(cfg.threads))
+    configure(cfg.threads)
     try:
         sequences = build_sequences(cfg.data)
         tracker = build_tracker(cfg)
