@@ -79,6 +79,8 @@ def test_bad_input_raises():
         combined_track(gray_only, gray_only, pts, mode="combined")
     with pytest.raises(ValueError, match="points must be"):
         combined_track(f0, f1, pts[0])
+    with pytest.raises(ValueError, match="valid must be"):
+        combined_track(f0, f1, pts, torch.ones(1, 3, dtype=torch.bool))
     with pytest.raises(ValueError, match="backend"):
         combined_track(f0, f1, pts, backend="cuda")
     with pytest.raises(ValueError, match="window"):

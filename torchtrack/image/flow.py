@@ -169,6 +169,7 @@ def combined_track(
     min_eig: float = 1e-4,
     ic_iters: int = 3,
     backend: Literal["torch", "opencv"] = "torch",
+    policy: Literal["min_tim", "fallback"] = "min_tim",
 ) -> TrackResult:
     """Track features from prev to next with the combined intensity + SIM tracker (§III-C, eq. (10)).
 
@@ -179,6 +180,10 @@ def combined_track(
         tim_threshold: features with d_TIM above this (pixels) are dropped (step IV).
         window, levels, iters, eps, min_eig, ic_iters: LK parameters (see ``pyramidal_lk``).
         backend: "torch" (batched) or "opencv" (cv2.calcOpticalFlowPyrLK, for comparisons).
+        policy: "min_tim" (paper, step III): per feature the tracker with the smaller d_TIM; "fallback"
+            (improvement): the SIM tracker only where the intensity tracker failed step IV. On smooth SIM
+            patches LK barely moves forward or backward, so a SIM track can have a tiny d_TIM and still be
+            wrong; min_tim then prefers it over a correct intensity track.
 
     Returns:
         TrackResult; d_tim_* and status_* of a tracker that did not run are +inf and False.
@@ -194,6 +199,8 @@ def combined_track(
                          f"{prev.pyramid.levels}; got {window}, {levels}")  # fmt: skip
     b, n = points.shape[:2]
     valid = torch.ones(b, n, dtype=torch.bool) if valid is None else valid.bool()
+    if valid.shape != (b, n):
+        raise ValueError(f"combined_track: valid must be {(b, n)}, got {tuple(valid.shape)}")
     channels = _CHANNELS[mode]
     lk_kwargs = dict(window=window, levels=levels, iters=iters, eps=eps, min_eig=min_eig)
     if backend == "torch":
@@ -202,7 +209,12 @@ def combined_track(
         fwd, status, d_tim = _track_opencv(prev, next, points, valid, channels, lk_kwargs)
     else:
         raise ValueError(f"combined_track: backend must be 'torch' or 'opencv', got {backend!r}")
-    pick = (d_tim[-1] < d_tim[0]).long()  # step III: the tracker with the smaller d_TIM (ties: intensity)
+    pick = d_tim[-1] < d_tim[0]  # step III: the tracker with the smaller d_TIM (ties: intensity)
+    if policy == "fallback" and len(channels) == 2:
+        pick = pick & ~(d_tim[0] <= tim_threshold)
+    elif policy not in ("min_tim", "fallback"):
+        raise ValueError(f"combined_track: policy must be 'min_tim' or 'fallback', got {policy!r}")
+    pick = pick.long()
     best = d_tim.gather(0, pick[None])[0]
     chosen = fwd.gather(0, pick[None, ..., None].expand(1, b, n, 2))[0]
     winner = torch.tensor(channels)[pick]
@@ -230,13 +242,14 @@ class CombinedTracker:
         min_eig: float = 1e-4,
         ic_iters: int = 3,
         backend: Literal["torch", "opencv"] = "torch",
+        policy: Literal["min_tim", "fallback"] = "min_tim",
     ) -> None:
         if mode not in _CHANNELS or backend not in ("torch", "opencv"):
             raise ValueError(f"CombinedTracker: bad mode {mode!r} or backend {backend!r}")
         self.levels = levels
         self.kwargs = dict(
             mode=mode, tim_threshold=tim_threshold, window=window, levels=levels, iters=iters, eps=eps,
-            min_eig=min_eig, ic_iters=ic_iters, backend=backend,
+            min_eig=min_eig, ic_iters=ic_iters, backend=backend, policy=policy,
         )  # fmt: skip
 
     def prepare(self, gray: Tensor, sim: Tensor | None = None) -> FlowFrame:
