@@ -144,3 +144,16 @@ def test_warp_depth_identity_and_known_shift():
     out = warp_depth(depth, K, K, T, (24, 32))
     torch.testing.assert_close(out[..., :, 12:28], depth[..., :, 14:30])
     assert (out[..., :, 30:] == 0).all()  # nothing lands there
+
+
+def test_sample_depth_bilinear_on_a_plane_and_nearest_across_edges():
+    from torchtrack.geometry import sample_depth_bilinear
+
+    ys, xs = torch.meshgrid(torch.arange(6.0), torch.arange(8.0), indexing="ij")
+    depth = (1.0 + 0.01 * xs + 0.002 * ys)[None, None]  # a slanted plane: bilinear is exact
+    pix = torch.tensor([[[2.3, 1.6], [5.75, 4.1], [0.0, 0.0]]])
+    expected = 1.0 + 0.01 * pix[..., 0] + 0.002 * pix[..., 1]
+    torch.testing.assert_close(sample_depth_bilinear(depth, pix), expected)
+    depth[..., :, 4:] = 3.0  # a depth edge between x = 3 and x = 4: nearest pixel, nothing in between
+    z = sample_depth_bilinear(depth, torch.tensor([[[3.4, 2.0], [3.6, 2.0]]]))
+    torch.testing.assert_close(z, torch.tensor([[1.0 + 0.03 + 0.004, 3.0]]))

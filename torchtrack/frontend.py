@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from torchtrack.data.frame import FrameBatch
-from torchtrack.geometry import T_inv, backproject, sample_depth, transform_points, warp_depth
+from torchtrack.geometry import T_inv, backproject, sample_depth_bilinear, transform_points, warp_depth
 from torchtrack.image.flow import FlowFrame, prepare_frame
 from torchtrack.image.shape_index import SIM, compute_sim
 
@@ -79,10 +79,11 @@ def smooth_depth_mask(depth: Tensor, max_rel_step: float = 0.03, radius: int = 2
 def measure_points(prepared: PreparedFrame, frame: FrameBatch, pixels: Tensor) -> tuple[Tensor, Tensor]:
     """3D measurements X_d of eq. (6) at colour pixels (B, N, 2) -> (points (B, N, 3) in the depth camera, has_depth (B, N)).
 
-    The depth is read at the nearest pixel (no interpolation across depth edges); the point is
-    back-projected through the sub-pixel colour position and moved into the depth camera.
+    The depth is interpolated bilinearly on continuous surfaces and read at the nearest pixel across
+    depth edges; the point is back-projected through the sub-pixel colour position and moved into the
+    depth camera.
     """
-    z = sample_depth(prepared.depth, pixels)
+    z = sample_depth_bilinear(prepared.depth, pixels)
     pts_color = backproject(frame.K, pixels, z)
     pts_depth = transform_points(T_inv(frame.T_color_depth), pts_color)
     return pts_depth, z > 0

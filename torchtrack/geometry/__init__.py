@@ -7,6 +7,7 @@ from torchtrack.geometry.camera import (
     pixel_grid,
     project,
     sample_depth,
+    sample_depth_bilinear,
     warp_depth,
 )
 from torchtrack.geometry.rotation import (
@@ -25,6 +26,6 @@ from torchtrack.geometry.se3 import T_inv, make_T, pose_from_euler, se3_exp, se3
 __all__ = [
     "T_inv", "backproject", "backproject_depth", "euler_to_matrix", "hat", "intrinsics_matrix",
     "make_T", "matrix_to_euler", "matrix_to_quat_xyzw", "pixel_grid", "pose_from_euler", "project",
-    "quat_xyzw_to_matrix", "rotation_angle", "sample_depth", "se3_exp", "se3_log", "so3_exp",
+    "quat_xyzw_to_matrix", "rotation_angle", "sample_depth", "sample_depth_bilinear", "se3_exp", "se3_log", "so3_exp",
     "so3_log", "transform_points", "vee", "warp_depth",
 ]  # fmt: skip

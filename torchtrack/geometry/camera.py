@@ -86,3 +86,23 @@ def warp_depth(depth: Tensor, K_src: Tensor, K_dst: Tensor, T_dst_src: Tensor, o
     out.scatter_reduce_(0, idx[ok], z[ok], reduce="amin")
     out = torch.where(out == big, torch.zeros_like(out), out)
     return out.reshape(B, 1, H2, W2)
+
+
+def sample_depth_bilinear(depth: Tensor, pixels: Tensor, max_rel_step: float = 0.02) -> Tensor:
+    """Depth (B, 1, H, W) at sub-pixel pixels (B, N, 2) -> (B, N): bilinear where the four neighbours
+    have depth and agree within ``max_rel_step`` (a continuous surface), nearest elsewhere (no depth is
+    invented across edges or holes); 0 outside the image.
+    """
+    B, _, H, W = depth.shape
+    x, y = pixels[..., 0], pixels[..., 1]
+    x0 = x.floor().clamp(0, W - 2)
+    y0 = y.floor().clamp(0, H - 2)
+    fx, fy = (x - x0).clamp(0, 1), (y - y0).clamp(0, 1)
+    flat = depth.reshape(B, H * W)
+    i00 = (y0 * W + x0).long().reshape(B, -1)
+    z = torch.stack([flat.gather(1, i00 + d) for d in (0, 1, W, W + 1)], -1).reshape(*pixels.shape[:-1], 4)
+    w = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], -1)
+    zmin, zmax = z.min(-1).values, z.max(-1).values
+    smooth = (zmin > 0) & (zmax - zmin <= max_rel_step * zmin)
+    nearest = sample_depth(depth, pixels)
+    return torch.where(smooth & (nearest > 0), (w * z).sum(-1), nearest)
