@@ -10,15 +10,6 @@ from torchtrack.estimators.horn import horn
 from torchtrack.geometry import make_T, rotation_angle, so3_exp, transform_points
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Small batched problems: one intra-op thread (two oversubscribe a loaded CPU ~10x); restored after."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def random_T(B, dtype=torch.float64, max_angle=0.2, max_trans=0.03, seed=0):
     """Inter-frame motions: up to ~11 degrees and 3 cm (CPD is local)."""
     g = torch.Generator().manual_seed(seed)

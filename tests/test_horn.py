@@ -13,15 +13,6 @@ from torchtrack.geometry import make_T, rotation_angle, se3_exp, so3_exp, so3_lo
 TOL = {torch.float32: 2e-5, torch.float64: 1e-10}
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Small batched problems: one intra-op thread (two oversubscribe a loaded CPU ~10x); restored after."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def random_T(B, dtype=torch.float64, max_angle=math.pi - 1e-3, max_trans=0.5, seed=0):
     g = torch.Generator().manual_seed(seed)
     axis = torch.randn(B, 3, generator=g, dtype=torch.float64)

@@ -53,15 +53,6 @@ from torchtrack.geometry import (
 SMALL = dict(width=160, height=120)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """Frames are many small ops: one intra-op thread is fastest, and immune to a loaded machine."""
-    saved = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(saved)
-
-
 def rays64(cfg: SyntheticConfig) -> torch.Tensor:
     """(H, W, 3) float64 rays with z = 1 through cfg's pixel centres."""
     g = pixel_grid(cfg.height, cfg.width, dtype=torch.float64)
