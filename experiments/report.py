@@ -40,7 +40,7 @@ log = logging.getLogger("report")
 
 AXES = ("Rot-x", "Rot-y", "Rot-z", "Tr-x", "Tr-y", "Tr-z")
 TABLE3 = ("fusion_ekf", "icp", "cpd", "horn")
-TABLE5 = ("fusion_ekf", "ekf1", "ekf2", "ekf3")
+TABLE5 = ("fusion_ekf", "paper", "ekf1", "ekf2", "ekf3")
 BASELINES = ("icp", "cpd", "horn", "open3d_odometry")
 PROPOSED = "fusion_ekf"
 

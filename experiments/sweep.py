@@ -60,6 +60,7 @@ METHODS: dict[str, Method] = {
     m.name: m
     for m in (
         Method("fusion_ekf", "Proposed", ("tracker=fusion_ekf",)),
+        Method("paper", "Proposed, paper as written", ("tracker=fusion_ekf", "+experiment=paper")),
         Method("icp", "ICP", ("tracker=icp",)),
         Method("cpd", "CPD", ("tracker=cpd",)),
         Method("horn", "Quaternion", ("tracker=horn",)),
