@@ -123,6 +123,24 @@ def test_winner_is_argmin_where_both_track():
     torch.testing.assert_close(res.points[res.valid], chosen[res.valid])
 
 
+@pytest.mark.parametrize("backend", ["torch", "opencv"])
+def test_fallback_policy_uses_sim_only_where_intensity_fails(backend):
+    """The intensity result wherever it passes the TIM test, the SIM result only where it does not; the SIM
+    tracker is not even run on the others (d_TIM_SIM = inf). Left half: intensity textured; right: SIM."""
+    f0, f1, pts, _ = split_scene((0.9, 0.3))
+    res = combined_track(f0, f1, pts, policy="fallback", backend=backend)
+    only_int = combined_track(f0, f1, pts, mode="intensity", backend=backend)
+    only_sim = combined_track(f0, f1, pts, mode="sim", backend=backend)
+    int_ok = only_int.valid
+    assert int_ok[0, :40].all() and not int_ok[0, 40:].any()
+    assert (res.winner[int_ok] == 0).all() and torch.isinf(res.d_tim_sim[int_ok]).all()
+    torch.testing.assert_close(res.points[int_ok], only_int.points[int_ok])
+    rescued = ~int_ok & only_sim.valid
+    assert rescued.any() and (res.winner[rescued] == 1).all() and res.valid[rescued].all()
+    torch.testing.assert_close(res.points[rescued], only_sim.points[rescued])
+    assert (res.valid == (int_ok | only_sim.valid)).all()
+
+
 def test_threshold_and_single_tracker_modes():
     f0, f1, pts, _ = split_scene((2.2, 1.1))
     full = combined_track(f0, f1, pts, tim_threshold=1.0)

@@ -15,6 +15,7 @@ same parameters on the 8-bit images instead (a reference for comparisons).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Literal, NamedTuple
 
 import numpy as np
@@ -204,17 +205,22 @@ def combined_track(
     channels = _CHANNELS[mode]
     lk_kwargs = dict(window=window, levels=levels, iters=iters, eps=eps, min_eig=min_eig)
     if backend == "torch":
-        fwd, status, d_tim = _track_torch(prev, next, points, valid, channels, dict(lk_kwargs, ic_iters=ic_iters))
+        track = partial(_track_torch, prev, next, points, lk_kwargs=dict(lk_kwargs, ic_iters=ic_iters))
     elif backend == "opencv":
-        fwd, status, d_tim = _track_opencv(prev, next, points, valid, channels, lk_kwargs)
+        track = partial(_track_opencv, prev, next, points, lk_kwargs=lk_kwargs)
     else:
         raise ValueError(f"combined_track: backend must be 'torch' or 'opencv', got {backend!r}")
-    pick = d_tim[-1] < d_tim[0]  # step III: the tracker with the smaller d_TIM (ties: intensity)
-    if policy == "fallback" and len(channels) == 2:
-        pick = pick & ~(d_tim[0] <= tim_threshold)
-    elif policy not in ("min_tim", "fallback"):
+    if policy not in ("min_tim", "fallback"):
         raise ValueError(f"combined_track: policy must be 'min_tim' or 'fallback', got {policy!r}")
-    pick = pick.long()
+    if policy == "fallback" and len(channels) == 2:
+        # the SIM tracker runs only where the intensity tracker failed step IV (its d_TIM elsewhere: inf)
+        fwd, status, d_tim = track(valid=valid, channels=channels[:1])
+        failed = valid & ~(d_tim[0] <= tim_threshold)
+        fwd_s, status_s, d_tim_s = track(valid=failed, channels=channels[1:])
+        fwd, status, d_tim = torch.cat([fwd, fwd_s]), torch.cat([status, status_s]), torch.cat([d_tim, d_tim_s])
+    else:
+        fwd, status, d_tim = track(valid=valid, channels=channels)
+    pick = (d_tim[-1] < d_tim[0]).long()  # step III: the tracker with the smaller d_TIM (ties: intensity)
     best = d_tim.gather(0, pick[None])[0]
     chosen = fwd.gather(0, pick[None, ..., None].expand(1, b, n, 2))[0]
     winner = torch.tensor(channels)[pick]
