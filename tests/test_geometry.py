@@ -82,7 +82,9 @@ def test_euler_convention_and_round_trip():
     Rz = so3_exp(torch.tensor([0, 0, 0.3], dtype=torch.float64))
     torch.testing.assert_close(euler_to_matrix(angles), Rz @ Ry @ Rx)
     g = torch.Generator().manual_seed(3)
-    a = (torch.rand(500, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([6.2, 3.1, 6.2], dtype=torch.float64)
+    a = (torch.rand(500, 3, generator=g, dtype=torch.float64) - 0.5) * torch.tensor(
+        [6.2, 3.1, 6.2], dtype=torch.float64
+    )
     torch.testing.assert_close(matrix_to_euler(euler_to_matrix(a)), a, atol=1e-9, rtol=0)
 
 
@@ -114,7 +116,9 @@ def test_project_backproject_round_trip_and_depth_image():
     depth = torch.full((2, 1, 4, 5), 2.0, dtype=torch.float64)
     img = backproject_depth(K, depth)
     assert img.shape == (2, 4, 5, 3)
-    torch.testing.assert_close(img[0, 3, 4], torch.tensor([(4 - 319.5) / 525 * 2, (3 - 239.5) / 520 * 2, 2.0], dtype=torch.float64))
+    torch.testing.assert_close(
+        img[0, 3, 4], torch.tensor([(4 - 319.5) / 525 * 2, (3 - 239.5) / 520 * 2, 2.0], dtype=torch.float64)
+    )
     with pytest.raises(ValueError, match="depth must be"):
         backproject_depth(K, depth[:, 0])
 

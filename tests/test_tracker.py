@@ -28,9 +28,7 @@ def synth(tmp_path_factory):
     root = tmp_path_factory.mktemp("synth")
 
     def get(mode="scene", seed=0, frames=8, noise="none", size=(320, 240), **motion):
-        cfg = SyntheticConfig(
-            width=size[0], height=size[1], frames=frames, seed=seed, mode=mode, noise=noise, **motion
-        )
+        cfg = SyntheticConfig(width=size[0], height=size[1], frames=frames, seed=seed, mode=mode, noise=noise, **motion)
         return TumSequence(ensure_sequence(cfg, root))
 
     return get

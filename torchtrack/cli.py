@@ -1,9 +1,9 @@
 """Hydra entry point ``torchtrack``: track sequences and write one folder per sequence.
 
-    torchtrack                                   # synthetic sequence (rendered once, cached)
-    torchtrack data=tum data.root=DIR            # a TUM-layout folder
-    torchtrack data=tum 'data.root=[DIR1,DIR2]'  # B sequences tracked together
-    torchtrack tracker=icp hydra.run.dir=OUT     # another estimator, chosen output folder
+torchtrack                                   # synthetic sequence (rendered once, cached)
+torchtrack data=tum data.root=DIR            # a TUM-layout folder
+torchtrack data=tum 'data.root=[DIR1,DIR2]'  # B sequences tracked together
+torchtrack tracker=icp hydra.run.dir=OUT     # another estimator, chosen output folder
 """
 
 from __future__ import annotations
@@ -43,7 +43,9 @@ def build_sequences(data: DictConfig) -> list[TumSequence]:
     if data.root is None:
         raise DataError("data.root is not set: pass data.root=DIR (or data.root=[DIR1,DIR2])")
     roots = list(data.root) if isinstance(data.root, ListConfig) else [data.root]
-    extra = {k: data.get(k) for k in ("camera", "depth_scale", "max_dt", "intrinsics_camera") if data.get(k) is not None}
+    extra = {
+        k: data.get(k) for k in ("camera", "depth_scale", "max_dt", "intrinsics_camera") if data.get(k) is not None
+    }
     if data.get("depth_alignment") is not None:
         align = data.depth_alignment
         extra["depth_alignment"] = tuple(align) if isinstance(align, ListConfig) else align

@@ -17,7 +17,9 @@ from torchtrack.data.tum import TumSequence
 log = logging.getLogger(__name__)
 
 
-def open3d_rgbd_odometry(seq: TumSequence, *, max_depth: float = 4.0, progress: bool = True) -> tuple[np.ndarray, float]:
+def open3d_rgbd_odometry(
+    seq: TumSequence, *, max_depth: float = 4.0, progress: bool = True
+) -> tuple[np.ndarray, float]:
     """Chain ``compute_rgbd_odometry`` (hybrid Jacobian) frame to frame.
 
     Returns (T_world_cam (F, 4, 4) starting at the first ground-truth pose or identity, fps). A failed

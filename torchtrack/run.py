@@ -62,8 +62,16 @@ class Recorder:
         if i in self.snapshots:
             T_color_obj = frame.T_color_depth[b].double() @ res.T_cam_obj[b]
             self.tiles.append(
-                draw_frame(frame.rgb[b], res.pixels[b], res.valid[b], res.winner[b], frame.K[b], T_color_obj,
-                           res.points_obj[b], f"{self.sequence.name} #{i}")  # fmt: skip
+                draw_frame(
+                    frame.rgb[b],
+                    res.pixels[b],
+                    res.valid[b],
+                    res.winner[b],
+                    frame.K[b],
+                    T_color_obj,
+                    res.points_obj[b],
+                    f"{self.sequence.name} #{i}",
+                )  # fmt: skip
             )
 
     def finish(self, elapsed_s: float, plots: bool = True) -> dict:
@@ -105,7 +113,9 @@ class Recorder:
 
         ts = np.array([r["timestamp"] for r in self.rows])
         gt = np.asarray(self.sequence.groundtruth[: len(T_est)]) if gt_valid.any() else None
-        plot_trajectory(self.out_dir / "trajectory.png", T_est, gt, title=self.sequence.name, timestamps=ts, gt_valid=gt_valid)
+        plot_trajectory(
+            self.out_dir / "trajectory.png", T_est, gt, title=self.sequence.name, timestamps=ts, gt_valid=gt_valid
+        )
         save_strip(self.out_dir / "features.png", self.tiles)
 
 

@@ -109,28 +109,33 @@ class Tracker:
 
     def step(self, frame: FrameBatch) -> StepResult:
         """Process one frame of every sequence; reads like the paper's algorithm."""
-        cur = self.frontend(frame)
+        cur = self.frontend(frame)  # depth in the colour camera, SIM (eq. 8), LK pyramids
         if self.prev is None:
             return self._start(frame, cur)
         track = self.flow(self.prev.flow, cur.flow, self.pixels, self.valid)  # §III-C, eq. (10)
-        points_d, has_depth = measure_points(cur, frame, track.points)  # eq. (6) measurements
+        points_d, has_depth = measure_points(cur, frame, track.points)  # X_d of eq. (6)
         valid = track.valid & has_depth & frame.active[:, None]
         var = self.weighting(WeightingInputs(track.d_tim, points_d[..., 2], points_d, valid, frame.K_depth[:, 0, 0]))
-        dt = (frame.timestamp - self.timestamp).to(points_d.dtype).clamp_min(1e-3)  # eqs. (11)-(14) above
-        obs = Observation(dt, self.points_obj, points_d, track.points, valid, var.var_xyz, var.var_pix, frame.K, frame.T_color_depth)
+        dt = (frame.timestamp - self.timestamp).to(points_d.dtype).clamp_min(1e-3)
+        obs = Observation(dt, self.points_obj, points_d, track.points, valid, var.var_xyz, var.var_pix, frame.K,
+                          frame.T_color_depth)  # fmt: skip
         T_cam_obj = self.backend(obs).double()  # eqs. (2)-(7), (15)
-        T_cam_obj = torch.where(frame.active[:, None, None], T_cam_obj, self.T_cam_obj)
-        self.pixels, self.valid, self.T_cam_obj, self.timestamp = track.points, valid, T_cam_obj, frame.timestamp
-        if self.max_residual_px is not None:
-            self.valid = valid = valid & (self._residuals(frame) <= self.max_residual_px)
+        self._advance(frame, track.points, valid, T_cam_obj)
         result = self._result(frame, track.winner, track.d_tim)
-        n = valid.sum(1)
+        n = self.valid.sum(1)
         reselect = frame.active & ((n < self.reselect_fraction * self.n_model) | (n < self.min_features))
         if reselect.any():
             self._new_model(frame, cur, reselect)  # §III model re-selection
             result.reselected = reselect
         self.prev = cur
         return result
+
+    def _advance(self, frame: FrameBatch, pixels: Tensor, valid: Tensor, T_cam_obj: Tensor) -> None:
+        """Keep the new pose and tracks (ended sequences keep theirs); drop features that do not fit the pose."""
+        self.T_cam_obj = torch.where(frame.active[:, None, None], T_cam_obj, self.T_cam_obj)
+        self.pixels, self.valid, self.timestamp = pixels, valid, frame.timestamp
+        if self.max_residual_px is not None:
+            self.valid = valid & (self._residuals(frame) <= self.max_residual_px)
 
     # ----------------------------------------------------------------------------------------------
     def _start(self, frame: FrameBatch, cur: PreparedFrame) -> StepResult:
@@ -167,7 +172,9 @@ class Tracker:
         m3, m2 = mask[:, None, None], mask[:, None]
         if self.pixels is not None:  # selections differ in size: pad old and new to the larger N
             n = max(self.pixels.shape[1], valid.shape[1])
-            self.pixels, self.valid, self.points_obj = (pad_to(t, n) for t in (self.pixels, self.valid, self.points_obj))
+            self.pixels, self.valid, self.points_obj = (
+                pad_to(t, n) for t in (self.pixels, self.valid, self.points_obj)
+            )
             feats = feats._replace(pixels=pad_to(feats.pixels, n))
             valid, points_obj = pad_to(valid, n), pad_to(points_obj, n)
         self.T_world_obj = torch.where(m3, T_world_cam @ T_cam_obj, self.T_world_obj)
