@@ -296,7 +296,7 @@ def test_sequence_auto_survives_a_corrupt_frame(tmp_path):
     """A frame that cannot be read skips the estimate; the error comes when the frame itself is read."""
     root = write_folder(tmp_path / "s", H=200, W=240)
     (root / "depth" / "2.png").write_bytes(b"not a png")
-    seq = TumSequence(root)
+    seq = TumSequence(root, depth_alignment="auto")
     assert seq.depth_shift is None and not seq.depth_aligned
     with pytest.raises(DataError, match="corrupt"):
         seq[2]
@@ -309,7 +309,7 @@ REGISTERED = ["visp_castle_simu", "sun3d_fragment1", "sun3d_fragment2", "visp_rb
 @needs_data
 @pytest.mark.parametrize("name", REGISTERED)
 def test_registered_sequences_are_left_alone(name):
-    seq = TumSequence(DATA / name)
+    seq = TumSequence(DATA / name, depth_alignment="auto")
     est = seq.depth_shift
     assert est is not None and est.frames == 5
     assert not est.confident or est.max_displacement() < 2.0, est
@@ -322,7 +322,7 @@ def test_7scenes_depth_registered_by_the_estimated_map():
     """7-Scenes (Kinect v1, depth not registered): the map is a magnification by the colour/depth focal ratio
     (525 / 585 = 0.897 for Kinect v1's colour and depth cameras) plus a shift; warping depth with the resulting
     K_depth registers it: on frames not used by the estimate, the depth edges match the colour edges far better."""
-    seq = TumSequence(DATA / "7scenes_redkitchen")
+    seq = TumSequence(DATA / "7scenes_redkitchen", depth_alignment="auto")
     est = seq.depth_shift
     assert seq.depth_aligned and est.confident and abs(est.scale - 525 / 585) < 0.01, est
     assert est.max_displacement() > 30  # a constant shift cannot register it
@@ -335,7 +335,7 @@ def test_7scenes_depth_registered_by_the_estimated_map():
     before, after = edge_ncc(gray, depth), edge_ncc(gray, warped)
     assert after > 2 * before, (before, after)
     # the same map with the given intrinsics as the depth camera's: K_depth as given, colour focal ~525 px
-    seq_d = TumSequence(DATA / "7scenes_redkitchen", intrinsics_camera="depth")
+    seq_d = TumSequence(DATA / "7scenes_redkitchen", depth_alignment="auto", intrinsics_camera="depth")
     torch.testing.assert_close(seq_d.K_depth, intrinsics_matrix(585.0, 585.0, 320.0, 240.0))
     assert abs(float(seq_d.K[0, 0]) - 525) < 6
     torch.testing.assert_close(depth_intrinsics(seq_d.K, est), seq_d.K_depth)

@@ -37,7 +37,7 @@ def build_sequences(data: DictConfig) -> list[TumSequence]:
 
         params = OmegaConf.to_container(data.scene, resolve=True)
         root = ensure_sequence(SyntheticConfig(**params), Path(data.cache_dir).expanduser())
-        return [TumSequence(root, **opts)]
+        return [TumSequence(root, **opts)]  # registered by construction
     if data.kind != "tum":
         raise DataError(f"data.kind must be 'tum' or 'synthetic', got {data.kind!r}")
     if data.root is None:

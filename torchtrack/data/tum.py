@@ -291,7 +291,7 @@ class TumSequence:
         intrinsics_depth: tuple[float, float, float, float] | None = None,
         max_frames: int | None = None,
         stride: int = 1,
-        depth_alignment: str | tuple[float, ...] = "auto",
+        depth_alignment: str | tuple[float, ...] = "none",
         intrinsics_camera: str = "colour",
     ) -> None:
         self.root = Path(root)
