@@ -3,35 +3,12 @@
 import numpy as np
 import pytest
 import torch
+from pointsets import eye, ones, random_cloud, random_T
 
 from torchtrack.estimators import CPDEstimator, CPDResult
 from torchtrack.estimators.cpd import cpd_rigid
 from torchtrack.estimators.horn import horn
-from torchtrack.geometry import make_T, rotation_angle, so3_exp, transform_points
-
-
-def random_T(B, dtype=torch.float64, max_angle=0.2, max_trans=0.03, seed=0):
-    """Inter-frame motions: up to ~11 degrees and 3 cm (CPD is local)."""
-    g = torch.Generator().manual_seed(seed)
-    axis = torch.randn(B, 3, generator=g, dtype=torch.float64)
-    omega = axis / axis.norm(dim=-1, keepdim=True) * torch.rand(B, 1, generator=g, dtype=torch.float64) * max_angle
-    t = (torch.rand(B, 3, generator=g, dtype=torch.float64) * 2 - 1) * max_trans
-    return make_T(so3_exp(omega), t).to(dtype)
-
-
-def random_cloud(B, N, dtype=torch.float64, spread=0.1, seed=1):
-    """An object of ~spread metres at ~1 m in front of the camera (depth >= 0.3 m)."""
-    g = torch.Generator().manual_seed(seed)
-    p = torch.randn(B, N, 3, generator=g, dtype=torch.float64) * spread
-    return (p + torch.tensor([0.05, -0.02, 1.0], dtype=torch.float64)).to(dtype)
-
-
-def eye(B, dtype=torch.float64):
-    return torch.eye(4, dtype=dtype).expand(B, 4, 4).clone()
-
-
-def ones(B, N):
-    return torch.ones(B, N, dtype=torch.bool)
+from torchtrack.geometry import rotation_angle, transform_points
 
 
 def pose_errors(T_est, T_true):
