@@ -22,9 +22,11 @@ from torch import Tensor
 
 from torchtrack.data.frame import FrameBatch
 from torchtrack.estimation import Observation, PoseBackend
+from torchtrack.estimators.base import masked_mean
 from torchtrack.filter.weighting import WeightingInputs
 from torchtrack.frontend import FrontEnd, PreparedFrame, measure_points, smooth_depth_mask
-from torchtrack.geometry import T_inv, make_T, project, transform_points
+from torchtrack.geometry import T_inv, make_T
+from torchtrack.metrics import reprojection_errors
 
 
 @dataclass
@@ -58,12 +60,6 @@ def pad_to(x: Tensor, n: int) -> Tensor:
         return x
     pad = torch.zeros(x.shape[0], n - x.shape[1], *x.shape[2:], dtype=x.dtype, device=x.device)
     return torch.cat([x, pad], dim=1)
-
-
-def masked_mean(x: Tensor, valid: Tensor) -> Tensor:
-    """x (B, N, D), valid (B, N) -> (B, D); zero where nothing is valid."""
-    w = valid.to(x.dtype)[..., None]
-    return (x * w).sum(1) / w.sum(1).clamp_min(1)
 
 
 class Tracker:
@@ -134,8 +130,9 @@ class Tracker:
         """Keep the new pose and tracks (ended sequences keep theirs); drop features that do not fit the pose."""
         self.T_cam_obj = torch.where(frame.active[:, None, None], T_cam_obj, self.T_cam_obj)
         self.pixels, self.valid, self.timestamp = pixels, valid, frame.timestamp
+        self.residuals = self._residuals(frame)  # computed once: for the drop and for eq. (16)
         if self.max_residual_px is not None:
-            self.valid = valid & (self._residuals(frame) <= self.max_residual_px)
+            self.valid = valid & (self.residuals <= self.max_residual_px)
 
     # ----------------------------------------------------------------------------------------------
     def _start(self, frame: FrameBatch, cur: PreparedFrame) -> StepResult:
@@ -150,6 +147,7 @@ class Tracker:
         everyone = torch.ones(B, dtype=torch.bool)
         self._new_model(frame, cur, everyone)
         self.prev = cur
+        self.residuals = self._residuals(frame)
         result = self._result(frame, None, None)
         result.reselected = everyone
         return result
@@ -162,7 +160,7 @@ class Tracker:
         feats = self.select(cur.gray, cur.depth, frame.K, roi=roi, sim=cur.sim)  # eq. (9)
         points_d, has_depth = measure_points(cur, frame, feats.pixels)
         valid = feats.valid & has_depth
-        centroid = masked_mean(points_d, valid)
+        centroid = masked_mean(points_d, valid.to(points_d.dtype))
         points_obj = torch.where(valid[..., None], points_d - centroid[:, None], torch.zeros_like(points_d))
         T_cam_obj = make_T(torch.eye(3, dtype=torch.float64).expand(len(mask), 3, 3), centroid.double())
         if self.pixels is None:  # first frame: the world is where the first camera is
@@ -187,14 +185,14 @@ class Tracker:
         self.backend.reset(self.T_cam_obj, mask)
 
     def _residuals(self, frame: FrameBatch) -> Tensor:
-        """(B, N) pixel distance between tracked features and model points reprojected with the current pose."""
-        T_color_obj = (frame.T_color_depth.double() @ self.T_cam_obj).float()
-        proj = project(frame.K, transform_points(T_color_obj, self.points_obj))
-        return torch.nan_to_num((proj - self.pixels).norm(dim=-1), nan=float("inf"))
+        """(B, N) reprojection error of each feature (eq. 16) under the current pose; inf where undefined."""
+        T_color_obj = frame.T_color_depth.double() @ self.T_cam_obj
+        err = reprojection_errors(frame.K, T_color_obj, self.points_obj, self.pixels, self.valid).float()
+        return torch.nan_to_num(err, nan=float("inf"))
 
     def _result(self, frame: FrameBatch, winner: Tensor | None, d_tim: Tensor | None) -> StepResult:
         B, N = self.valid.shape
-        res = torch.where(self.valid, self._residuals(frame), torch.zeros_like(self.pixels[..., 0]))
+        res = torch.where(self.valid, self.residuals, torch.zeros_like(self.pixels[..., 0]))
         err = res.sum(1) / self.valid.sum(1).clamp_min(1)  # mean reprojection error, eq. (16)
         return StepResult(
             T_cam_obj=self.T_cam_obj,
