@@ -11,15 +11,6 @@ TOL = {torch.float32: 1e-4, torch.float64: 1e-9}
 F64 = torch.float64
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Small tensors: intra-op threads only contend on a shared machine (20x slower seen on 2 loaded cores)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def linear_h(x, H_i):
     """Linear per-feature model h(x) = H_i x, through the same autograd code path as nonlinear ones."""
     return H_i @ x

@@ -19,15 +19,6 @@ from torchtrack.geometry import euler_to_matrix, intrinsics_matrix, make_T, proj
 F64 = torch.float64
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Small tensors: intra-op threads only contend on a shared machine (20x slower seen on 2 loaded cores)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def scene(B=2, N=6, seed=0, skew=0.0):
     g = torch.Generator().manual_seed(seed)
     x = torch.cat([0.4 * torch.randn(B, 3, generator=g, dtype=F64), 0.1 * torch.randn(B, 3, generator=g, dtype=F64), torch.randn(B, 6, generator=g, dtype=F64)], -1)  # fmt: skip

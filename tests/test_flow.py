@@ -20,14 +20,6 @@ DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 H, W = 240, 320
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def texture(x: np.ndarray, y: np.ndarray, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     v = np.zeros_like(x)

@@ -1,31 +1,23 @@
 """Horn's quaternion absolute orientation: exact SE(3) recovery, scipy's Kabsch, noise statistics, masks."""
 
 import math
+from functools import partial
 
+import pointsets
 import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
 from torchtrack.estimators import HornEstimator, PoseEstimate
 from torchtrack.estimators.horn import horn
-from torchtrack.geometry import make_T, rotation_angle, se3_exp, so3_exp, so3_log, transform_points
+from torchtrack.geometry import rotation_angle, se3_exp, so3_log, transform_points
 
 TOL = {torch.float32: 2e-5, torch.float64: 1e-10}
 
 
-def random_T(B, dtype=torch.float64, max_angle=math.pi - 1e-3, max_trans=0.5, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    axis = torch.randn(B, 3, generator=g, dtype=torch.float64)
-    omega = axis / axis.norm(dim=-1, keepdim=True) * torch.rand(B, 1, generator=g, dtype=torch.float64) * max_angle
-    t = (torch.rand(B, 3, generator=g, dtype=torch.float64) * 2 - 1) * max_trans
-    return make_T(so3_exp(omega), t).to(dtype)
-
-
-def random_cloud(B, N, dtype=torch.float64, spread=0.15, seed=1):
-    """An object of ~spread metres at ~1 m in front of the camera (depth >= 0.3 m)."""
-    g = torch.Generator().manual_seed(seed)
-    p = torch.randn(B, N, 3, generator=g, dtype=torch.float64) * spread
-    return (p + torch.tensor([0.05, -0.02, 1.0], dtype=torch.float64)).to(dtype)
+# Horn is global: any rotation and half a metre of translation (the shared defaults are inter-frame motions)
+random_T = partial(pointsets.random_T, max_angle=math.pi - 1e-3, max_trans=0.5)
+random_cloud = partial(pointsets.random_cloud, spread=0.15)
 
 
 def pose_errors(T_est, T_true):

@@ -24,14 +24,6 @@ H, W = 240, 320
 CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def texture(x: np.ndarray, y: np.ndarray, seed: int = 0) -> np.ndarray:
     """Smooth analytic texture in [0.1, 0.9]: a sum of 12 plane waves (periods 18-125 px)."""
     rng = np.random.default_rng(seed)

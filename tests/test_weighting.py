@@ -8,15 +8,6 @@ from torchtrack.filter.weighting import FixedWeighting, PaperWeighting, Weightin
 F64 = torch.float64
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Small tensors: intra-op threads only contend on a shared machine (20x slower seen on 2 loaded cores)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def inputs(B=2, N=8, seed=0, valid=None):
     g = torch.Generator().manual_seed(seed)
     pts = torch.randn(B, N, 3, generator=g, dtype=F64) * 0.2 + torch.tensor([0.0, 0.0, 1.5], dtype=F64)
