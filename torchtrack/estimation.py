@@ -13,6 +13,8 @@ from typing import Protocol
 import torch
 from torch import Tensor
 
+from torchtrack.filter.models import measure_analytic
+
 
 @dataclass
 class Observation:
@@ -93,8 +95,6 @@ class EKFBackend:
 
     def _gate(self, obs: Observation) -> tuple[Tensor, Tensor]:
         """Per-feature chi-square tests of the 3D and the pixel innovation, (B, N) bool each."""
-        from torchtrack.filter.models import measure_analytic
-
         mean, cov = self.ekf.mean, self.ekf.cov
         dt = mean.dtype
         lin = measure_analytic(mean, obs.points_obj.to(dt), obs.K.to(dt), obs.T_color_depth.to(dt))
