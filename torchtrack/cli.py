@@ -69,6 +69,8 @@ def build_tracker(cfg: DictConfig) -> Tracker:
         min_features=cfg.tracker.min_features,
         edge_step=cfg.tracker.get("edge_step"),
         max_residual_px=cfg.tracker.get("max_residual_px"),
+        keep_survivors=cfg.tracker.get("keep_survivors", False),
+        min_separation_px=cfg.tracker.get("min_separation_px", 8.0),
     )
 
 

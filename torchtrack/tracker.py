@@ -79,6 +79,12 @@ class Tracker:
             than this fraction of the depth (no features on occlusion boundaries).
         max_residual_px: improvement (None = paper): drop features whose pixel is farther than this from
             the model point reprojected with the updated pose (slipped tracks, non-rigid or wrong depth).
+        keep_survivors: improvement (False = paper): a re-selection keeps the features that still track,
+            with their model points (re-expressed in the new model frame through the current pose, so
+            their world positions do not change), and adds new ones only where no survivor is within
+            ``min_separation_px``, up to the selector's count. The surviving points keep anchoring the
+            pose, so a re-selection no longer resets the model to one frame's estimate (less drift).
+        min_separation_px: new features closer than this to a survivor are not added.
     """
 
     def __init__(
@@ -94,6 +100,8 @@ class Tracker:
         min_features: int = 12,
         edge_step: float | None = None,
         max_residual_px: float | None = None,
+        keep_survivors: bool = False,
+        min_separation_px: float = 8.0,
     ) -> None:
         if not 0.0 <= reselect_fraction < 1.0:
             raise ValueError(f"reselect_fraction must be in [0, 1), got {reselect_fraction}")
@@ -101,6 +109,7 @@ class Tracker:
         self.flow, self.weighting, self.backend = flow, weighting, backend
         self.reselect_fraction, self.min_features = reselect_fraction, min_features
         self.edge_step, self.max_residual_px = edge_step, max_residual_px
+        self.keep_survivors, self.min_separation_px = keep_survivors, min_separation_px
         self.prev: PreparedFrame | None = None
 
     def step(self, frame: FrameBatch) -> StepResult:
@@ -160,6 +169,8 @@ class Tracker:
         feats = self.select(cur.gray, cur.depth, frame.K, roi=roi, sim=cur.sim)  # eq. (9)
         points_d, has_depth = measure_points(cur, frame, feats.pixels)
         valid = feats.valid & has_depth
+        if self.keep_survivors and self.pixels is not None:
+            feats, points_d, valid = self._with_survivors(feats, points_d, valid, mask)
         centroid = masked_mean(points_d, valid.to(points_d.dtype))
         points_obj = torch.where(valid[..., None], points_d - centroid[:, None], torch.zeros_like(points_d))
         T_cam_obj = make_T(torch.eye(3, dtype=torch.float64).expand(len(mask), 3, 3), centroid.double())
@@ -183,6 +194,23 @@ class Tracker:
         n = valid.sum(1)
         self.n_model = n if self.n_model is None else torch.where(mask, n, self.n_model)
         self.backend.reset(self.T_cam_obj, mask)
+
+    def _with_survivors(self, feats, points_d: Tensor, valid: Tensor, mask: Tensor):
+        """Survivors first (their model points moved into the camera by the current pose), then new features
+        away from them, cut to the selector's count. Returns (features, points in the camera, valid)."""
+        keep = self.valid & mask[:, None]
+        T = self.T_cam_obj.to(points_d.dtype)
+        old_cam = self.points_obj @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]
+        near = torch.cdist(feats.pixels, self.pixels).masked_fill(~keep[:, None, :], float("inf")).amin(2)
+        valid = valid & (near >= self.min_separation_px)
+        pixels = torch.cat([self.pixels, feats.pixels], 1)
+        points = torch.cat([old_cam, points_d], 1)
+        ok = torch.cat([keep, valid], 1)
+        order = torch.sort((~ok).to(torch.uint8), dim=1, stable=True).indices[:, : valid.shape[1]]
+        take = lambda x: torch.gather(x, 1, order.view(*order.shape, *([1] * (x.dim() - 2))).expand(-1, -1, *x.shape[2:]))  # noqa: E731
+        ok = take(ok)
+        feats = feats._replace(pixels=torch.where(ok[..., None], take(pixels), 0.0))
+        return feats, torch.where(ok[..., None], take(points), 0.0), ok
 
     def _residuals(self, frame: FrameBatch) -> Tensor:
         """(B, N) reprojection error of each feature (eq. 16) under the current pose; inf where undefined."""
