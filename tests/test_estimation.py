@@ -1,0 +1,65 @@
+"""EKFBackend's outlier handling: the innovation gate and the refit (oracle: the update without the outlier)."""
+
+import pytest
+import torch
+
+from test_fusion import DT, body, measurements, true_pose
+from torchtrack.estimation import EKFBackend, Observation, chi2_quantile
+from torchtrack.filter import FusionEKF
+
+F64 = torch.float64
+
+
+def observation(outlier_px=0.0, outlier_m=0.0, drop_outlier=False):
+    """Noise-free measurements of a moving body one frame after the start; feature 0 of every sequence is
+    moved by ``outlier_px`` pixels and ``outlier_m`` metres (or left out with ``drop_outlier``)."""
+    X, K, T_cd = body()
+    B, N = X.shape[:2]
+    points_d, pixels = measurements(true_pose(DT), X, K, T_cd)
+    points_d[:, 0] += outlier_m
+    pixels[:, 0] += outlier_px
+    valid = torch.ones(B, N, dtype=torch.bool)
+    valid[:, 0] = not drop_outlier
+    var = torch.ones(B, N, dtype=F64)
+    return Observation(torch.full((B,), DT, dtype=F64), X, points_d, pixels, valid, 1e-6 * var, 0.25 * var, K, T_cd)
+
+
+def estimate(backend, obs):
+    backend.reset(true_pose(0.0), torch.ones(obs.dt.shape[0], dtype=torch.bool))
+    return backend(obs)
+
+
+def test_refit_equals_the_update_without_the_outlier():
+    # 4 px and 2 cm: inside the gate of the prediction (the velocity is still unknown), so only the refit sees it
+    obs = observation(outlier_px=4.0, outlier_m=0.02)
+    plain = estimate(EKFBackend(FusionEKF(), gate=0.999), obs)
+    refit = estimate(EKFBackend(FusionEKF(), gate=0.999, refit=0.999), obs)
+    oracle = estimate(EKFBackend(FusionEKF(), gate=0.999), observation(drop_outlier=True))
+    torch.testing.assert_close(refit, oracle, atol=1e-12, rtol=0)
+    assert float((plain - oracle).abs().max()) > 1e-5  # the outlier did bias the plain update
+
+
+def test_refit_changes_nothing_without_outliers():
+    obs = observation()
+    plain = estimate(EKFBackend(FusionEKF()), obs)
+    torch.testing.assert_close(estimate(EKFBackend(FusionEKF(), refit=0.999), obs), plain, atol=0, rtol=0)
+
+
+def test_gate_drops_gross_outliers():
+    obs = observation(outlier_px=200.0, outlier_m=1.0)
+    gated = estimate(EKFBackend(FusionEKF(), gate=0.999), obs)
+    oracle = estimate(EKFBackend(FusionEKF()), observation(drop_outlier=True))
+    torch.testing.assert_close(gated, oracle, atol=1e-12, rtol=0)
+
+
+def test_chi2_quantile_against_known_values():
+    assert chi2_quantile(0.999, 2) == pytest.approx(13.8155, abs=1e-4)  # exact for k = 2
+    assert chi2_quantile(0.999, 3) == pytest.approx(16.2662, abs=1e-4)  # tables (Abramowitz & Stegun 26.8)
+    assert chi2_quantile(0.95, 1) == pytest.approx(1.959964**2, abs=1e-5)  # the square of the normal quantile
+    assert chi2_quantile(0.5, 10) == pytest.approx(9.3418, abs=1e-4)
+
+
+@pytest.mark.parametrize("name, p", [("gate", 1.0), ("refit", 0.0)])
+def test_bad_probabilities_raise(name, p):
+    with pytest.raises(ValueError, match=name):
+        EKFBackend(FusionEKF(), **{name: p})
