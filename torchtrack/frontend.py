@@ -69,11 +69,21 @@ def smooth_depth_mask(depth: Tensor, max_rel_step: float = 0.03, radius: int = 2
     Features on occlusion boundaries get the depth of the wrong surface: their model point then drifts
     away from the 2D track under parallax. This mask keeps the selection off such pixels.
     """
-    k = 2 * radius + 1
-    hi = torch.nn.functional.max_pool2d(depth, k, stride=1, padding=radius)
-    lo = -torch.nn.functional.max_pool2d(torch.where(depth > 0, -depth, -torch.full_like(depth, 1e9)), k, 1, radius)
-    holes = torch.nn.functional.max_pool2d((depth <= 0).float(), k, stride=1, padding=radius) > 0
-    return ~holes & (hi - lo <= max_rel_step * depth)
+    hi = _window_max(depth, radius)
+    neg_lo = _window_max(torch.where(depth > 0, -depth, float("inf")), radius)  # -min depth; inf: a hole in the window
+    return hi + neg_lo <= max_rel_step * depth
+
+
+def _window_max(x: Tensor, radius: int) -> Tensor:
+    """Max of (..., H, W) over (2r+1)^2 windows clipped at the border (``max_pool2d(x, 2r+1, 1, r)``):
+    separable, by shifted maxima (max_pool2d is ~10x slower on CPU for one channel)."""
+    for dim in (-1, -2):
+        n, y = x.shape[dim], x.clone()
+        for s in range(1, min(radius, n - 1) + 1):
+            torch.maximum(y.narrow(dim, s, n - s), x.narrow(dim, 0, n - s), out=y.narrow(dim, s, n - s))
+            torch.maximum(y.narrow(dim, 0, n - s), x.narrow(dim, s, n - s), out=y.narrow(dim, 0, n - s))
+        x = y
+    return x
 
 
 def measure_points(prepared: PreparedFrame, frame: FrameBatch, pixels: Tensor) -> tuple[Tensor, Tensor]:
