@@ -30,6 +30,7 @@ from torchtrack.metrics import (
     reprojection_errors,
     rpe,
     rpe_pairs,
+    shared_error,
     trajectory_metrics,
     umeyama_alignment,
 )
@@ -352,3 +353,45 @@ def test_percentage_improvement_by_hand():
     torch.testing.assert_close(out, torch.tensor([50.0, 25.0], dtype=F64))
     with pytest.raises(ValueError, match="baseline"):
         percentage_improvement(1.0, 0.0)
+
+
+# ---------------------------------------------------------------- shared error of two estimates
+
+
+def _with_position_noise(T: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+    out = T.clone()
+    out[:, :3, 3] += noise
+    return out
+
+
+def test_shared_error_of_identical_estimates_is_their_error():
+    _, T_gt = _smooth_trajectory(200, seed=11)
+    T_gt = torch.as_tensor(T_gt)
+    T = torch.as_tensor(_perturb(T_gt.numpy(), seed=12))
+    s = shared_error(T, T, T_gt)
+    assert s.ate_m == pytest.approx(ate(T, T_gt).rmse_m, rel=1e-12)
+    assert s.rpe_trans_m == pytest.approx(rpe(T, T_gt).trans_rmse_m, rel=1e-12)
+
+
+def test_shared_error_recovers_the_common_part_only():
+    """e_a = c + n_a, e_b = c + n_b with independent noises: the shared part is the error of GT + c alone."""
+    F = 4000
+    _, T_gt = _smooth_trajectory(F, seed=13)
+    T_gt = torch.as_tensor(T_gt)
+    g = torch.Generator().manual_seed(14)
+    c, n_a, n_b = (0.002 * torch.randn(F, 3, generator=g, dtype=F64) for _ in range(3))
+    T_c = _with_position_noise(T_gt, c)
+    s = shared_error(_with_position_noise(T_gt, c + n_a), _with_position_noise(T_gt, c + n_b), T_gt)
+    assert s.rpe_trans_m == pytest.approx(rpe(T_c, T_gt).trans_rmse_m, rel=0.05)
+    assert s.ate_m == pytest.approx(ate(T_c, T_gt).rmse_m, rel=0.05)
+    independent = shared_error(_with_position_noise(T_gt, n_a), _with_position_noise(T_gt, n_b), T_gt)
+    assert independent.rpe_trans_m < 0.2 * rpe(T_c, T_gt).trans_rmse_m  # nothing in common: ~0
+
+
+def test_shared_error_reports_each_estimates_scale():
+    _, T_gt = _smooth_trajectory(100, seed=15)
+    T_gt = torch.as_tensor(T_gt)
+    big = T_gt.clone()
+    big[:, :3, 3] *= 1.1
+    s = shared_error(big, T_gt, T_gt)
+    assert s.scale_a == pytest.approx(1 / 1.1, abs=1e-9) and s.scale_b == pytest.approx(1.0, abs=1e-9)

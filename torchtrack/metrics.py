@@ -230,6 +230,46 @@ def rpe(
     return RPEResult(_rms(trans), float(trans.mean()), _rms(rot), float(rot.mean()), trans, rot, pairs)
 
 
+class SharedError(NamedTuple):
+    ate_m: float  # sqrt(max(mean_i <e_a,i, e_b,i>, 0)) of the SE(3)-aligned position errors, metres
+    rpe_trans_m: float  # the same for the delta-1 relative translation errors t(E) of :func:`rpe`, metres
+    scale_a: float  # Sim(3) Umeyama scale mapping a's positions onto the ground truth
+    scale_b: float
+
+
+def shared_error(T_a, T_b, T_gt) -> SharedError:
+    """The part of two estimates' errors they have in common: a floor that the ground truth sets for both.
+
+    With per-frame error vectors ``e_a = c + n_a`` and ``e_b = c + n_b`` (``c`` common to both, ``n_a``, ``n_b``
+    independent of each other and of ``c``), ``mean <e_a, e_b> -> mean |c|^2``. Two independent methods share
+    the errors of the ground truth itself (and of sensor artefacts both see), so a third method that shares
+    them scores no lower than ``sqrt(mean |c|^2)``. Reported as the square root (0 when the mean is negative).
+
+    Args:
+        T_a, T_b, T_gt: (F, 4, 4) ``T_world_cam`` of two estimates and the ground truth, associated.
+    """
+    T_a, T_gt = _pose_pair(T_a, T_gt)
+    T_b, _ = _pose_pair(T_b, T_gt)
+
+    def ate_vectors(T):
+        R, t, _ = umeyama_alignment(T[:, :3, 3], T_gt[:, :3, 3])
+        return transform_points(make_T(R, t), T[:, :3, 3]) - T_gt[:, :3, 3]
+
+    def rpe_vectors(T):
+        Q_rel = T_inv(T_gt[:-1]) @ T_gt[1:]
+        return (T_inv(Q_rel) @ T_inv(T[:-1]) @ T[1:])[:, :3, 3]  # t(E) of rpe(), delta 1 frame
+
+    def common(ea, eb):
+        return float((ea * eb).sum(-1).mean().clamp_min(0).sqrt())
+
+    def scale(T):
+        return float(umeyama_alignment(T[:, :3, 3], T_gt[:, :3, 3], with_scale=True).s)
+
+    return SharedError(
+        common(ate_vectors(T_a), ate_vectors(T_b)), common(rpe_vectors(T_a), rpe_vectors(T_b)), scale(T_a), scale(T_b)
+    )
+
+
 def per_axis_errors(T_est, T_gt) -> PerAxisErrors:
     """Per-axis rotation and translation errors of object poses (the quantities behind Table VI).
 
