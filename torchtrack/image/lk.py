@@ -3,11 +3,12 @@
 Translation LK, per point and pyramid level (coarse to fine, the result of a level seeding the next):
 - template, once: the w x w window of the previous image around the point (bilinear, as all windows), its
   Scharr gradients g and the gradient matrix H = g g^T (degenerate, as OpenCV, when its smallest eigenvalue
-  is below min_eig); the finest level's first, so that points degenerate there are not tracked at all;
+  is below min_eig); every level's in one call (they depend on the start point only); points degenerate at the
+  finest level are not tracked at all;
 - iterations: one integer (w+1)^2 patch of the next image per point, gathered by a single ``index_select``
   over rows of the packed pyramid buffer, interpolated by two lerps (all window pixels share one pair of
   bilinear weights), and the inverse-compositional step H^-1 g (T - J).
-All points of all images form one flat list that is compacted as points stop (per-point early stop); there
+All points of all images form one flat list, compacted as points stop (per-point early stop); there
 is no Python loop over points, and images stacked in the batch (intensity and SIM) share every call.
 
 The difference from OpenCV's ``calcOpticalFlowPyrLK`` (same pyramid, gradients, window, criteria and
@@ -61,6 +62,13 @@ class _Sampler:
         self.stride = torch.tensor([1.0, float(pyr.stride)], dtype=self.dtype)
         self.base_table = ((pyr.row_start + pyr.pad) * pyr.stride + pyr.pad).to(self.dtype)  # L,B: level px (0, 0)
         self._rows: dict[int, tuple[Tensor, Tensor]] = {}
+
+    @staticmethod
+    def of(pyr: Pyramid, window: int) -> _Sampler:
+        """The sampler of a pyramid, built once and kept with it (the pyramid is used by two LK calls at least)."""
+        if window not in pyr.samplers:
+            pyr.samplers[window] = _Sampler(pyr, window)
+        return pyr.samplers[window]
 
     def rows(self, size: int) -> tuple[Tensor, Tensor]:
         """A sliding view (len, size) of the flat buffer (row i = flat[i : i + size]) and the (C * size,) int32
@@ -145,9 +153,9 @@ def _template(sampler: _Sampler, x: Tensor, base: Tensor, min_eig: float):
     return g, a[:, :, 2].reshape(n, 1, 2), h_inv, det, degenerate
 
 
-def _newton(r: Tensor, step: Tensor, g: Tensor, h_det: Tensor, jy: Tensor, patch: Tensor, fx: Tensor) -> Tensor:
+def _newton(r: Tensor, step: Tensor, g_t: Tensor, h_det: Tensor, jy: Tensor, patch: Tensor, fx: Tensor) -> Tensor:
     """Newton step on the normal equations R(q) = (T - J(q)) @ g^T = r (n, 1, 2), whose inverse-compositional
-    step is ``step`` = r @ h_inv: M^-1 r with M = -dR/dq = g @ dJ/dq^T (n, 2, 2), from the exact derivatives of
+    step is ``step`` = r @ h_inv: M^-1 r with M = -dR/dq = g @ dJ/dq^T (n, 2, 2) (g_t = g^T), from the exact derivatives of
     the bilinear window: d/dx from the y-interpolated patch jy (n, C, w, w+1), d/dy from the raw patch
     (n, C, w+1, w+1). Where H^-1 M is far from the identity (det < 0.01; H = g @ g^T has determinant h_det)
     the step stays ``step``."""
@@ -155,7 +163,6 @@ def _newton(r: Tensor, step: Tensor, g: Tensor, h_det: Tensor, jy: Tensor, patch
     djx = jy[..., 1:] - jy[..., :-1]
     dpy = patch[:, :, 1:] - patch[:, :, :-1]
     djy = torch.lerp(dpy[..., :-1], dpy[..., 1:], fx)
-    g_t = g.mT
     m_t = torch.cat([torch.bmm(djx.view(n, 1, -1), g_t), torch.bmm(djy.view(n, 1, -1), g_t)], 1)  # M^T (unscaled)
     m_t_inv, det = _inverse_2x2(m_t)
     newton = torch.bmm(r, m_t_inv).view(n, 2)
@@ -168,44 +175,53 @@ def _iterate(sampler, level, q, g, tg, h_inv, h_det, base, *, iters, eps, ic_ite
 
     A point stops when its update is at most eps (converged), or, in the Newton phase, when its update
     is not at least halved (not converging), or after iters iterations. Windows are sampled inside the
-    padded image; a point that leaves it stops (not converged).
+    padded image; a point that leaves it stops (not converged). A stopped point stays in the batch, frozen,
+    until half of the batch has stopped; then the batch is compacted (fewer tensor operations than compacting
+    at every stop, for the same results).
     Returns the final centres (P, 2) and converged flags (P,).
     """
     lo, hi = sampler.bounds(level)
     q_out, conv_out = q.clone(), torch.zeros(q.shape[0], dtype=torch.bool)
-    ids = torch.arange(q.shape[0])
     if q.shape[0] == 0:
         return q_out, conv_out
-    size, stride, eps2, d2_prev = sampler.window + 1, sampler.stride, eps * eps, None
+    ids, live, conv_all = torch.arange(q.shape[0]), torch.ones_like(conv_out), torch.zeros_like(conv_out)
+    size, stride, eps2, d2_prev, g_t = sampler.window + 1, sampler.stride, eps * eps, None, g.mT
     exact = sampler.dtype == q.dtype  # else float64 index arithmetic (buffers of 2^24 elements and more)
     for j in range(iters):
         n = q.shape[0]
         fl0 = q.floor()
         fl = fl0.clamp(lo, hi)
-        fr = q - fl
+        f = (q - fl).view(n, 2, 1, 1, 1)  # fractions (x, y)
         patch = sampler.gather(torch.addmv(base, fl if exact else fl.to(base.dtype), stride), size)  # n,C,w+1,w+1
-        fx, fy = fr[:, 0].view(n, 1, 1, 1), fr[:, 1].view(n, 1, 1, 1)
-        jy = torch.lerp(patch[:, :, :-1], patch[:, :, 1:], fy)
-        win = torch.lerp(jy[..., :-1], jy[..., 1:], fx)
-        r = torch.baddbmm(tg, win.view(n, 1, -1), g.mT, alpha=-1.0)  # (T - J) @ g^T
+        jy = torch.lerp(patch[:, :, :-1], patch[:, :, 1:], f[:, 1])
+        win = torch.lerp(jy[..., :-1], jy[..., 1:], f[:, 0])
+        r = torch.baddbmm(tg, win.view(n, 1, -1), g_t, alpha=-1.0)  # (T - J) @ g^T
         delta = torch.bmm(r, h_inv).view(n, 2)  # inverse-compositional step (h_inv is symmetric)
         if j >= ic_iters:
-            delta = _newton(r, delta, g, h_det, jy, patch, fx)
-        q = q + delta
+            delta = _newton(r, delta, g_t, h_det, jy, patch, f[:, 0])
+        q = torch.where(live.view(n, 1), q + delta, q)
         d2 = torch.linalg.vecdot(delta, delta)
         conv = d2 <= eps2
-        done = conv | (fl != fl0).any(-1)  # converged, or left the sampleable area
+        stop = conv | (fl != fl0).any(-1)  # converged, or left the sampleable area
         if j > ic_iters:
-            done |= d2 > 0.25 * d2_prev  # Newton converges fast: a step not halved means no convergence
+            stop |= d2 > 0.25 * d2_prev  # Newton converges fast: a step not halved means no convergence
         d2_prev = d2
-        if j == iters - 1 or bool(done.any()):
+        stop &= live
+        conv_all |= stop & conv
+        live &= ~stop
+        n_live = int(live.sum())
+        if n_live == 0 or j == iters - 1:
+            break
+        if 2 * n_live <= n:
             q_out[ids] = q
-            conv_out[ids] = conv
-            keep = (~done).nonzero().squeeze(1)
-            if keep.numel() == 0:
-                break
+            conv_out[ids] = conv_all
+            keep = live.nonzero().squeeze(1)
             ids, q, base, d2_prev, h_det = ids[keep], q[keep], base[keep], d2[keep], h_det[keep]
+            live, conv_all = live[keep], conv_all[keep]
             g, tg, h_inv = g.index_select(0, keep), tg.index_select(0, keep), h_inv.index_select(0, keep)
+            g_t = g.mT
+    q_out[ids] = q
+    conv_out[ids] = conv_all
     return q_out, conv_out
 
 
@@ -236,36 +252,34 @@ def lk_track_flat(
         with_residual).
     """
     with torch.inference_mode():
-        s_prev, s_next = _Sampler(prev, window), _Sampler(next, window)
+        s_prev, s_next = _Sampler.of(prev, window), _Sampler.of(next, window)
         h0, w0 = prev.size(0)
         inside = (points >= 0).all(-1) & (points[:, 0] <= w0 - 1) & (points[:, 1] <= h0 - 1)
         guess, status = init.clone(), inside.clone()
         sel = inside.nonzero().squeeze(1)
-        # The finest template first: a point degenerate there fails whatever the coarse levels find, so it is
-        # not tracked at all (OpenCV tracks it through the coarse levels, then reports it as failed).
-        x0, img = points[sel], image_index[sel]
-        if sel.numel():
-            fine = _template(s_prev, x0, s_prev.base(0, img), min_eig)
-            ok = (~fine[-1]).nonzero().squeeze(1)
-            sel, x0, img = sel[ok], x0[ok], img[ok]
-            fine = [t.index_select(0, ok) for t in fine[:-1]]
         tracked = torch.zeros_like(status)
-        tracked[sel] = True
         status[:] = False
+        if sel.numel():
+            x0, img = points[sel], image_index[sel]
+            # The templates of all levels in one call (rows level-major): they depend on x0 only.
+            scale = 0.5 ** torch.arange(levels, dtype=x0.dtype)
+            x_levels = (scale.view(-1, 1, 1) * x0).reshape(-1, 2)
+            base = s_prev.base_table[:levels].index_select(1, img).reshape(-1)
+            *template, degenerate = _template(s_prev, x_levels, base, min_eig)
+            degenerate = degenerate.view(levels, -1)
+            # A point degenerate at the finest level fails whatever the coarse levels find, so it is not tracked
+            # at all (OpenCV tracks it through the coarse levels, then reports it as failed).
+            fine = ~degenerate[0]
+            tracked[sel[fine]] = True
         for level in reversed(range(levels) if sel.numel() else ()):
-            scale = 0.5**level
-            if level == 0:
-                track, (g, tg, h_inv, h_det) = torch.arange(sel.numel()), fine
-            else:
-                g, tg, h_inv, h_det, degenerate = _template(s_prev, x0 * scale, s_prev.base(level, img), min_eig)
-                track = (~degenerate).nonzero().squeeze(1)  # degenerate at a coarse level: skip the level (OpenCV)
-                g, tg, h_inv, h_det = g[track], tg[track], h_inv[track], h_det[track]
+            track = (fine & ~degenerate[level]).nonzero().squeeze(1)  # degenerate at a coarse level: skip it (OpenCV)
+            g, tg, h_inv, h_det = (t.index_select(0, track + level * sel.numel()) for t in template)
             rows = sel[track]
             q, conv = _iterate(
-                s_next, level, guess[rows] * scale, g, tg, h_inv, h_det, s_next.base(level, img[track]),
+                s_next, level, guess[rows] * 0.5**level, g, tg, h_inv, h_det, s_next.base(level, img[track]),
                 iters=iters, eps=eps, ic_iters=ic_iters,
             )  # fmt: skip
-            guess[rows] = q / scale
+            guess[rows] = q / 0.5**level
             if level == 0:
                 status[rows] = conv
         status &= (guess >= 0).all(-1) & (guess[:, 0] <= w0 - 1) & (guess[:, 1] <= h0 - 1)

@@ -15,7 +15,7 @@ images are sampled by a single call. Gradients are taken on the gathered patches
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 import torch.nn.functional as F
@@ -34,6 +34,7 @@ class Pyramid:
         row_start: (L, B) int64 first buffer row of each level and image.
         stride: S, the row stride (W + 2 pad). plane: R * S, the channel stride.
         pad: border in pixels; windows up to ``2 * (pad - 3) + 1`` pixels wide fit.
+        samplers: LK's index tables of this pyramid by window size, built on first use.
     """
 
     images: list[Tensor]
@@ -42,6 +43,7 @@ class Pyramid:
     stride: int
     plane: int
     pad: int
+    samplers: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def levels(self) -> int:
