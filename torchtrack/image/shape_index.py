@@ -56,12 +56,12 @@ class ShapeIndex(NamedTuple):
         si: float32 shape index in [0, 1] (eq. (8)); ``fill`` where not ``valid``.
         valid: bool, SI defined: depth valid, away from depth edges and holes, not near-planar.
         curvedness: float32 ``sqrt((k1^2 + k2^2) / 2)`` in 1/m (nearest-upsampled when decimated); 0 where
-            depth or support is missing.
+            depth or support is missing. None when not asked for.
     """
 
     si: Tensor
     valid: Tensor
-    curvedness: Tensor
+    curvedness: Tensor | None
 
 
 class SIM(NamedTuple):
@@ -175,6 +175,7 @@ def shape_index(
     max_incidence: float = 60.0,
     decimate: int = 2,
     fill: float = 0.5,
+    curvedness: bool = True,
 ) -> ShapeIndex:
     """Shape index map of a depth batch, eq. (8). Conventions in the module docstring.
 
@@ -194,6 +195,7 @@ def shape_index(
             (grazing surfaces: depth there is unreliable and the SI estimate breaks down).
         decimate: compute on every ``decimate``-th pixel and upsample linearly (1 = full resolution).
         fill: SI given to masked pixels.
+        curvedness: also return the curvedness map (False: None, one full-resolution copy less).
 
     Returns:
         ShapeIndex(si, valid, curvedness), each (B, 1, H, W).
@@ -225,12 +227,15 @@ def shape_index(
     ok = ok * (curv >= min_curvature).to(z.dtype) * (cos_inc >= math.cos(math.radians(max_incidence))).to(z.dtype)
     si = torch.where(ok > 0, si, torch.full_like(si, math.nan))  # NaN marks masked samples through the upsampling
 
-    if d > 1:  # a pixel between samples is valid when all the samples it mixes are
-        si = _upsample(si, d, H, W)
+    si = _upsample(si, d, H, W)  # a pixel between samples is valid when all the samples it mixes are
+    if not curvedness:
+        curv = None
+    elif d > 1:
         h, w = curv.shape[-2:]
         curv = curv[:, :, None, :, None].expand(B, h, d, w, d).reshape(B, h * d, w * d)[:, :H, :W]  # nearest
     valid = ~torch.isnan(si)
-    return ShapeIndex(si=si.nan_to_num(fill).unsqueeze(1), valid=valid.unsqueeze(1), curvedness=curv.unsqueeze(1))
+    curv = curv.unsqueeze(1) if curv is not None else None
+    return ShapeIndex(si=si.nan_to_num(fill).unsqueeze(1), valid=valid.unsqueeze(1), curvedness=curv)
 
 
 def sim_image(sim: ShapeIndex | Tensor, valid: Tensor | None = None, *, fill: float = 0.5) -> Tensor:
@@ -253,7 +258,7 @@ def sim_image(sim: ShapeIndex | Tensor, valid: Tensor | None = None, *, fill: fl
 
 def compute_sim(depth: Tensor, K: Tensor, **kwargs) -> SIM:
     """One call for the per-frame pipeline: ``shape_index(depth, K, **kwargs)`` and its ``sim_image``."""
-    s = shape_index(depth, K, **kwargs)
+    s = shape_index(depth, K, **kwargs, curvedness=False)
     image = (s.si * 255.0).round_().div_(255.0)  # SI and fill are in [0, 1]: sim_image without its clamp
     return SIM(si=s.si, valid=s.valid, image=image)
 
