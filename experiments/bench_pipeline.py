@@ -1,6 +1,7 @@
 """Benchmark the whole torchtrack pipeline (issue 5, "Speed"): fps at B=1, aggregate frames/s at B=4, stages.
 
-The tracker is built exactly as the CLI builds it (Hydra config composed in-process) and run on a real
+The tracker is built exactly as the CLI builds it (Hydra config composed in-process, the CLI's process settings
+from ``torchtrack.runtime.configure``: glibc allocator tuning and the thread count) and run on a real
 640x480 sequence read by the real loader (``iterate_batched``: PNG/JPEG decoding in a background thread,
 overlapping compute, as in ``torchtrack``), so image decoding is included. Target: >= 20 fps at B=1.
 The stage breakdown wraps the tracker's components from the outside with timing proxies (``tracker.frontend``,
@@ -35,6 +36,7 @@ import torchtrack.frontend as frontend_module
 import torchtrack.tracker as tracker_module
 from torchtrack.cli import build_sequences, build_tracker
 from torchtrack.data.batching import iterate_batched
+from torchtrack.runtime import configure
 
 REPO = Path(__file__).resolve().parents[1]
 CONF = REPO / "conf"
@@ -244,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-peer", action="store_true", help="skip Open3D's RGB-D odometry")
     args = ap.parse_args([a for a in argv if a not in overrides])
     logging.basicConfig(level=logging.WARNING)
-    torch.set_num_threads(args.threads)
+    configure(args.threads)  # as the CLI: without the allocator tuning, image-sized temporaries page-fault every frame
 
     root = args.root if args.root.is_dir() else None
     cfg = compose_config(root, args.frames, overrides)
