@@ -103,6 +103,8 @@ def test_shapes_dtypes_and_range():
     assert torch.equal(out.si, s.si) and torch.equal(out.valid, s.valid)
     odd = shape_index(d[..., :301, :457], K)  # sizes not divisible by the decimation
     assert odd.si.shape == odd.valid.shape == odd.curvedness.shape == (2, 1, 301, 457)
+    lean = shape_index(d, K, curvedness=False)  # as compute_sim calls it
+    assert lean.curvedness is None and torch.equal(lean.si, s.si) and torch.equal(lean.valid, s.valid)
 
 
 @pytest.mark.parametrize(
