@@ -28,6 +28,11 @@ class RGBDSequence(Protocol):
     def __getitem__(self, i: int) -> RGBDFrame: ...
 
 
+def _batch(images: Sequence[Tensor]) -> Tensor:
+    """Stack images along a new batch dimension; one image becomes a view (no copy of a whole frame)."""
+    return images[0].unsqueeze(0) if len(images) == 1 else torch.stack(list(images))
+
+
 def _stack(frames: Sequence[RGBDFrame], seqs: Sequence[RGBDSequence], active: list[bool]) -> FrameBatch:
     """B frames (one per sequence) -> FrameBatch; checks that all share H, W."""
     sizes = {tuple(f.rgb.shape[1:]) for f in frames} | {tuple(f.depth.shape[1:]) for f in frames}
@@ -35,8 +40,8 @@ def _stack(frames: Sequence[RGBDFrame], seqs: Sequence[RGBDSequence], active: li
         got = ", ".join(f"{s.name}: {tuple(f.rgb.shape[1:])}" for s, f in zip(seqs, frames, strict=True))
         raise DataError(f"sequences batched together must share the image size (H, W); got {got}")
     return FrameBatch(
-        rgb=torch.stack([f.rgb for f in frames]),
-        depth=torch.stack([f.depth for f in frames]),
+        rgb=_batch([f.rgb for f in frames]),
+        depth=_batch([f.depth for f in frames]),
         K=torch.stack([s.K for s in seqs]).float(),
         K_depth=torch.stack([s.K_depth for s in seqs]).float(),
         T_color_depth=torch.stack([s.T_color_depth for s in seqs]).float(),
