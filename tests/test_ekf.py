@@ -271,3 +271,19 @@ def test_masked_feature_with_singular_model_does_not_leak():
         assert torch.isfinite(out.mean).all() and torch.isfinite(out.cov).all()
         torch.testing.assert_close(out.mean, ref.mean)
         torch.testing.assert_close(out.cov, ref.cov)
+
+
+@pytest.mark.parametrize("iterations", [1, 3])
+def test_reused_linearization_equals_a_fresh_one(iterations):
+    """A second update from the same prior with another mask, given the first one's (h, H), equals one that
+    linearises again (the valid entries do not depend on the mask)."""
+    mean, cov, z, var, fi, si = fusion_problem()
+    valid = torch.ones(z.shape[:2], dtype=torch.bool)
+    first = ekf.update(mean, cov, z, var, valid, measure_single, fi, si, iterations=iterations)
+    valid[:, :5] = False
+    fresh = ekf.update(mean, cov, z, var, valid, measure_single, fi, si, iterations=iterations)
+    reused = ekf.update(
+        mean, cov, z, var, valid, measure_single, fi, si, iterations=iterations, linearization=first.linearization
+    )
+    torch.testing.assert_close(reused.mean, fresh.mean, atol=1e-12, rtol=0)
+    torch.testing.assert_close(reused.cov, fresh.cov, atol=1e-12, rtol=0)

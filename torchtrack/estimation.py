@@ -107,20 +107,20 @@ class EKFBackend:
             valid_xyz = valid & ok_xyz
             valid = valid & (ok_pix | ok_xyz)
         prior = (self.ekf.mean, self.ekf.cov)
-        self._update(obs, valid, valid_xyz)  # eqs. (6)-(7), (15)
+        est = self._update(obs, valid, valid_xyz)  # eqs. (6)-(7), (15)
         if self.refit is not None:
             ok_xyz, ok_pix = self._gate(obs, self.refit, with_cov=False)
             xyz = valid if valid_xyz is None else valid_xyz
             refit_xyz, refit = xyz & ok_xyz, valid & ok_pix
             if bool((refit_xyz != xyz).any() | (refit != valid).any()):
-                self.ekf.mean, self.ekf.cov = prior
-                self._update(obs, refit | refit_xyz, refit_xyz)
+                self.ekf.mean, self.ekf.cov = prior  # same prior, same linearisation: only the mask changes
+                self._update(obs, refit | refit_xyz, refit_xyz, est.linearization)
         return self.ekf.T_cam_obj
 
-    def _update(self, obs: Observation, valid: Tensor, valid_xyz: Tensor | None) -> None:
-        self.ekf.update(
+    def _update(self, obs: Observation, valid: Tensor, valid_xyz: Tensor | None, linearization=None):
+        return self.ekf.update(
             obs.points_obj, obs.points_d, obs.pixels, valid, obs.var_xyz, obs.var_pix, obs.K, obs.T_color_depth,
-            valid_xyz=valid_xyz,
+            valid_xyz=valid_xyz, linearization=linearization,
         )  # fmt: skip
 
     def _gate(self, obs: Observation, p: float | None = None, with_cov: bool = True) -> tuple[Tensor, Tensor]:

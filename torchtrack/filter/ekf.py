@@ -62,12 +62,15 @@ class Update(NamedTuple):
         cov: (B, S, S) posterior covariance (symmetric PD).
         innovation: (B, N, M) ``z - h(mu-)`` at the predicted mean; 0 where invalid.
         num_valid: (B,) number of valid measurement components used.
+        linearization: (h (B, N, M), H (B, N, M, S)) at the predicted mean, for a second update from the same
+            prior with another mask (``update(..., linearization=...)``; valid entries do not depend on the mask).
     """
 
     mean: Tensor
     cov: Tensor
     innovation: Tensor
     num_valid: Tensor
+    linearization: tuple[Tensor, Tensor] | None = None
 
 
 def symmetrize(cov: Tensor) -> Tensor:
@@ -149,6 +152,7 @@ def update(
     iterations: int = 1,
     jacobian: Literal["forward", "reverse"] = "forward",
     linearizer: Linearizer | None = None,
+    linearization: tuple[Tensor, Tensor] | None = None,
 ) -> Update:
     """EKF measurement update with diagonal, per-feature noise (eq. (15) or its information form).
 
@@ -164,6 +168,8 @@ def update(
         jacobian: autograd mode for h_single's Jacobian, "forward" (jacfwd) or "reverse" (jacrev).
         linearizer: optional batched ``(x (B,S), feature_inputs, sequence_inputs) -> (h (B,N,M), H (B,N,M,S))``
             replacing autograd (e.g. an analytic Jacobian).
+        linearization: optional (h, H) already computed at ``mean`` (``Update.linearization`` of an update from
+            the same prior): used instead of linearising again at the first iteration.
 
     Returns:
         :class:`Update`. A sequence without valid measurements keeps its prediction exactly.
@@ -194,10 +200,13 @@ def update(
     sw = w.sqrt()  # 1/sigma, 0 where invalid
     x = mean
     for it in range(iterations):
-        h, H = linearizer(x, feature_inputs, sequence_inputs)
+        if it == 0 and linearization is not None:
+            h, H = linearization
+        else:
+            h, H = linearizer(x, feature_inputs, sequence_inputs)
         r = torch.where(valid, z_safe - h, torch.zeros_like(h))
         if it == 0:
-            innovation = r
+            innovation, at_prior = r, (h, H)
         if form == "information":  # whitened rows: H_i / sigma_i, one pass over the big (B,N,M,S) tensor
             Hs = torch.where(valid[..., None], H * sw[..., None], torch.zeros_like(H))
             rs = r * sw
@@ -209,7 +218,7 @@ def update(
             if it > 0:
                 r = r - (Hm @ (mean - x)[:, None, :, None])[..., 0]
             x, new_cov = _gain_step(mean, cov, Hm, var_safe, r)
-    return Update(x, new_cov, innovation, valid.sum((1, 2)))
+    return Update(x, new_cov, innovation, valid.sum((1, 2)), at_prior)
 
 
 def _information_step(mean: Tensor, cov: Tensor, Hs: Tensor, rs: Tensor) -> tuple[Tensor, Tensor]:

@@ -42,6 +42,7 @@ class PoseEstimate(NamedTuple):
         innovation: (B, N, 5) ``z - h(predicted state)``: 3D (m) then pixel (px) residuals; 0 where invalid.
         num_valid: (B,) number of valid features used.
         updated: (B,) bool, False where no valid feature was given (the prediction was kept).
+        linearization: the measurement model's (h, H) at the predicted state (see :func:`fuse`).
     """
 
     T_cam_obj: Tensor
@@ -50,6 +51,7 @@ class PoseEstimate(NamedTuple):
     innovation: Tensor
     num_valid: Tensor
     updated: Tensor
+    linearization: tuple[Tensor, Tensor] | None = None
 
 
 def fuse(
@@ -68,6 +70,7 @@ def fuse(
     form: Literal["information", "gain"] = "information",
     iterations: int = 1,
     jacobian: JacobianMode = "analytic",
+    linearization: tuple[Tensor, Tensor] | None = None,
 ) -> ekf.Update:
     """One EKF update with N features of 5 measurements each, eqs. (6)–(7), (15).
 
@@ -80,6 +83,8 @@ def fuse(
         var_xyz, var_pix: (B, N) per-feature variances (m^2, px^2), e.g. from eqs. (11)–(14).
         K: (B, 3, 3) colour intrinsics; T_color_depth: (B, 4, 4) depth -> colour extrinsic (R_dv, t_dv).
         form, iterations: see :func:`torchtrack.filter.ekf.update`.
+        linearization: (h, H) at ``mean`` from an earlier fuse from the same prior (``Update.linearization``), e.g.
+            to update again without some features: skips the autograd Jacobian.
         jacobian: "analytic" (default) uses :func:`~torchtrack.filter.models.measure_analytic`; "forward" /
             "reverse" take ``vmap(jacfwd / jacrev(measure_single))`` by autograd. Equal to 1e-10 (tested);
             analytic is the default for speed: ~0.5 ms vs ~3.5-7 ms for jacfwd at N = 300 on a laptop-class
@@ -117,6 +122,7 @@ def fuse(
         iterations=iterations,
         jacobian="reverse" if jacobian == "reverse" else "forward",
         linearizer=lin,
+        linearization=linearization,
     )
 
 
@@ -215,6 +221,7 @@ class FusionEKF:
         K: Tensor | None = None,
         T_color_depth: Tensor | None = None,
         valid_xyz: Tensor | None = None,
+        linearization: tuple[Tensor, Tensor] | None = None,
     ) -> PoseEstimate:
         """Fuse one frame's features (see :func:`fuse` for shapes). K is required; T_color_depth defaults to I.
 
@@ -233,12 +240,15 @@ class FusionEKF:
         out = fuse(
             mean, cov, points_obj, points_d, pixels, valid, var_xyz, var_pix, K, T_color_depth,
             valid_xyz=valid_xyz, form=self.form, iterations=self.iterations, jacobian=self.jacobian,
+            linearization=linearization,
         )  # fmt: skip
         self.mean, self.cov = out.mean, out.cov
         theta = self.mean[:, 1].abs()
         if bool((theta > 1.4).any()):
             log.warning("FusionEKF: |theta| > 80 deg, near the Euler singularity; re-select the model frame")
-        return PoseEstimate(self.T_cam_obj, self.cov, self.mean, out.innovation, valid.sum(-1), out.num_valid > 0)
+        return PoseEstimate(
+            self.T_cam_obj, self.cov, self.mean, out.innovation, valid.sum(-1), out.num_valid > 0, out.linearization
+        )
 
     def _state(self) -> tuple[Tensor, Tensor]:
         if self.mean is None or self.cov is None:
