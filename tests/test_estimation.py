@@ -2,8 +2,8 @@
 
 import pytest
 import torch
-
 from test_fusion import DT, body, measurements, true_pose
+
 from torchtrack.estimation import EKFBackend, Observation, chi2_quantile
 from torchtrack.filter import FusionEKF
 

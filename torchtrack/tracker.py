@@ -25,7 +25,7 @@ from torchtrack.estimation import Observation, PoseBackend
 from torchtrack.estimators.base import masked_mean
 from torchtrack.filter.weighting import WeightingInputs
 from torchtrack.frontend import FrontEnd, PreparedFrame, measure_points, smooth_depth_mask
-from torchtrack.geometry import T_inv, make_T
+from torchtrack.geometry import T_inv, make_T, transform_points
 from torchtrack.metrics import reprojection_errors
 
 
@@ -167,10 +167,11 @@ class Tracker:
         if self.edge_step is not None:
             roi = roi & smooth_depth_mask(cur.depth, self.edge_step)
         feats = self.select(cur.gray, cur.depth, frame.K, roi=roi, sim=cur.sim)  # eq. (9)
-        points_d, has_depth = measure_points(cur, frame, feats.pixels)
+        pixels = feats.pixels
+        points_d, has_depth = measure_points(cur, frame, pixels)
         valid = feats.valid & has_depth
         if self.keep_survivors and self.pixels is not None:
-            feats, points_d, valid = self._with_survivors(feats, points_d, valid, mask)
+            pixels, points_d, valid = self._with_survivors(pixels, points_d, valid, mask)
         centroid = masked_mean(points_d, valid.to(points_d.dtype))
         points_obj = torch.where(valid[..., None], points_d - centroid[:, None], torch.zeros_like(points_d))
         T_cam_obj = make_T(torch.eye(3, dtype=torch.float64).expand(len(mask), 3, 3), centroid.double())
@@ -184,33 +185,31 @@ class Tracker:
             self.pixels, self.valid, self.points_obj = (
                 pad_to(t, n) for t in (self.pixels, self.valid, self.points_obj)
             )
-            feats = feats._replace(pixels=pad_to(feats.pixels, n))
-            valid, points_obj = pad_to(valid, n), pad_to(points_obj, n)
+            pixels, valid, points_obj = pad_to(pixels, n), pad_to(valid, n), pad_to(points_obj, n)
         self.T_world_obj = torch.where(m3, T_world_cam @ T_cam_obj, self.T_world_obj)
         self.T_cam_obj = torch.where(m3, T_cam_obj, self.T_cam_obj)
-        self.pixels = feats.pixels if self.pixels is None else torch.where(m2[..., None], feats.pixels, self.pixels)
+        self.pixels = pixels if self.pixels is None else torch.where(m2[..., None], pixels, self.pixels)
         self.valid = valid if self.valid is None else torch.where(m2, valid, self.valid)
         self.points_obj = points_obj if self.points_obj is None else torch.where(m3, points_obj, self.points_obj)
         n = valid.sum(1)
         self.n_model = n if self.n_model is None else torch.where(mask, n, self.n_model)
         self.backend.reset(self.T_cam_obj, mask)
 
-    def _with_survivors(self, feats, points_d: Tensor, valid: Tensor, mask: Tensor):
-        """Survivors first (their model points moved into the camera by the current pose), then new features
-        away from them, cut to the selector's count. Returns (features, points in the camera, valid)."""
+    def _with_survivors(self, pixels: Tensor, points_d: Tensor, valid: Tensor, mask: Tensor):
+        """Keep the tracked features of the sequences in ``mask``, add the new ones (B, M) that are at least
+        ``min_separation_px`` from all of them, cut to M. Survivors come first; their model points are moved
+        into the camera by the current pose, so that the new model frame sees them where the old one did.
+        Returns (pixels (B, M, 2), points in the camera (B, M, 3), valid (B, M))."""
         keep = self.valid & mask[:, None]
-        T = self.T_cam_obj.to(points_d.dtype)
-        old_cam = self.points_obj @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3]
-        near = torch.cdist(feats.pixels, self.pixels).masked_fill(~keep[:, None, :], float("inf")).amin(2)
-        valid = valid & (near >= self.min_separation_px)
-        pixels = torch.cat([self.pixels, feats.pixels], 1)
-        points = torch.cat([old_cam, points_d], 1)
-        ok = torch.cat([keep, valid], 1)
-        order = torch.sort((~ok).to(torch.uint8), dim=1, stable=True).indices[:, : valid.shape[1]]
-        take = lambda x: torch.gather(x, 1, order.view(*order.shape, *([1] * (x.dim() - 2))).expand(-1, -1, *x.shape[2:]))  # noqa: E731
-        ok = take(ok)
-        feats = feats._replace(pixels=torch.where(ok[..., None], take(pixels), 0.0))
-        return feats, torch.where(ok[..., None], take(points), 0.0), ok
+        old_points = transform_points(self.T_cam_obj.to(points_d.dtype), self.points_obj)
+        gap = torch.cdist(pixels, self.pixels).masked_fill(~keep[:, None, :], float("inf")).amin(2)
+        ok = torch.cat([keep, valid & (gap >= self.min_separation_px)], 1)
+        order = torch.sort((~ok).to(torch.uint8), dim=1, stable=True).indices[:, : valid.shape[1]]  # valid first
+        rows = torch.arange(ok.shape[0])[:, None]
+        ok = ok[rows, order]
+        pixels = torch.cat([self.pixels, pixels], 1)[rows, order]
+        points = torch.cat([old_points, points_d], 1)[rows, order]
+        return torch.where(ok[..., None], pixels, 0.0), torch.where(ok[..., None], points, 0.0), ok
 
     def _residuals(self, frame: FrameBatch) -> Tensor:
         """(B, N) reprojection error of each feature (eq. 16) under the current pose; inf where undefined."""
