@@ -63,3 +63,24 @@ def test_chi2_quantile_against_known_values():
 def test_bad_probabilities_raise(name, p):
     with pytest.raises(ValueError, match=name):
         EKFBackend(FusionEKF(), **{name: p})
+
+
+@pytest.mark.parametrize("part", ["pixel", "3d"])
+def test_refit_drops_only_the_failing_part(part):
+    """A feature whose pixel alone (or 3D point alone) is off loses only that part: the oracle is the filter
+    updated with exactly that measurement masked."""
+    obs = observation(outlier_px=4.0) if part == "pixel" else observation(outlier_m=0.02)
+    refit = estimate(EKFBackend(FusionEKF(), refit=0.999), obs)
+    keep = obs.valid.clone()
+    keep[:, 0] = False
+    oracle = FusionEKF()
+    oracle.reset(true_pose(0.0))
+    oracle.predict(obs.dt)
+    masks = {"valid_pix": keep} if part == "pixel" else {"valid_xyz": keep}
+    expected = oracle.update(
+        obs.points_obj, obs.points_d, obs.pixels, obs.valid, obs.var_xyz, obs.var_pix, obs.K, obs.T_color_depth,
+        **masks,
+    ).T_cam_obj  # fmt: skip
+    torch.testing.assert_close(refit, expected, atol=1e-12, rtol=0)
+    dropped_both = estimate(EKFBackend(FusionEKF()), observation(drop_outlier=True))
+    assert float((refit - dropped_both).abs().max()) > 1e-9  # the good part of feature 0 was kept

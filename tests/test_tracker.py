@@ -108,7 +108,7 @@ def test_baselines_share_the_front_end(synth, tracker):
 
 def test_keep_survivors_keeps_their_world_points_and_the_pose(synth):
     """A re-selection with keep_survivors re-expresses the tracked features in the new model frame (their world
-    points and the camera pose do not move) and adds new features only away from them, up to the selector's count."""
+    points and the camera pose do not move) and adds new features only away from them, up to the model's width."""
     seq = synth(seed=5, frames=4)
     tracker = make_tracker("tracker.keep_survivors=true", "tracker.reselect_fraction=0.0")
     frames = list(iterate_batched([seq], prefetch=False))
@@ -119,16 +119,36 @@ def test_keep_survivors_keeps_their_world_points_and_the_pose(synth):
     pixels, points = tracker.pixels[0][keep], (world()[..., 0] + tracker.T_world_obj[:, None, :3, 3].float())[0][keep]
     pose = tracker.T_world_obj @ T_inv(tracker.T_cam_obj)
     n_select = len(tracker.select(tracker.prev.gray, tracker.prev.depth, frames[-1].K, sim=tracker.prev.sim).valid[0])
+    width = max(n_select, tracker.pixels.shape[1])  # the new model: the selector's width or the old model's
 
     tracker._new_model(frames[-1], tracker.prev, torch.ones(1, dtype=torch.bool))
     valid = tracker.valid[0]
     new_pixels = tracker.pixels[0][valid]
     new_points = (world()[..., 0] + tracker.T_world_obj[:, None, :3, 3].float())[0][valid]
     k = len(pixels)
-    assert 0 < k < len(new_pixels) <= n_select
+    assert 0 < k < len(new_pixels) <= width
     torch.testing.assert_close(new_pixels[:k], pixels, atol=0, rtol=0)  # survivors first, in order
     torch.testing.assert_close(new_points[:k], points, atol=1e-5, rtol=0)
     torch.testing.assert_close(tracker.T_world_obj @ T_inv(tracker.T_cam_obj), pose, atol=1e-9, rtol=0)
     gap = torch.cdist(new_pixels[k:], pixels).amin(1)
     assert bool((gap >= 8.0).all()), f"a new feature {float(gap.min()):.1f} px from a survivor"
     assert int(tracker.n_model[0]) == len(new_pixels)
+
+
+def test_keep_survivors_keeps_them_all_when_the_selection_is_poor(synth):
+    """A re-selection frame where the selector finds only 5 features (blur, no texture) keeps every survivor."""
+    seq = synth(seed=7, frames=3)
+    tracker = make_tracker("tracker.keep_survivors=true", "tracker.reselect_fraction=0.0")
+    frames = list(iterate_batched([seq], prefetch=False))
+    for frame in frames:
+        tracker.step(frame)
+    survivors = int(tracker.valid.sum())
+    select = tracker.select
+    tracker.select = lambda *a, **k: select(*a, **k)._replace(
+        **{
+            f: getattr(select(*a, **k), f)[:, :5]
+            for f in ("pixels", "points", "cornerness", "cornerness_int", "cornerness_sim", "valid")
+        }
+    )  # noqa: E501
+    tracker._new_model(frames[-1], tracker.prev, torch.ones(1, dtype=torch.bool))
+    assert survivors > 5 and int(tracker.valid.sum()) >= survivors

@@ -6,6 +6,7 @@ the same per-frame :class:`Observation` of tracked features and return ``T_cam_o
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Protocol
@@ -51,6 +52,7 @@ class PoseBackend(Protocol):
         """One frame: observation in, ``T_cam_obj`` (B, 4, 4) out."""
 
 
+@functools.lru_cache(maxsize=64)
 def chi2_quantile(p: float, k: int) -> float:
     """Chi-square quantile with k degrees of freedom: the x with P(k/2, x/2) = p (regularised lower incomplete
     gamma), by bisection in float64 (exact to ~1e-12; closed form -2 log(1 - p) for k = 2)."""
@@ -101,26 +103,23 @@ class EKFBackend:
 
     def __call__(self, obs: Observation) -> Tensor:
         self.ekf.predict(obs.dt)  # eqs. (3)-(4)
-        valid, valid_xyz = obs.valid, None
+        xyz = pix = obs.valid  # which 3D points and which pixels are used
         if self.gate is not None:
             ok_xyz, ok_pix = self._gate(obs)
-            valid_xyz = valid & ok_xyz
-            valid = valid & (ok_pix | ok_xyz)
+            xyz, pix = xyz & ok_xyz, pix & ok_pix
         prior = (self.ekf.mean, self.ekf.cov)
-        est = self._update(obs, valid, valid_xyz)  # eqs. (6)-(7), (15)
+        est = self._update(obs, xyz, pix)  # eqs. (6)-(7), (15)
         if self.refit is not None:
             ok_xyz, ok_pix = self._gate(obs, self.refit, with_cov=False)
-            xyz = valid if valid_xyz is None else valid_xyz
-            refit_xyz, refit = xyz & ok_xyz, valid & ok_pix
-            if bool((refit_xyz != xyz).any() | (refit != valid).any()):
-                self.ekf.mean, self.ekf.cov = prior  # same prior, same linearisation: only the mask changes
-                self._update(obs, refit | refit_xyz, refit_xyz, est.linearization)
+            if bool((xyz & ~ok_xyz).any() | (pix & ~ok_pix).any()):
+                self.ekf.mean, self.ekf.cov = prior  # same prior, fewer features: the same linearisation
+                self._update(obs, xyz & ok_xyz, pix & ok_pix, est.linearization)
         return self.ekf.T_cam_obj
 
-    def _update(self, obs: Observation, valid: Tensor, valid_xyz: Tensor | None, linearization=None):
+    def _update(self, obs: Observation, xyz: Tensor, pix: Tensor, linearization=None):
         return self.ekf.update(
-            obs.points_obj, obs.points_d, obs.pixels, valid, obs.var_xyz, obs.var_pix, obs.K, obs.T_color_depth,
-            valid_xyz=valid_xyz, linearization=linearization,
+            obs.points_obj, obs.points_d, obs.pixels, xyz | pix, obs.var_xyz, obs.var_pix, obs.K, obs.T_color_depth,
+            valid_xyz=xyz, valid_pix=pix, linearization=linearization,
         )  # fmt: skip
 
     def _gate(self, obs: Observation, p: float | None = None, with_cov: bool = True) -> tuple[Tensor, Tensor]:

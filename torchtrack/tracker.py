@@ -197,14 +197,16 @@ class Tracker:
 
     def _with_survivors(self, pixels: Tensor, points_d: Tensor, valid: Tensor, mask: Tensor):
         """Keep the tracked features of the sequences in ``mask``, add the new ones (B, M) that are at least
-        ``min_separation_px`` from all of them, cut to M. Survivors come first; their model points are moved
-        into the camera by the current pose, so that the new model frame sees them where the old one did.
-        Returns (pixels (B, M, 2), points in the camera (B, M, 3), valid (B, M))."""
+        ``min_separation_px`` from all of them, up to the larger of M and the current model's width (a poor
+        selection never cuts survivors). Survivors come first; their model points are moved into the camera by
+        the current pose, so that the new model frame sees them where the old one did.
+        Returns (pixels (B, W, 2), points in the camera (B, W, 3), valid (B, W))."""
         keep = self.valid & mask[:, None]
         old_points = transform_points(self.T_cam_obj.to(points_d.dtype), self.points_obj)
         gap = torch.cdist(pixels, self.pixels).masked_fill(~keep[:, None, :], float("inf")).amin(2)
         ok = torch.cat([keep, valid & (gap >= self.min_separation_px)], 1)
-        order = torch.sort((~ok).to(torch.uint8), dim=1, stable=True).indices[:, : valid.shape[1]]  # valid first
+        width = max(valid.shape[1], self.pixels.shape[1])
+        order = torch.sort((~ok).to(torch.uint8), dim=1, stable=True).indices[:, :width]  # valid first
         rows = torch.arange(ok.shape[0])[:, None]
         ok = ok[rows, order]
         pixels = torch.cat([self.pixels, pixels], 1)[rows, order]

@@ -63,7 +63,8 @@ class Update(NamedTuple):
         innovation: (B, N, M) ``z - h(mu-)`` at the predicted mean; 0 where invalid.
         num_valid: (B,) number of valid measurement components used.
         linearization: (h (B, N, M), H (B, N, M, S)) at the predicted mean, for a second update from the same
-            prior with another mask (``update(..., linearization=...)``; valid entries do not depend on the mask).
+            prior with a subset of these valid features (``update(..., linearization=...)``; invalid features'
+            inputs are zeroed before linearising, so a feature valid now must have been valid here).
     """
 
     mean: Tensor

@@ -67,6 +67,7 @@ def fuse(
     T_color_depth: Tensor,
     *,
     valid_xyz: Tensor | None = None,
+    valid_pix: Tensor | None = None,
     form: Literal["information", "gain"] = "information",
     iterations: int = 1,
     jacobian: JacobianMode = "analytic",
@@ -79,7 +80,8 @@ def fuse(
         points_obj: (B, N, 3) model points X_o (object frame, centred at the model centroid).
         points_d: (B, N, 3) measured 3D points X_d in the depth camera (eq. (6)).
         pixels: (B, N, 2) measured pixels in the colour image (eq. (7)).
-        valid: (B, N) bool; valid_xyz: optional (B, N) bool that additionally masks only the 3D part.
+        valid: (B, N) bool; valid_xyz, valid_pix: optional (B, N) bool that additionally mask only the 3D part,
+            only the pixel part.
         var_xyz, var_pix: (B, N) per-feature variances (m^2, px^2), e.g. from eqs. (11)–(14).
         K: (B, 3, 3) colour intrinsics; T_color_depth: (B, 4, 4) depth -> colour extrinsic (R_dv, t_dv).
         form, iterations: see :func:`torchtrack.filter.ekf.update`.
@@ -102,7 +104,8 @@ def fuse(
     z = torch.cat([points_d, pixels], -1).to(dt)  # B,N,5
     var = torch.cat([var_xyz[..., None].expand(B, N, 3), var_pix[..., None].expand(B, N, 2)], -1).to(dt)
     v3 = valid if valid_xyz is None else valid & valid_xyz
-    valid5 = torch.cat([v3[..., None].expand(B, N, 3), valid[..., None].expand(B, N, 2)], -1)
+    v2 = valid if valid_pix is None else valid & valid_pix
+    valid5 = torch.cat([v3[..., None].expand(B, N, 3), v2[..., None].expand(B, N, 2)], -1)
     lin = None
     if jacobian == "analytic":
 
@@ -221,6 +224,7 @@ class FusionEKF:
         K: Tensor | None = None,
         T_color_depth: Tensor | None = None,
         valid_xyz: Tensor | None = None,
+        valid_pix: Tensor | None = None,
         linearization: tuple[Tensor, Tensor] | None = None,
     ) -> PoseEstimate:
         """Fuse one frame's features (see :func:`fuse` for shapes). K is required; T_color_depth defaults to I.
@@ -239,7 +243,7 @@ class FusionEKF:
             T_color_depth = torch.eye(4, dtype=self.dtype, device=mean.device).expand(B, 4, 4)
         out = fuse(
             mean, cov, points_obj, points_d, pixels, valid, var_xyz, var_pix, K, T_color_depth,
-            valid_xyz=valid_xyz, form=self.form, iterations=self.iterations, jacobian=self.jacobian,
+            valid_xyz=valid_xyz, valid_pix=valid_pix, form=self.form, iterations=self.iterations, jacobian=self.jacobian,
             linearization=linearization,
         )  # fmt: skip
         self.mean, self.cov = out.mean, out.cov
