@@ -65,22 +65,32 @@ def test_bad_probabilities_raise(name, p):
         EKFBackend(FusionEKF(), **{name: p})
 
 
-@pytest.mark.parametrize("part", ["pixel", "3d"])
-def test_refit_drops_only_the_failing_part(part):
-    """A feature whose pixel alone (or 3D point alone) is off loses only that part: the oracle is the filter
-    updated with exactly that measurement masked."""
-    obs = observation(outlier_px=4.0) if part == "pixel" else observation(outlier_m=0.02)
+def test_refit_drops_a_failing_3d_point_alone():
+    """A feature whose 3D point alone is off loses only that: the oracle is the filter with that point masked."""
+    obs = observation(outlier_m=0.02)
     refit = estimate(EKFBackend(FusionEKF(), refit=0.999), obs)
     keep = obs.valid.clone()
     keep[:, 0] = False
     oracle = FusionEKF()
     oracle.reset(true_pose(0.0))
     oracle.predict(obs.dt)
-    masks = {"valid_pix": keep} if part == "pixel" else {"valid_xyz": keep}
     expected = oracle.update(
         obs.points_obj, obs.points_d, obs.pixels, obs.valid, obs.var_xyz, obs.var_pix, obs.K, obs.T_color_depth,
-        **masks,
+        valid_xyz=keep,
     ).T_cam_obj  # fmt: skip
     torch.testing.assert_close(refit, expected, atol=1e-12, rtol=0)
     dropped_both = estimate(EKFBackend(FusionEKF()), observation(drop_outlier=True))
-    assert float((refit - dropped_both).abs().max()) > 1e-9  # the good part of feature 0 was kept
+    assert float((refit - dropped_both).abs().max()) > 1e-9  # the good pixel of feature 0 was kept
+
+
+def test_a_pixel_alone_is_not_dropped():
+    """Policy (EKFBackend._keep): the pixel variances of eq. (11) are relative, so a pixel is dropped only with
+    its 3D point; a pixel-only outlier leaves the update as it is, and no second update is run."""
+    obs = observation(outlier_px=4.0)
+    plain = estimate(EKFBackend(FusionEKF()), obs)
+    backend = EKFBackend(FusionEKF(), refit=0.999)
+    calls = []
+    update = backend._update
+    backend._update = lambda *a, **k: calls.append(1) or update(*a, **k)
+    torch.testing.assert_close(estimate(backend, obs), plain, atol=0, rtol=0)
+    assert len(calls) == 1

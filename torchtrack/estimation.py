@@ -81,8 +81,8 @@ class EKFBackend:
     Args:
         ekf: a :class:`torchtrack.filter.fusion.FusionEKF`.
         gate: improvement over the paper (None = off): before the update, drop a feature's 3D
-            measurement, or its pixel, when its normalised innovation against the prediction exceeds
-            this chi-square quantile (3 and 2 degrees of freedom). Nearest-pixel depth at occlusion
+            measurement when its normalised innovation against the prediction exceeds this chi-square
+            quantile (3 degrees of freedom), and the whole feature when its pixel's does too (2 dof). Nearest-pixel depth at occlusion
             boundaries and LK slips produce outliers of metres or pixels that a Gaussian update cannot absorb.
         refit: improvement over the paper (None = off): after the update, test each feature's 3D and pixel
             residual against the UPDATED pose (chi-square quantile ``refit`` on the measurement variances
@@ -105,16 +105,22 @@ class EKFBackend:
         self.ekf.predict(obs.dt)  # eqs. (3)-(4)
         xyz = pix = obs.valid  # which 3D points and which pixels are used
         if self.gate is not None:
-            ok_xyz, ok_pix = self._gate(obs)
-            xyz, pix = xyz & ok_xyz, pix & ok_pix
+            xyz, pix = self._keep(xyz, pix, *self._gate(obs))
         prior = (self.ekf.mean, self.ekf.cov)
         est = self._update(obs, xyz, pix)  # eqs. (6)-(7), (15)
         if self.refit is not None:
-            ok_xyz, ok_pix = self._gate(obs, self.refit, with_cov=False)
-            if bool((xyz & ~ok_xyz).any() | (pix & ~ok_pix).any()):
+            xyz_new, pix_new = self._keep(xyz, pix, *self._gate(obs, self.refit, with_cov=False))
+            if bool((xyz_new != xyz).any() | (pix_new != pix).any()):
                 self.ekf.mean, self.ekf.cov = prior  # same prior, fewer features: the same linearisation
-                self._update(obs, xyz & ok_xyz, pix & ok_pix, est.linearization)
+                self._update(obs, xyz_new, pix_new, est.linearization)
         return self.ekf.T_cam_obj
+
+    @staticmethod
+    def _keep(xyz: Tensor, pix: Tensor, ok_xyz: Tensor, ok_pix: Tensor) -> tuple[Tensor, Tensor]:
+        """A failing 3D point is dropped; a pixel only with its 3D point. The 3D variances (eq. 14) are metric,
+        the pixel variances of eq. (11) only relative (scaled to a mean), so a pixel test alone is not calibrated:
+        dropping pixels on it alone was measured worse (7-Scenes ATE 106 vs 53-69 mm)."""
+        return xyz & ok_xyz, pix & (ok_pix | ok_xyz)
 
     def _update(self, obs: Observation, xyz: Tensor, pix: Tensor, linearization=None):
         return self.ekf.update(
