@@ -331,8 +331,15 @@ def test_evaluate_end_to_end_on_a_synthetic_sequence(tmp_path):
     ours = json.loads((out / "ours" / seq.name / "metrics.json").read_text())
     peer = json.loads((out / "peer" / seq.name / "metrics.json").read_text())
     assert row["ratio"]["ate_rmse_m"] == pytest.approx(ours["ate_rmse_m"] / peer["ate_rmse_m"])
-    for k, m in (("rpe_trans_m", "rpe_trans_m"), ("ate_m", "ate_rmse_m")):  # Cauchy-Schwarz bounds the shared part
-        assert row["shared"][k] <= math.sqrt(ours[m] * peer[m]) + 1e-12
+    from torchtrack.data.tum import TumSequence, read_tum_trajectory
+    from torchtrack.metrics import shared_error
+
+    trajectories = [
+        read_tum_trajectory(out / who / seq.name / "trajectory.txt").T_world_cam for who in ("ours", "peer")
+    ]
+    expected = shared_error(*map(torch.as_tensor, trajectories), torch.as_tensor(TumSequence(seq).groundtruth))
+    assert row["shared"]["rpe_trans_m"] == pytest.approx(expected.rpe_trans_m, rel=1e-12)
+    assert row["shared"]["ate_m"] == pytest.approx(expected.ate_m, rel=1e-12)
     text = (out / "evaluation.md").read_text()
     assert "What ours and the peer have in common" in text and seq.name in text
     assert evaluate.main(["--roots", str(seq), "--out", str(out), "--no-plots"]) == 0

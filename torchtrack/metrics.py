@@ -238,12 +238,15 @@ class SharedError(NamedTuple):
 
 
 def shared_error(T_a, T_b, T_gt) -> SharedError:
-    """The part of two estimates' errors they have in common: a floor that the ground truth sets for both.
+    """The part of two estimates' errors they have in common.
 
     With per-frame error vectors ``e_a = c + n_a`` and ``e_b = c + n_b`` (``c`` common to both, ``n_a``, ``n_b``
-    independent of each other and of ``c``), ``mean <e_a, e_b> -> mean |c|^2``. Two independent methods share
-    the errors of the ground truth itself (and of sensor artefacts both see), so a third method that shares
-    them scores no lower than ``sqrt(mean |c|^2)``. Reported as the square root (0 when the mean is negative).
+    independent of each other and of ``c``), ``mean <e_a, e_b> -> mean |c|^2``; reported as the square root (0
+    when the mean is negative). For RPE (per-frame, nearly independent errors over many frames) two different
+    methods share the ground truth's own errors and those of the sensor data both read, so ``rpe_trans_m`` is
+    an estimate of a floor for any method that reads the same data. ATE errors are smooth drifts over few
+    independent stretches: two drifts correlate by chance, so ``ate_m`` is no floor (it is ~ATE on exact ground
+    truth too).
 
     Args:
         T_a, T_b, T_gt: (F, 4, 4) ``T_world_cam`` of two estimates and the ground truth, associated.
