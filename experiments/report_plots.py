@@ -5,28 +5,15 @@ Matplotlib's Agg canvas (no pyplot state); each PNG is written to a temporary na
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from torchtrack.viz.plots import plot_errors
+from torchtrack.viz.plots import plot_errors, save_atomic
 
 AXES = ("Rot-x", "Rot-y", "Rot-z", "Tr-x", "Tr-y", "Tr-z")
-
-
-def save(fig: Figure, path: Path, dpi: int = 100) -> Path:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    FigureCanvasAgg(fig)
-    try:
-        fig.savefig(tmp, format="png", dpi=dpi)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
 
 
 def grouped_bars(ax, groups: list[str], series: dict[str, list[float | None]], ylabel: str, title: str) -> None:
@@ -60,17 +47,17 @@ def write_plots(out: Path, runs: list, numbers: dict, label: Callable[[str], str
     for i, (key, title) in enumerate((("table3", "Table III"), ("table5", "Table V"))):
         seqs, series = _pivot_series(numbers[key], label)
         grouped_bars(fig.add_subplot(1, 2, i + 1), seqs, series, "mean reprojection error [px]", title)
-    paths.append(save(fig, out / "reprojection.png"))
+    paths.append(save_atomic(fig, out / "reprojection.png"))
     ate = {s: {m: None if v is None else 100 * v for m, v in row.items()} for s, row in numbers["ate_rmse_m"].items()}
     seqs, series = _pivot_series(ate, label)
     fig = Figure(figsize=(11, 4), layout="constrained")
     grouped_bars(fig.add_subplot(), seqs, series, "ATE RMSE [cm]", "absolute trajectory error")
-    paths.append(save(fig, out / "ate.png"))
+    paths.append(save_atomic(fig, out / "ate.png"))
     if numbers["table6"]:
         fig = Figure(figsize=(9, 4), layout="constrained")
         series = {label(b): v["pi"] for b, v in numbers["table6"].items()}
         grouped_bars(fig.add_subplot(), list(AXES), series, "improvement of the proposed tracker [%]", "Table VI")
-        paths.append(save(fig, out / "improvement.png"))
+        paths.append(save_atomic(fig, out / "improvement.png"))
     for seq in sorted({r.sequence for r in runs}):
         per_frame = {label(r.method): r.frames for r in runs if r.sequence == seq and r.frames}
         if not per_frame:

@@ -40,13 +40,13 @@ def _estimate(T_gt: np.ndarray, seed: int = 1) -> np.ndarray:
 def captured(monkeypatch):
     """Keep the figure handed to the saver (and still save it) so tests can read the drawn lines."""
     figs = []
-    save = plots._save_atomic
+    save = plots.save_atomic
 
     def keep(fig, path, dpi):
         figs.append(fig)
         return save(fig, path, dpi)
 
-    monkeypatch.setattr(plots, "_save_atomic", keep)
+    monkeypatch.setattr(plots, "save_atomic", keep)
     return figs
 
 

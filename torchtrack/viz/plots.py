@@ -21,7 +21,7 @@ _AXES = "xyz"
 _COLOURS = ("tab:red", "tab:green", "tab:blue")
 
 
-def _save_atomic(fig: Figure, path_png, dpi: int) -> Path:
+def save_atomic(fig: Figure, path_png, dpi: int = 100) -> Path:
     """Render to a temporary file beside ``path_png``, then rename: a reader never sees half a PNG."""
     path = Path(path_png)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -132,7 +132,7 @@ def plot_trajectory(
         ax.plot(x[valid], err, color="tab:purple", lw=1)
         ax.set(xlabel=xlabel, ylabel="ATE [m]", title="absolute trajectory error per frame")
         ax.grid(alpha=0.3)
-    return _save_atomic(fig, path_png, dpi)
+    return save_atomic(fig, path_png, dpi)
 
 
 def plot_errors(
@@ -165,7 +165,7 @@ def plot_errors(
     ax.set(xlabel=xlabel, ylabel=ylabel, title=title)
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize=8)
-    return _save_atomic(fig, path_png, dpi)
+    return save_atomic(fig, path_png, dpi)
 
 
 def plot_per_axis_errors(
@@ -185,4 +185,4 @@ def plot_per_axis_errors(
         ax.set(xlabel=xlabel, ylabel=f"{'rotation' if row == 0 else 'translation'} error [{unit}]")
         ax.grid(alpha=0.3)
         ax.legend(loc="best", fontsize=8)
-    return _save_atomic(fig, path_png, dpi)
+    return save_atomic(fig, path_png, dpi)
