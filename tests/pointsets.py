@@ -28,3 +28,14 @@ def eye(B, dtype=torch.float64):
 
 def ones(B, N):
     return torch.ones(B, N, dtype=torch.bool)
+
+
+def registration_args(B=2, N=5, M=7):
+    """Well-formed keyword arguments of a registration (src, dst, their masks, T_init), for bad-input tests."""
+    return dict(
+        src=torch.zeros(B, N, 3),
+        dst=torch.zeros(B, M, 3),
+        valid_src=torch.ones(B, N, dtype=torch.bool),
+        valid_dst=torch.ones(B, M, dtype=torch.bool),
+        T_init=torch.eye(4).expand(B, 4, 4),
+    )

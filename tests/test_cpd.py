@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 import torch
-from pointsets import eye, ones, random_cloud, random_T
+from pointsets import eye, ones, random_cloud, random_T, registration_args
 
 from torchtrack.estimators import CPDEstimator, CPDResult
 from torchtrack.estimators.cpd import cpd_rigid
@@ -72,13 +72,7 @@ def test_smoke_shapes_and_type():
     ],
 )
 def test_bad_input_raises(kwargs):
-    args = dict(
-        src=torch.zeros(2, 5, 3),
-        dst=torch.zeros(2, 7, 3),
-        valid_src=torch.ones(2, 5, dtype=torch.bool),
-        valid_dst=torch.ones(2, 7, dtype=torch.bool),
-        T_init=torch.eye(4).expand(2, 4, 4),
-    )
+    args = registration_args()
     args.update(kwargs)
     kw = {k: args.pop(k) for k in ["w", "max_iters"] if k in args}
     with pytest.raises(ValueError, match="cpd_rigid"):

@@ -13,20 +13,12 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from test_lk import texture
 
 from torchtrack.image.flow import CombinedTracker, FlowFrame, TrackResult, combined_track, prepare_frame
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 H, W = 240, 320
-
-
-def texture(x: np.ndarray, y: np.ndarray, seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    v = np.zeros_like(x)
-    for _ in range(12):
-        f, th, ph = rng.uniform(0.05, 0.35), rng.uniform(0, np.pi), rng.uniform(0, 2 * np.pi)
-        v += np.sin(f * (np.cos(th) * x + np.sin(th) * y) + ph) / 12
-    return 0.5 + 0.8 * v
 
 
 def split_scene(t: tuple[float, float], seed: int = 0):
