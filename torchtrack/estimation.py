@@ -103,16 +103,19 @@ class EKFBackend:
 
     def __call__(self, obs: Observation) -> Tensor:
         self.ekf.predict(obs.dt)  # eqs. (3)-(4)
+        prior = (self.ekf.mean, self.ekf.cov)
+        lin = self.ekf.linearize(obs.points_obj, obs.K, obs.T_color_depth)  # at the prediction: gate and update
         xyz = pix = obs.valid  # which 3D points and which pixels are used
         if self.gate is not None:
-            xyz, pix = self._keep(xyz, pix, *self._gate(obs))
-        prior = (self.ekf.mean, self.ekf.cov)
-        est = self._update(obs, xyz, pix)  # eqs. (6)-(7), (15)
+            xyz, pix = self._keep(xyz, pix, *self._test(obs, lin[0], self.gate, lin[1]))
+        self._update(obs, xyz, pix, lin)  # eqs. (6)-(7), (15)
         if self.refit is not None:
-            xyz_new, pix_new = self._keep(xyz, pix, *self._gate(obs, self.refit, with_cov=False))
+            dt = self.ekf.mean.dtype
+            h = measure_analytic(self.ekf.mean, obs.points_obj.to(dt), obs.K.to(dt), obs.T_color_depth.to(dt)).h
+            xyz_new, pix_new = self._keep(xyz, pix, *self._test(obs, h, self.refit))
             if bool((xyz_new != xyz).any() | (pix_new != pix).any()):
                 self.ekf.mean, self.ekf.cov = prior  # same prior, fewer features: the same linearisation
-                self._update(obs, xyz_new, pix_new, est.linearization)
+                self._update(obs, xyz_new, pix_new, lin)
         return self.ekf.T_cam_obj
 
     @staticmethod
@@ -122,28 +125,23 @@ class EKFBackend:
         dropping pixels on it alone was measured worse (7-Scenes ATE 106 vs 53-69 mm)."""
         return xyz & ok_xyz, pix & (ok_pix | ok_xyz)
 
-    def _update(self, obs: Observation, xyz: Tensor, pix: Tensor, linearization=None):
-        return self.ekf.update(
+    def _update(self, obs: Observation, xyz: Tensor, pix: Tensor, linearization: tuple[Tensor, Tensor]) -> None:
+        self.ekf.update(
             obs.points_obj, obs.points_d, obs.pixels, xyz | pix, obs.var_xyz, obs.var_pix, obs.K, obs.T_color_depth,
             valid_xyz=xyz, valid_pix=pix, linearization=linearization,
         )  # fmt: skip
 
-    def _gate(self, obs: Observation, p: float | None = None, with_cov: bool = True) -> tuple[Tensor, Tensor]:
-        """Per-feature chi-square tests (quantile p, default ``gate``) of the 3D and the pixel residual at the
-        current mean, (B, N) bool each; the variance is H P H^T + Q (innovation) or, without cov, Q alone."""
-        mean, cov = self.ekf.mean, self.ekf.cov
-        dt = mean.dtype
-        lin = measure_analytic(mean, obs.points_obj.to(dt), obs.K.to(dt), obs.T_color_depth.to(dt))
+    def _test(self, obs: Observation, h: Tensor, p: float, H: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Per-feature chi-square tests (quantile p) of the 3D and the pixel residual ``z - h`` (h (B, N, 5)),
+        (B, N) bool each. The variance is Q, plus diag(H P H^T) with the filter's covariance when H (B, N, 5, 12)
+        is given (the innovation of the prediction)."""
+        dt = h.dtype
         z = torch.cat([obs.points_d, obs.pixels], dim=-1).to(dt)  # B,N,5
-        var = torch.cat([obs.var_xyz[..., None].expand(-1, -1, 3), obs.var_pix[..., None].expand(-1, -1, 2)], -1)
-        s = var.to(dt)
-        if with_cov:
-            s = s + torch.einsum("bnms,bst,bnmt->bnm", lin.H, cov, lin.H)  # diagonal of H P H^T + Q
-        d2 = (z - lin.h) ** 2 / s
-        d2 = torch.nan_to_num(d2, nan=float("inf"))
-        p = self.gate if p is None else p
-        lim3, lim2 = chi2_quantile(p, 3), chi2_quantile(p, 2)
-        return d2[..., :3].sum(-1) < lim3, d2[..., 3:].sum(-1) < lim2
+        s = torch.cat([obs.var_xyz[..., None].expand(-1, -1, 3), obs.var_pix[..., None].expand(-1, -1, 2)], -1).to(dt)
+        if H is not None:
+            s = s + torch.einsum("bnms,bst,bnmt->bnm", H, self.ekf.cov, H)
+        d2 = torch.nan_to_num((z - h) ** 2 / s, nan=float("inf"))
+        return d2[..., :3].sum(-1) < chi2_quantile(p, 3), d2[..., 3:].sum(-1) < chi2_quantile(p, 2)
 
 
 class RegistrationBackend:

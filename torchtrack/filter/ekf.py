@@ -62,16 +62,12 @@ class Update(NamedTuple):
         cov: (B, S, S) posterior covariance (symmetric PD).
         innovation: (B, N, M) ``z - h(mu-)`` at the predicted mean; 0 where invalid.
         num_valid: (B,) number of valid measurement components used.
-        linearization: (h (B, N, M), H (B, N, M, S)) at the predicted mean, for a second update from the same
-            prior with a subset of these valid features (``update(..., linearization=...)``; invalid features'
-            inputs are zeroed before linearising, so a feature valid now must have been valid here).
     """
 
     mean: Tensor
     cov: Tensor
     innovation: Tensor
     num_valid: Tensor
-    linearization: tuple[Tensor, Tensor] | None = None
 
 
 def symmetrize(cov: Tensor) -> Tensor:
@@ -169,8 +165,9 @@ def update(
         jacobian: autograd mode for h_single's Jacobian, "forward" (jacfwd) or "reverse" (jacrev).
         linearizer: optional batched ``(x (B,S), feature_inputs, sequence_inputs) -> (h (B,N,M), H (B,N,M,S))``
             replacing autograd (e.g. an analytic Jacobian).
-        linearization: optional (h, H) already computed at ``mean`` (``Update.linearization`` of an update from
-            the same prior): used instead of linearising again at the first iteration.
+        linearization: optional (h (B, N, M), H (B, N, M, S)) already computed at ``mean`` (e.g. shared with an
+            innovation gate, or with a second update from the same prior): used instead of linearising again at
+            the first iteration. Only the entries of valid features are read.
 
     Returns:
         :class:`Update`. A sequence without valid measurements keeps its prediction exactly.
@@ -207,7 +204,7 @@ def update(
             h, H = linearizer(x, feature_inputs, sequence_inputs)
         r = torch.where(valid, z_safe - h, torch.zeros_like(h))
         if it == 0:
-            innovation, at_prior = r, (h, H)
+            innovation = r
         if form == "information":  # whitened rows: H_i / sigma_i, one pass over the big (B,N,M,S) tensor
             Hs = torch.where(valid[..., None], H * sw[..., None], torch.zeros_like(H))
             rs = r * sw
@@ -219,7 +216,7 @@ def update(
             if it > 0:
                 r = r - (Hm @ (mean - x)[:, None, :, None])[..., 0]
             x, new_cov = _gain_step(mean, cov, Hm, var_safe, r)
-    return Update(x, new_cov, innovation, valid.sum((1, 2)), at_prior)
+    return Update(x, new_cov, innovation, valid.sum((1, 2)))
 
 
 def _information_step(mean: Tensor, cov: Tensor, Hs: Tensor, rs: Tensor) -> tuple[Tensor, Tensor]:

@@ -42,7 +42,6 @@ class PoseEstimate(NamedTuple):
         innovation: (B, N, 5) ``z - h(predicted state)``: 3D (m) then pixel (px) residuals; 0 where invalid.
         num_valid: (B,) number of valid features used.
         updated: (B,) bool, False where no valid feature was given (the prediction was kept).
-        linearization: the measurement model's (h, H) at the predicted state (see :func:`fuse`).
     """
 
     T_cam_obj: Tensor
@@ -51,7 +50,22 @@ class PoseEstimate(NamedTuple):
     innovation: Tensor
     num_valid: Tensor
     updated: Tensor
-    linearization: tuple[Tensor, Tensor] | None = None
+
+
+def linearize(
+    mean: Tensor, points_obj: Tensor, K: Tensor, T_color_depth: Tensor, *, jacobian: JacobianMode = "analytic"
+) -> tuple[Tensor, Tensor]:
+    """Eqs. (6)-(7) and their Jacobian at ``mean`` (B, 12) for model points (B, N, 3): h (B, N, 5), H (B, N, 5, 12).
+
+    ``jacobian``: "analytic" (:func:`~torchtrack.filter.models.measure_analytic`) or "forward" / "reverse"
+    (``torch.func`` autograd of :func:`~torchtrack.filter.models.measure_single`, :func:`ekf.linearize`).
+    Inputs are cast to ``mean``'s dtype.
+    """
+    dt = mean.dtype
+    points_obj, K, T_color_depth = points_obj.to(dt), K.to(dt), T_color_depth.to(dt)
+    if jacobian == "analytic":
+        return tuple(measure_analytic(mean, points_obj, K, T_color_depth))
+    return ekf.linearize(measure_single, mean, (points_obj,), (K, T_color_depth), mode=jacobian)
 
 
 def fuse(
@@ -85,8 +99,8 @@ def fuse(
         var_xyz, var_pix: (B, N) per-feature variances (m^2, px^2), e.g. from eqs. (11)–(14).
         K: (B, 3, 3) colour intrinsics; T_color_depth: (B, 4, 4) depth -> colour extrinsic (R_dv, t_dv).
         form, iterations: see :func:`torchtrack.filter.ekf.update`.
-        linearization: (h, H) at ``mean`` from an earlier fuse from the same prior (``Update.linearization``), e.g.
-            to update again without some features: skips the autograd Jacobian.
+        linearization: (h (B, N, 5), H (B, N, 5, 12)) at ``mean`` (:func:`linearize`), when the caller has it
+            already: the first iteration then skips linearising.
         jacobian: "analytic" (default) uses :func:`~torchtrack.filter.models.measure_analytic`; "forward" /
             "reverse" take ``vmap(jacfwd / jacrev(measure_single))`` by autograd. Equal to 1e-10 (tested);
             analytic is the default for speed: ~0.5 ms vs ~3.5-7 ms for jacfwd at N = 300 on a laptop-class
@@ -106,11 +120,9 @@ def fuse(
     v3 = valid if valid_xyz is None else valid & valid_xyz
     v2 = valid if valid_pix is None else valid & valid_pix
     valid5 = torch.cat([v3[..., None].expand(B, N, 3), v2[..., None].expand(B, N, 2)], -1)
-    lin = None
-    if jacobian == "analytic":
 
-        def lin(x, fi, si):
-            return measure_analytic(x, fi[0], *si)
+    def lin(x, fi, si):
+        return linearize(x, fi[0], *si, jacobian=jacobian)
 
     return ekf.update(
         mean,
@@ -123,7 +135,6 @@ def fuse(
         (K.to(dt), T_color_depth.to(dt)),
         form=form,
         iterations=iterations,
-        jacobian="reverse" if jacobian == "reverse" else "forward",
         linearizer=lin,
         linearization=linearization,
     )
@@ -213,6 +224,11 @@ class FusionEKF:
         self.mean, self.cov = ekf.predict(mean, cov, F, Q)
         return self.T_cam_obj
 
+    def linearize(self, points_obj: Tensor, K: Tensor, T_color_depth: Tensor) -> tuple[Tensor, Tensor]:
+        """(h (B, N, 5), H (B, N, 5, 12)) of eqs. (6)-(7) at the current mean, with this filter's Jacobian mode; pass
+        it to :meth:`update` (``linearization=``) to share it, e.g. with an innovation gate."""
+        return linearize(self._state()[0], points_obj, K, T_color_depth, jacobian=self.jacobian)
+
     def update(
         self,
         points_obj: Tensor,
@@ -250,9 +266,7 @@ class FusionEKF:
         theta = self.mean[:, 1].abs()
         if bool((theta > 1.4).any()):
             log.warning("FusionEKF: |theta| > 80 deg, near the Euler singularity; re-select the model frame")
-        return PoseEstimate(
-            self.T_cam_obj, self.cov, self.mean, out.innovation, valid.sum(-1), out.num_valid > 0, out.linearization
-        )
+        return PoseEstimate(self.T_cam_obj, self.cov, self.mean, out.innovation, valid.sum(-1), out.num_valid > 0)
 
     def _state(self) -> tuple[Tensor, Tensor]:
         if self.mean is None or self.cov is None:
