@@ -5,7 +5,7 @@ import torch
 from test_fusion import DT, body, measurements, true_pose
 
 from torchtrack.estimation import EKFBackend, Observation, chi2_quantile
-from torchtrack.filter import FusionEKF
+from torchtrack.filter import FusionEKF, Variances
 
 F64 = torch.float64
 
@@ -21,12 +21,14 @@ def observation(outlier_px=0.0, outlier_m=0.0, drop_outlier=False):
     valid = torch.ones(B, N, dtype=torch.bool)
     valid[:, 0] = not drop_outlier
     var = torch.ones(B, N, dtype=F64)
-    return Observation(torch.full((B,), DT, dtype=F64), X, points_d, pixels, valid, 1e-6 * var, 0.25 * var, K, T_cd)
+    obs = Observation(torch.full((B,), DT, dtype=F64), X, points_d, pixels, valid, K, T_cd)
+    return obs, Variances(0.25 * var, 1e-6 * var)
 
 
-def estimate(backend, obs):
+def estimate(backend, obs_var):
+    obs, var = obs_var
     backend.reset(true_pose(0.0), torch.ones(obs.dt.shape[0], dtype=torch.bool))
-    return backend(obs)
+    return backend(obs, var)
 
 
 def test_refit_equals_the_update_without_the_outlier():
@@ -67,15 +69,15 @@ def test_bad_probabilities_raise(name, p):
 
 def test_refit_drops_a_failing_3d_point_alone():
     """A feature whose 3D point alone is off loses only that: the oracle is the filter with that point masked."""
-    obs = observation(outlier_m=0.02)
-    refit = estimate(EKFBackend(FusionEKF(), refit=0.999), obs)
+    obs, var = observation(outlier_m=0.02)
+    refit = estimate(EKFBackend(FusionEKF(), refit=0.999), (obs, var))
     keep = obs.valid.clone()
     keep[:, 0] = False
     oracle = FusionEKF()
     oracle.reset(true_pose(0.0))
     oracle.predict(obs.dt)
     expected = oracle.update(
-        obs.points_obj, obs.points_d, obs.pixels, obs.valid, obs.var_xyz, obs.var_pix, obs.K, obs.T_color_depth,
+        obs.points_obj, obs.points_d, obs.pixels, obs.valid, var.var_xyz, var.var_pix, obs.K, obs.T_color_depth,
         valid_xyz=keep,
     ).T_cam_obj  # fmt: skip
     torch.testing.assert_close(refit, expected, atol=1e-12, rtol=0)

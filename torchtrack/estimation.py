@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from torchtrack.filter.models import measure_analytic
+from torchtrack.filter.weighting import Variances
 
 
 @dataclass
@@ -27,8 +28,6 @@ class Observation:
         points_d: (B, N, 3) measured 3D points X_d in the depth camera, eq. (6).
         pixels: (B, N, 2) measured pixels in the colour image, eq. (7).
         valid: (B, N) bool.
-        var_xyz: (B, N) 3D noise variance per feature (m^2), eq. (14).
-        var_pix: (B, N) pixel noise variance per feature (px^2), eq. (11).
         K: (B, 3, 3) colour intrinsics.
         T_color_depth: (B, 4, 4) depth-to-colour extrinsic (R_dv, t_dv).
     """
@@ -38,8 +37,6 @@ class Observation:
     points_d: Tensor
     pixels: Tensor
     valid: Tensor
-    var_xyz: Tensor
-    var_pix: Tensor
     K: Tensor
     T_color_depth: Tensor
 
@@ -48,8 +45,8 @@ class PoseBackend(Protocol):
     def reset(self, T_cam_obj: Tensor, mask: Tensor) -> None:
         """Start over at pose ``T_cam_obj`` (B, 4, 4) for the sequences where ``mask`` (B,) is True."""
 
-    def __call__(self, obs: Observation) -> Tensor:
-        """One frame: observation in, ``T_cam_obj`` (B, 4, 4) out."""
+    def __call__(self, obs: Observation, var: Variances) -> Tensor:
+        """One frame: observation and per-feature variances in, ``T_cam_obj`` (B, 4, 4) out."""
 
 
 @functools.lru_cache(maxsize=64)
@@ -101,7 +98,8 @@ class EKFBackend:
     def reset(self, T_cam_obj: Tensor, mask: Tensor) -> None:
         self.ekf.reset(T_cam_obj, mask)
 
-    def __call__(self, obs: Observation) -> Tensor:
+    def __call__(self, obs: Observation, var: Variances) -> Tensor:
+        obs = _WithVar(obs, var)
         self.ekf.predict(obs.dt)  # eqs. (3)-(4)
         prior = (self.ekf.mean, self.ekf.cov)
         lin = self.ekf.linearize(obs.points_obj, obs.K, obs.T_color_depth)  # at the prediction: gate and update
@@ -161,9 +159,15 @@ class RegistrationBackend:
             self.T_prev = T_cam_obj.clone()
         self.T_prev = torch.where(mask[:, None, None], T_cam_obj, self.T_prev)
 
-    def __call__(self, obs: Observation) -> Tensor:
-        weights = 1.0 / obs.var_xyz.clamp_min(1e-12) if self.weighted else None
+    def __call__(self, obs: Observation, var: Variances) -> Tensor:
+        weights = 1.0 / var.var_xyz.clamp_min(1e-12) if self.weighted else None
         T_prev = self.T_prev.to(obs.points_obj.dtype)
         T = self.estimator(obs.points_obj, obs.points_d, obs.valid, T_prev, weights)
         self.T_prev = T
         return T
+
+
+class _WithVar:  # temporary shim while the back end becomes a pure function
+    def __init__(self, obs, var):
+        self.__dict__.update(obs.__dict__)
+        self.var_xyz, self.var_pix = var.var_xyz, var.var_pix

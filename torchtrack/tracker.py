@@ -122,9 +122,8 @@ class Tracker:
         valid = track.valid & has_depth & frame.active[:, None]
         var = self.weighting(WeightingInputs(track.d_tim, points_d[..., 2], points_d, valid, frame.K_depth[:, 0, 0]))
         dt = (frame.timestamp - self.timestamp).to(points_d.dtype).clamp_min(1e-3)
-        obs = Observation(dt, self.points_obj, points_d, track.points, valid, var.var_xyz, var.var_pix, frame.K,
-                          frame.T_color_depth)  # fmt: skip
-        T_cam_obj = self.backend(obs).double()  # eqs. (2)-(7), (15)
+        obs = Observation(dt, self.points_obj, points_d, track.points, valid, frame.K, frame.T_color_depth)
+        T_cam_obj = self.backend(obs, var).double()  # eqs. (2)-(7), (15)
         self._advance(frame, track.points, valid, T_cam_obj)
         result = self._result(frame, track.winner, track.d_tim)
         n = self.valid.sum(1)
