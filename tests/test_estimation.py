@@ -92,7 +92,7 @@ def test_a_pixel_alone_is_not_dropped():
     plain = estimate(EKFBackend(FusionEKF()), obs)
     backend = EKFBackend(FusionEKF(), refit=0.999)
     calls = []
-    update = backend._update
-    backend._update = lambda *a, **k: calls.append(1) or update(*a, **k)
+    update = backend.ekf.updated
+    backend.ekf.updated = lambda *a, **k: calls.append(1) or update(*a, **k)
     torch.testing.assert_close(estimate(backend, obs), plain, atol=0, rtol=0)
     assert len(calls) == 1

@@ -7,15 +7,20 @@ the same per-frame :class:`Observation` of tracked features and return ``T_cam_o
 from __future__ import annotations
 
 import functools
+import logging
 import math
 from dataclasses import dataclass
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import torch
 from torch import Tensor
 
-from torchtrack.filter.models import measure_analytic
+from torchtrack.filter.ekf import symmetrize
+from torchtrack.filter.fusion import FilterState, FusionEKF
+from torchtrack.filter.models import measure, state_to_pose
 from torchtrack.filter.weighting import Variances
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -72,74 +77,187 @@ def chi2_quantile(p: float, k: int) -> float:
     return 0.5 * (lo + hi)
 
 
-class EKFBackend:
-    """The paper's fusion EKF: constant-velocity prediction, then the 5N-measurement update.
+class FrameUpdate(NamedTuple):
+    """One frame of the fusion EKF (:func:`ekf_frame`), batched over B.
 
-    Args:
-        ekf: a :class:`torchtrack.filter.fusion.FusionEKF`.
-        gate: improvement over the paper (None = off): before the update, drop a feature's 3D
-            measurement when its normalised innovation against the prediction exceeds this chi-square
-            quantile (3 degrees of freedom), and the whole feature when its pixel's does too (2 dof). Nearest-pixel depth at occlusion
-            boundaries and LK slips produce outliers of metres or pixels that a Gaussian update cannot absorb.
-        refit: improvement over the paper (None = off): after the update, test each feature's 3D and pixel
-            residual against the UPDATED pose (chi-square quantile ``refit`` on the measurement variances
-            alone); when some fail, redo the update from the prediction without them. The gate above can
-            only see outliers larger than the prediction's uncertainty; this catches the smaller ones that
-            would otherwise bias this frame's pose before the tracker drops them.
+    Attributes:
+        mean: (B, 12) posterior state; cov: (B, 12, 12) posterior covariance.
+        prior: the prediction (:class:`FilterState`) the update started from.
+        used_xyz, used_pix: (B, N) bool, the 3D points and the pixels the final update used.
+        innovation: (B, N, 5) ``z - h(prior mean)``, 3D (m) then pixel (px); 0 where not used.
+        innovation_var: (B, N, 5) ``diag(H P- H^T) + R``, the predicted innovation variances; 1 where not used.
+        nll: (B,) negative log-likelihood of the used innovations under the full predicted innovation covariance
+            ``S = H P- H^T + R`` (zeros unless asked for with ``with_nll``).
+        updated: (B,) bool, False where no measurement was used (the prediction was kept).
     """
 
-    def __init__(self, ekf, gate: float | None = None, refit: float | None = None) -> None:
+    mean: Tensor
+    cov: Tensor
+    prior: FilterState
+    used_xyz: Tensor
+    used_pix: Tensor
+    innovation: Tensor
+    innovation_var: Tensor
+    nll: Tensor
+    updated: Tensor
+
+    @property
+    def T_cam_obj(self) -> Tensor:
+        """(B, 4, 4) posterior object pose in the depth camera."""
+        return state_to_pose(self.mean)
+
+
+def ekf_frame(
+    ekf: FusionEKF,
+    state: FilterState,
+    obs: Observation,
+    var: Variances,
+    *,
+    gate: float | None = None,
+    refit: float | None = None,
+    with_nll: bool = False,
+) -> FrameUpdate:
+    """One frame of the paper's fusion EKF as a pure function: prior state, observation and variances in, posterior
+    out; nothing is mutated. Differentiable in ``var``, ``state`` and the measurements; the discrete choices (gate,
+    refit) are masks computed without gradient.
+
+    Steps: constant-velocity prediction (eqs. 3-4); one linearisation of eqs. (6)-(7) at the prediction (the
+    filter's Jacobian mode), shared by the gate, the update and the refit's second update; the gate (optional):
+    a feature's 3D point is dropped when its innovation fails the chi-square test (quantile ``gate``, 3 dof) under
+    ``diag(H P- H^T) + R``, its pixel only together with it (:func:`_keep`); the update (eq. 15); the refit
+    (optional): each used 3D point's residual at the UPDATED pose is tested against R alone (quantile ``refit``),
+    and when a used measurement fails, the update is redone from the same prior without it.
+
+    Args:
+        ekf: :class:`~torchtrack.filter.fusion.FusionEKF` (its parameters only).
+        state: prior :class:`FilterState` (mean (B, 12), cov (B, 12, 12)).
+        obs: :class:`Observation` of N features.
+        var: per-feature :class:`~torchtrack.filter.weighting.Variances` (B, N).
+        with_nll: also compute :attr:`FrameUpdate.nll` (the self-supervised training loss).
+    """
+    prior = ekf.predicted(state, obs.dt)  # eqs. (3)-(4)
+    dt = prior.mean.dtype
+    points_obj, K, T_cd = obs.points_obj.to(dt), obs.K.to(dt), obs.T_color_depth.to(dt)
+    z = torch.cat([obs.points_d, obs.pixels], -1).to(dt)  # B,N,5
+    var5 = torch.cat([var.var_xyz[..., None].expand(-1, -1, 3), var.var_pix[..., None].expand(-1, -1, 2)], -1).to(dt)
+    h, H = ekf.linearize_at(prior.mean, points_obj, K, T_cd)  # at the prediction, once per frame
+    s_prior = var5 + torch.einsum("bnms,bst,bnmt->bnm", H, prior.cov, H)  # diag(H P- H^T) + R
+    xyz = pix = obs.valid
+    if gate is not None:
+        with torch.no_grad():
+            xyz, pix = _keep(xyz, pix, *_chi2_tests(z, h, s_prior, gate))
+
+    def update(xyz: Tensor, pix: Tensor):
+        return ekf.updated(
+            prior,
+            points_obj,
+            obs.points_d,
+            obs.pixels,
+            xyz,
+            pix,
+            var.var_xyz,
+            var.var_pix,
+            K,
+            T_cd,
+            linearization=(h, H),
+        )  # eqs. (6)-(7), (15); fmt: skip
+
+    post = update(xyz, pix)
+    if refit is not None:
+        with torch.no_grad():
+            h_post = measure(post.mean, points_obj, K, T_cd)
+            xyz_new, pix_new = _keep(xyz, pix, *_chi2_tests(z, h_post, var5, refit))
+        if bool(((xyz_new != xyz) | (pix_new != pix)).any()):
+            xyz, pix = xyz_new, pix_new
+            post = update(xyz, pix)  # same prior, fewer measurements: the same linearisation
+    used = torch.cat([xyz[..., None].expand(-1, -1, 3), pix[..., None].expand(-1, -1, 2)], -1)
+    innovation = torch.where(used, z - h, torch.zeros_like(h))
+    innovation_var = torch.where(used, s_prior, torch.ones_like(s_prior))
+    nll = innovation_nll(prior.cov, H, innovation, var5, used) if with_nll else torch.zeros_like(prior.mean[:, 0])
+    return FrameUpdate(post.mean, post.cov, prior, xyz, pix, innovation, innovation_var, nll, used.any(-1).any(-1))
+
+
+def innovation_nll(prior_cov: Tensor, H: Tensor, innovation: Tensor, var5: Tensor, used: Tensor) -> Tensor:
+    """(B,) ``0.5 (r^T S^-1 r + log det S + m log 2 pi)`` of the m used innovations r (B, N, 5) under the predicted
+    innovation covariance ``S = H P- H^T + R`` (R = diag(var5)), without forming the (5N x 5N) S: with W = R^-1,
+    ``J = H^T W H``, ``g = H^T W r`` and ``P- = L L^T``, ``C C^T = I + L^T J L``: Woodbury gives
+    ``r^T S^-1 r = r^T W r - |C^-1 L^T g|^2`` and the determinant lemma ``log det S = log det R + 2 sum log diag C``.
+    Unused entries (``used`` False) contribute nothing, and no gradient."""
+    B, N, M, S = H.shape
+    var_safe = torch.where(used, var5, torch.ones_like(var5))
+    sw = torch.where(used, var_safe.rsqrt(), torch.zeros_like(var5))  # W^1/2
+    Hs = (H * sw[..., None]).reshape(B, N * M, S)
+    rs = (innovation * sw).reshape(B, N * M, 1)
+    L = torch.linalg.cholesky(prior_cov)
+    J = Hs.transpose(-1, -2) @ Hs
+    C = torch.linalg.cholesky(symmetrize(torch.eye(S, dtype=J.dtype) + L.transpose(-1, -2) @ J @ L))
+    v = torch.linalg.solve_triangular(C, L.transpose(-1, -2) @ (Hs.transpose(-1, -2) @ rs), upper=False)
+    quad = (rs**2).sum((1, 2)) - (v**2).sum((1, 2))
+    logdet = torch.where(used, var_safe.log(), torch.zeros_like(var5)).sum((1, 2))
+    logdet = logdet + 2.0 * torch.diagonal(C, dim1=-2, dim2=-1).log().sum(-1)
+    return 0.5 * (quad + logdet + used.sum((1, 2)) * math.log(2.0 * math.pi))
+
+
+def _keep(xyz: Tensor, pix: Tensor, ok_xyz: Tensor, ok_pix: Tensor) -> tuple[Tensor, Tensor]:
+    """A failing 3D point is dropped; a pixel only with its 3D point. The 3D variances (eq. 14) are metric, the pixel
+    variances of eq. (11) only relative (scaled to a mean), so a pixel test alone is not calibrated: dropping pixels
+    on it alone was measured worse (7-Scenes ATE 106 vs 53-69 mm)."""
+    return xyz & ok_xyz, pix & (ok_pix | ok_xyz)
+
+
+def _chi2_tests(z: Tensor, h: Tensor, s: Tensor, p: float) -> tuple[Tensor, Tensor]:
+    """Per-feature chi-square tests (quantile p) of the 3D and the pixel residual ``z - h`` (B, N, 5) with variances
+    ``s`` (B, N, 5): (B, N) bool each."""
+    d2 = torch.nan_to_num((z - h) ** 2 / s, nan=float("inf"))
+    return d2[..., :3].sum(-1) < chi2_quantile(p, 3), d2[..., 3:].sum(-1) < chi2_quantile(p, 2)
+
+
+class EKFBackend:
+    """The paper's fusion EKF as a tracker back end: owns the filter state, runs :func:`ekf_frame` once per frame.
+
+    Args:
+        ekf: a :class:`torchtrack.filter.fusion.FusionEKF` (its parameters; its own state is not used).
+        gate: improvement over the paper (None = off): chi-square quantile of the innovation gate (see
+            :func:`ekf_frame`). Nearest-pixel depth at occlusion boundaries and LK slips produce outliers of metres
+            or pixels that a Gaussian update cannot absorb.
+        refit: improvement over the paper (None = off): chi-square quantile of the refit at the updated pose (see
+            :func:`ekf_frame`). The gate can only see outliers larger than the prediction's uncertainty; the refit
+            catches the smaller ones that would otherwise bias this frame's pose before the tracker drops them.
+    """
+
+    def __init__(self, ekf: FusionEKF, gate: float | None = None, refit: float | None = None) -> None:
         for name, p in (("gate", gate), ("refit", refit)):
             if p is not None and not 0.0 < p < 1.0:
                 raise ValueError(f"EKFBackend: {name} is a probability in (0, 1), got {p}")
         self.ekf = ekf
         self.gate, self.refit = gate, refit
+        self.state: FilterState | None = None
 
     def reset(self, T_cam_obj: Tensor, mask: Tensor) -> None:
-        self.ekf.reset(T_cam_obj, mask)
+        """Start the sequences in ``mask`` (B,) over at ``T_cam_obj`` (B, 4, 4), zero velocity, initial covariance."""
+        init = self.ekf.initial_state(T_cam_obj)
+        if self.state is None or self.state.mean.shape[0] != T_cam_obj.shape[0]:
+            if not bool(mask.all()):
+                raise ValueError("EKFBackend.reset: the first reset (or a new batch size) must cover every sequence")
+            self.state = init
+            return
+        self.state = FilterState(
+            torch.where(mask[:, None], init.mean, self.state.mean),
+            torch.where(mask[:, None, None], init.cov, self.state.cov),
+        )
+
+    def step(self, obs: Observation, var: Variances) -> FrameUpdate:
+        """One frame: the named result of :func:`ekf_frame`; the posterior becomes the state."""
+        if self.state is None:
+            raise ValueError("EKFBackend: call reset(T_cam_obj, mask) before the first frame")
+        out = ekf_frame(self.ekf, self.state, obs, var, gate=self.gate, refit=self.refit)
+        self.state = FilterState(out.mean, out.cov)
+        if bool((out.mean[:, 1].abs() > 1.4).any()):
+            log.warning("EKFBackend: |theta| > 80 deg, near the Euler singularity; re-select the model frame")
+        return out
 
     def __call__(self, obs: Observation, var: Variances) -> Tensor:
-        obs = _WithVar(obs, var)
-        self.ekf.predict(obs.dt)  # eqs. (3)-(4)
-        prior = (self.ekf.mean, self.ekf.cov)
-        lin = self.ekf.linearize(obs.points_obj, obs.K, obs.T_color_depth)  # at the prediction: gate and update
-        xyz = pix = obs.valid  # which 3D points and which pixels are used
-        if self.gate is not None:
-            xyz, pix = self._keep(xyz, pix, *self._test(obs, lin[0], self.gate, lin[1]))
-        self._update(obs, xyz, pix, lin)  # eqs. (6)-(7), (15)
-        if self.refit is not None:
-            dt = self.ekf.mean.dtype
-            h = measure_analytic(self.ekf.mean, obs.points_obj.to(dt), obs.K.to(dt), obs.T_color_depth.to(dt)).h
-            xyz_new, pix_new = self._keep(xyz, pix, *self._test(obs, h, self.refit))
-            if bool((xyz_new != xyz).any() | (pix_new != pix).any()):
-                self.ekf.mean, self.ekf.cov = prior  # same prior, fewer features: the same linearisation
-                self._update(obs, xyz_new, pix_new, lin)
-        return self.ekf.T_cam_obj
-
-    @staticmethod
-    def _keep(xyz: Tensor, pix: Tensor, ok_xyz: Tensor, ok_pix: Tensor) -> tuple[Tensor, Tensor]:
-        """A failing 3D point is dropped; a pixel only with its 3D point. The 3D variances (eq. 14) are metric,
-        the pixel variances of eq. (11) only relative (scaled to a mean), so a pixel test alone is not calibrated:
-        dropping pixels on it alone was measured worse (7-Scenes ATE 106 vs 53-69 mm)."""
-        return xyz & ok_xyz, pix & (ok_pix | ok_xyz)
-
-    def _update(self, obs: Observation, xyz: Tensor, pix: Tensor, linearization: tuple[Tensor, Tensor]) -> None:
-        self.ekf.update(
-            obs.points_obj, obs.points_d, obs.pixels, xyz | pix, obs.var_xyz, obs.var_pix, obs.K, obs.T_color_depth,
-            valid_xyz=xyz, valid_pix=pix, linearization=linearization,
-        )  # fmt: skip
-
-    def _test(self, obs: Observation, h: Tensor, p: float, H: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """Per-feature chi-square tests (quantile p) of the 3D and the pixel residual ``z - h`` (h (B, N, 5)),
-        (B, N) bool each. The variance is Q, plus diag(H P H^T) with the filter's covariance when H (B, N, 5, 12)
-        is given (the innovation of the prediction)."""
-        dt = h.dtype
-        z = torch.cat([obs.points_d, obs.pixels], dim=-1).to(dt)  # B,N,5
-        s = torch.cat([obs.var_xyz[..., None].expand(-1, -1, 3), obs.var_pix[..., None].expand(-1, -1, 2)], -1).to(dt)
-        if H is not None:
-            s = s + torch.einsum("bnms,bst,bnmt->bnm", H, self.ekf.cov, H)
-        d2 = torch.nan_to_num((z - h) ** 2 / s, nan=float("inf"))
-        return d2[..., :3].sum(-1) < chi2_quantile(p, 3), d2[..., 3:].sum(-1) < chi2_quantile(p, 2)
+        return self.step(obs, var).T_cam_obj
 
 
 class RegistrationBackend:
@@ -165,9 +283,3 @@ class RegistrationBackend:
         T = self.estimator(obs.points_obj, obs.points_d, obs.valid, T_prev, weights)
         self.T_prev = T
         return T
-
-
-class _WithVar:  # temporary shim while the back end becomes a pure function
-    def __init__(self, obs, var):
-        self.__dict__.update(obs.__dict__)
-        self.var_xyz, self.var_pix = var.var_xyz, var.var_pix

@@ -140,8 +140,20 @@ def fuse(
     )
 
 
+class FilterState(NamedTuple):
+    """The filter's belief about B sequences. mean: (B, 12) state; cov: (B, 12, 12) covariance."""
+
+    mean: Tensor
+    cov: Tensor
+
+
 class FusionEKF:
-    """Stateful 12-state EKF over B sequences: constant-velocity prediction, 2D+3D fusion update.
+    """12-state EKF over B sequences: constant-velocity prediction, 2D+3D fusion update.
+
+    The pure methods (:meth:`initial_state`, :meth:`predicted`, :meth:`linearize_at`, :meth:`updated`) take and
+    return a :class:`FilterState` and never touch ``self``'s state: the differentiable back end
+    (:func:`torchtrack.estimation.ekf_frame`) is built from them. ``reset``/``predict``/``update`` keep a state of
+    their own on top of them, for direct use.
 
     Args:
         sigma2_pix: default pixel variance (px^2), used when update() gets no var_pix.
@@ -185,6 +197,36 @@ class FusionEKF:
         self.mean: Tensor | None = None  # (B, 12)
         self.cov: Tensor | None = None  # (B, 12, 12)
 
+    # -- pure: FilterState in, FilterState out ------------------------------------------------------------
+    def initial_state(self, T_cam_obj: Tensor, velocity: Tensor | None = None) -> FilterState:
+        """The state right after a (re-)selection: pose ``T_cam_obj`` (B, 4, 4), ``velocity`` (B, 6) (default 0),
+        the initial covariance."""
+        B = T_cam_obj.shape[0]
+        x0 = pose_to_state(T_cam_obj.to(self.dtype), None if velocity is None else velocity.to(self.dtype))
+        return FilterState(x0, torch.diag_embed(self.init_var.to(x0.device).expand(B, STATE_SIZE)))
+
+    def predicted(self, state: FilterState, dt: Tensor) -> FilterState:
+        """Constant-velocity prediction, eqs. (3)-(4), over ``dt`` (B,) seconds."""
+        if dt.shape != (state.mean.shape[0],):
+            raise ValueError(f"predict: dt must be ({state.mean.shape[0]},), got {tuple(dt.shape)}")
+        F, Q = constant_velocity(dt.to(self.dtype), self.sigma_ang_acc, self.sigma_lin_acc)
+        return FilterState(*ekf.predict(state.mean, state.cov, F, Q))
+
+    def linearize_at(self, mean: Tensor, points_obj: Tensor, K: Tensor, T_color_depth: Tensor) -> tuple[Tensor, Tensor]:
+        """(h (B, N, 5), H (B, N, 5, 12)) of eqs. (6)-(7) at ``mean`` with this filter's Jacobian mode."""
+        return linearize(mean, points_obj, K, T_color_depth, jacobian=self.jacobian)
+
+    def updated(self, state: FilterState, points_obj, points_d, pixels, valid_xyz, valid_pix, var_xyz, var_pix, K,
+                T_color_depth, linearization=None) -> ekf.Update:  # fmt: skip
+        """The measurement update (:func:`fuse`, eq. 15) of ``state`` with this filter's form and iterations; the 3D
+        part of feature i is used where ``valid_xyz`` (B, N), its pixel where ``valid_pix``."""
+        return fuse(
+            state.mean, state.cov, points_obj, points_d, pixels, valid_xyz | valid_pix, var_xyz, var_pix, K,
+            T_color_depth, valid_xyz=valid_xyz, valid_pix=valid_pix, form=self.form, iterations=self.iterations,
+            jacobian=self.jacobian, linearization=linearization,
+        )  # fmt: skip
+
+    # -- stateful convenience ----------------------------------------------------------------------------
     @property
     def T_cam_obj(self) -> Tensor:
         """(B, 4, 4) current object pose in the depth camera (the latest mean)."""
@@ -204,8 +246,7 @@ class FusionEKF:
         if T_cam_obj.shape != (B, 4, 4) or (mask is not None and mask.shape != (B,)):
             raise ValueError(f"reset: T_cam_obj must be (B, 4, 4) and mask (B,), got {tuple(T_cam_obj.shape)}")
         mask = torch.ones(B, dtype=torch.bool) if mask is None else mask.to(torch.bool)
-        x0 = pose_to_state(T_cam_obj.to(self.dtype), None if velocity is None else velocity.to(self.dtype))
-        P0 = torch.diag_embed(self.init_var.to(x0.device).expand(B, STATE_SIZE))
+        x0, P0 = self.initial_state(T_cam_obj, velocity)
         if self.mean is None or self.mean.shape[0] != B:
             if not bool(mask.all()):
                 raise ValueError(f"reset: first reset (or a new batch size {B}) must cover every sequence")
@@ -217,17 +258,13 @@ class FusionEKF:
 
     def predict(self, dt: Tensor) -> Tensor:
         """Constant-velocity prediction, eqs. (3)–(4), over ``dt`` (B,) seconds. Returns T_cam_obj (B, 4, 4)."""
-        mean, cov = self._state()
-        if dt.shape != (mean.shape[0],):
-            raise ValueError(f"predict: dt must be ({mean.shape[0]},), got {tuple(dt.shape)}")
-        F, Q = constant_velocity(dt.to(self.dtype), self.sigma_ang_acc, self.sigma_lin_acc)
-        self.mean, self.cov = ekf.predict(mean, cov, F, Q)
+        self.mean, self.cov = self.predicted(FilterState(*self._state()), dt)
         return self.T_cam_obj
 
     def linearize(self, points_obj: Tensor, K: Tensor, T_color_depth: Tensor) -> tuple[Tensor, Tensor]:
         """(h (B, N, 5), H (B, N, 5, 12)) of eqs. (6)-(7) at the current mean, with this filter's Jacobian mode; pass
         it to :meth:`update` (``linearization=``) to share it, e.g. with an innovation gate."""
-        return linearize(self._state()[0], points_obj, K, T_color_depth, jacobian=self.jacobian)
+        return self.linearize_at(self._state()[0], points_obj, K, T_color_depth)
 
     def update(
         self,

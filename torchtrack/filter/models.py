@@ -109,17 +109,12 @@ def measure_analytic(x: Tensor, points_obj: Tensor, K: Tensor, T_color_depth: Te
     """
     B, N, _ = points_obj.shape
     angles = x[:, :3]
-    R = euler_to_matrix(angles)  # B,3,3
     theta, phi = angles[:, 1], angles[:, 2]
     c_t, s_t, c_p, s_p = torch.cos(theta), torch.sin(theta), torch.cos(phi), torch.sin(phi)
     zero, one = torch.zeros_like(phi), torch.ones_like(phi)
     U = torch.stack([c_p * c_t, -s_p, zero, s_p * c_t, c_p, zero, -s_t, zero, one], -1).reshape(B, 1, 3, 3)
-    RX = points_obj @ R.transpose(-1, -2)  # B,N,3
-    X_d = RX + x[:, None, 3:6]  # eq. (6)
+    RX, X_d, A, u, pix = _project(x, points_obj, K, T_color_depth)
     dXd_da = -hat(RX) @ U  # B,N,3,3: columns u_k x RX, u = (Rz Ry e_x, Rz e_y, e_z)
-    A = K @ T_color_depth[:, :3, :3]  # B,3,3: u = A X_d + b
-    u = X_d @ A.transpose(-1, -2) + (K @ T_color_depth[:, :3, 3:])[:, None, :, 0]  # B,N,3
-    pix = u[..., :2] / u[..., 2:]  # eq. (7)
     dpix_dXd = (A[:, None, :2, :] - pix[..., None] * A[:, None, 2:, :]) / u[..., 2:, None]  # B,N,2,3
     dpix_da = dpix_dXd @ dXd_da  # B,N,2,3
     pose_cols = torch.cat(
@@ -131,6 +126,22 @@ def measure_analytic(x: Tensor, points_obj: Tensor, K: Tensor, T_color_depth: Te
     )  # B,N,5,6
     H = torch.cat([pose_cols, torch.zeros_like(pose_cols)], -1)  # velocities do not enter h
     return Linearization(torch.cat([X_d, pix], -1), H)
+
+
+def _project(x: Tensor, points_obj: Tensor, K: Tensor, T_color_depth: Tensor):
+    """Eqs. (6)-(7), batched: (R X_o (B,N,3), X_d (B,N,3), A = K R_dv (B,3,3), u = alpha [x, 1] (B,N,3), pixels)."""
+    RX = points_obj @ euler_to_matrix(x[:, :3]).transpose(-1, -2)  # B,N,3
+    X_d = RX + x[:, None, 3:6]  # eq. (6)
+    A = K @ T_color_depth[:, :3, :3]  # B,3,3: u = A X_d + b
+    u = X_d @ A.transpose(-1, -2) + (K @ T_color_depth[:, :3, 3:])[:, None, :, 0]  # B,N,3
+    return RX, X_d, A, u, u[..., :2] / u[..., 2:]  # eq. (7)
+
+
+def measure(x: Tensor, points_obj: Tensor, K: Tensor, T_color_depth: Tensor) -> Tensor:
+    """Batched eqs. (6)-(7) without the Jacobian: h (B, N, 5) = [X_d, pixel] for states x (B, 12) and model points
+    (B, N, 3); the same numbers as :func:`measure_analytic`'s h (same operations)."""
+    _, X_d, _, _, pix = _project(x, points_obj, K, T_color_depth)
+    return torch.cat([X_d, pix], -1)
 
 
 def state_to_pose(x: Tensor) -> Tensor:
