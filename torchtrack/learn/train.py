@@ -1,0 +1,287 @@
+"""Training a learned weighting through the differentiable fusion EKF (``torchtrack-train``).
+
+Recorded observations (:mod:`torchtrack.learn.cache`) are cut into windows of T frames (:func:`sequence_windows`);
+each window is replayed through the weighting and the back end (:func:`torchtrack.learn.rollout.rollout`) from the
+ground-truth pose of its first frame, and one of two losses is backpropagated into the weighting:
+
+* ``supervised``: the pose error against ground truth over the window (translation in metres and rotation in
+  radians, weighted; :func:`~torchtrack.learn.rollout.supervised_loss`);
+* ``nll``: the negative log-likelihood of the innovations under the filter's predicted innovation covariance
+  (:func:`~torchtrack.learn.rollout.nll_loss`) — needs no ground truth, so any recorded RGB-D footage serves.
+
+Adam with gradient-norm clipping, seeded and deterministic (one thread); each epoch validates on held-out
+sequences and keeps the best checkpoint by the validation loss. A run folder holds ``metrics.csv`` (one row per
+epoch), ``loss.png``, ``last.pt`` (model, optimiser, epoch: resume) and ``best.pt`` (the model to use), both in the
+checkpoint format of :mod:`torchtrack.learn.checkpoint` with the resolved config.
+
+References: Haarnoja et al., "Backprop KF" (NeurIPS 2016); Abbeel et al., "Discriminative training of Kalman
+filters" (RSS 2005).
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import torch
+from torch import Tensor
+from tqdm import tqdm
+
+from torchtrack.filter.fusion import FusionEKF
+from torchtrack.learn.cache import SequenceObservations
+from torchtrack.learn.checkpoint import load_checkpoint, save_checkpoint
+from torchtrack.learn.model import LearnedWeighting
+from torchtrack.learn.rollout import Windows, concat_windows, nll_loss, pose_errors, rollout, supervised_loss
+
+log = logging.getLogger(__name__)
+LOSSES = ("supervised", "nll")
+
+
+@dataclass
+class TrainConfig:
+    """Schema of the ``train`` config group (conf/train/*.yaml).
+
+    Attributes:
+        window: T, frames per window (truncated backpropagation); stride: frames between window starts.
+        batch: windows per optimiser step (replayed together, batched in the back end).
+        epochs, lr, weight_decay, clip: Adam and the gradient-norm clip.
+        loss: "supervised" or "nll"; w_trans (1/m), w_rot (1/rad): the supervised loss's weights.
+        gate, refit: the back end's chi-square quantiles during training (None = off), as in the tracker.
+        seed: torch seed of the initialisation and the window order.
+        model: :class:`~torchtrack.learn.model.LearnedWeighting` arguments (mode, hidden, sigma2_pix, ...).
+        max_windows: cap on the training windows per epoch (random subset each epoch; None = all).
+    """
+
+    window: int = 8
+    stride: int = 4
+    batch: int = 32
+    epochs: int = 20
+    lr: float = 3e-3
+    weight_decay: float = 0.0
+    clip: float = 1.0
+    loss: str = "supervised"
+    w_trans: float = 1.0
+    w_rot: float = 1.0
+    gate: float | None = 0.999
+    refit: float | None = 0.999
+    seed: int = 0
+    max_windows: int | None = None
+    model: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.loss not in LOSSES:
+            raise ValueError(f"train.loss must be one of {LOSSES}, got {self.loss!r}")
+        if self.window < 1 or self.stride < 1 or self.batch < 1 or self.epochs < 0 or self.lr <= 0:
+            raise ValueError("train: window, stride, batch must be >= 1, epochs >= 0 and lr > 0")
+
+
+# -- windows ----------------------------------------------------------------------------------------------
+def sequence_windows(seq: SequenceObservations, window: int, stride: int) -> Windows | None:
+    """All windows of ``window`` updates of one recorded sequence, starting every ``stride`` frames.
+
+    A window starting at frame s replays the updates of frames s+1..s+window from the ground-truth pose of frame s
+    (or, where a model was selected at s, the model's pose, which is exact). Windows whose start has no ground
+    truth, or with no ground truth at all, are left out. Returns None when none is left.
+    """
+    starts = [s for s in range(0, seq.frames - window, stride) if _startable(seq, s)]
+    if not starts:
+        return None
+    s = torch.tensor(starts)
+    rows = s[None, :] + torch.arange(1, window + 1)[:, None]  # T,B: the updates of each window
+    start_pose = torch.where(seq.reselected[s][:, None, None], seq.model_T_cam_obj[s], seq.T_cam_obj_gt[s])
+    B = len(starts)
+    win = Windows(
+        start_T_cam_obj=start_pose,
+        dt=seq.dt[rows],
+        points_obj=seq.points_obj[rows],
+        points_d=seq.points_d[rows],
+        pixels=seq.pixels[rows],
+        valid=seq.valid[rows],
+        cues=seq.cues[rows],
+        K=seq.K.expand(B, 3, 3),
+        T_color_depth=seq.T_color_depth.expand(B, 4, 4),
+        focal=seq.K_depth[0, 0].expand(B),
+        reselected=seq.reselected[rows],
+        model_T_cam_obj=seq.model_T_cam_obj[rows],
+        T_cam_obj_gt=seq.T_cam_obj_gt[rows],
+        gt_valid=seq.T_cam_obj_gt_valid[rows],
+    )
+    keep = win.gt_valid.any(0)
+    return select_windows(win, keep.nonzero().squeeze(1)) if bool(keep.any()) else None
+
+
+def _startable(seq: SequenceObservations, s: int) -> bool:
+    return bool(seq.reselected[s]) or bool(seq.T_cam_obj_gt_valid[s])
+
+
+def select_windows(win: Windows, index: Tensor) -> Windows:
+    """The windows ``index`` (1-D) of a batch."""
+    per_window = ("start_T_cam_obj", "K", "T_color_depth", "focal")
+    return Windows(**{
+        f.name: getattr(win, f.name)[index] if f.name in per_window else getattr(win, f.name)[:, index]
+        for f in fields(Windows)
+    })  # fmt: skip
+
+
+def windows_of(sequences: list[SequenceObservations], window: int, stride: int) -> Windows | None:
+    parts = [w for w in (sequence_windows(s, window, stride) for s in sequences) if w is not None]
+    return concat_windows(parts) if parts else None
+
+
+# -- the loop ---------------------------------------------------------------------------------------------
+def window_loss(ekf: FusionEKF, model: Callable, win: Windows, cfg: TrainConfig) -> tuple[Tensor, dict[str, float]]:
+    """The configured loss of one batch of windows, and its diagnostics (pose errors, NLL)."""
+    out = rollout(ekf, model, win, gate=cfg.gate, refit=cfg.refit, with_nll=cfg.loss == "nll")
+    if cfg.loss == "nll":
+        loss = nll_loss(out)
+    else:
+        loss = supervised_loss(out, win, cfg.w_trans, cfg.w_rot)
+    with torch.no_grad():
+        e_t, e_r = pose_errors(out.T_cam_obj, win.T_cam_obj_gt.to(out.T_cam_obj.dtype))
+        m = win.gt_valid
+        n = max(int(m.sum()), 1)
+        stats = {
+            "loss": float(loss),
+            "trans_mm": 1e3 * float(e_t[m].sum()) / n,
+            "rot_deg": math.degrees(float(e_r[m].sum()) / n),
+            "nll": float(out.nll.sum() / out.n_used.sum().clamp_min(1)) if cfg.loss == "nll" else float("nan"),
+        }
+    return loss, stats
+
+
+def evaluate(ekf: FusionEKF, model: Callable, win: Windows, cfg: TrainConfig) -> dict[str, float]:
+    """Mean diagnostics over all windows of ``win`` (batches of cfg.batch, no gradient), weighted by window count."""
+    totals: dict[str, float] = {}
+    B = win.dt.shape[1]
+    with torch.no_grad():
+        for i in range(0, B, cfg.batch):
+            idx = torch.arange(i, min(i + cfg.batch, B))
+            _, stats = window_loss(ekf, model, select_windows(win, idx), cfg)
+            for k, v in stats.items():
+                totals[k] = totals.get(k, 0.0) + v * len(idx)
+    return {k: v / B for k, v in totals.items()}
+
+
+def fit(
+    model: LearnedWeighting,
+    ekf: FusionEKF,
+    train: Windows,
+    cfg: TrainConfig,
+    *,
+    val: Windows | None = None,
+    out_dir: Path | None = None,
+    extra: dict | None = None,
+    progress: bool = True,
+) -> list[dict]:
+    """Train ``model`` on the windows ``train``; returns one dict of metrics per epoch.
+
+    With ``out_dir``: metrics.csv, loss.png, last.pt (resumed from when present) and best.pt (lowest validation
+    loss, or training loss without ``val``) are written there; ``extra`` (e.g. the resolved config) goes into both
+    checkpoints.
+    """
+    torch.manual_seed(cfg.seed)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    history, start = _resume(model, opt, out_dir)
+    B = train.dt.shape[1]
+    best = min((h["select"] for h in history), default=float("inf"))
+    epochs = tqdm(range(start, cfg.epochs), desc="training", unit="epoch", disable=not progress, initial=start,
+                  total=cfg.epochs)  # fmt: skip
+    for epoch in epochs:
+        g = torch.Generator().manual_seed(cfg.seed * 100_003 + epoch)  # the order depends on (seed, epoch) only
+        order = torch.randperm(B, generator=g)
+        if cfg.max_windows is not None:
+            order = order[: cfg.max_windows]
+        model.train()
+        sums, count = {}, 0
+        for i in range(0, len(order), cfg.batch):
+            idx = order[i : i + cfg.batch]
+            loss, stats = window_loss(ekf, model, select_windows(train, idx), cfg)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.clip)
+            opt.step()
+            for k, v in stats.items():
+                sums[k] = sums.get(k, 0.0) + v * len(idx)
+            count += len(idx)
+        model.eval()
+        row = {"epoch": epoch + 1, **{f"train_{k}": v / max(count, 1) for k, v in sums.items()}}
+        if val is not None:
+            row.update({f"val_{k}": v for k, v in evaluate(ekf, model, val, cfg).items()})
+        row["select"] = row["val_loss"] if val is not None else row["train_loss"]
+        history.append(row)
+        epochs.set_postfix(loss=f"{row['train_loss']:.4g}", val=f"{row.get('val_loss', float('nan')):.4g}")
+        if out_dir is not None:
+            meta = {"history": history, **(extra or {})}
+            if row["select"] < best:
+                best = row["select"]
+                save_checkpoint(out_dir / "best.pt", model, extra={**meta, "epoch": epoch + 1})
+            save_checkpoint(
+                out_dir / "last.pt", model, extra={**meta, "epoch": epoch + 1, "optimizer": opt.state_dict()}
+            )
+            write_metrics(out_dir, history)
+    return history
+
+
+def _resume(model: LearnedWeighting, opt: torch.optim.Optimizer, out_dir: Path | None) -> tuple[list[dict], int]:
+    if out_dir is None or not (out_dir / "last.pt").is_file():
+        return [], 0
+    saved, meta = load_checkpoint(out_dir / "last.pt")
+    if saved.config != model.config:
+        raise ValueError(f"{out_dir / 'last.pt'}: a model with other settings ({saved.config}); use another out dir")
+    model.load_state_dict(saved.state_dict())
+    opt.load_state_dict(meta["optimizer"])
+    log.info("resuming %s at epoch %d", out_dir, meta["epoch"])
+    return list(meta["history"]), int(meta["epoch"])
+
+
+def write_metrics(out_dir: Path, history: list[dict]) -> None:
+    """metrics.csv and loss.png (atomic), and TensorBoard scalars when tensorboard is installed."""
+    keys = list(dict.fromkeys(k for row in history for k in row))
+    tmp = out_dir / ".metrics.csv.tmp"
+    with tmp.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        w.writerows(history)
+    os.replace(tmp, out_dir / "metrics.csv")
+    plot_losses(out_dir / "loss.png", history)
+    _tensorboard(out_dir, history[-1])
+
+
+def plot_losses(path: Path, history: list[dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from torchtrack.viz.plots import save_atomic
+
+    epochs = [h["epoch"] for h in history]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    for key, ax in zip(("loss", "trans_mm"), axes, strict=True):
+        for split in ("train", "val"):
+            if f"{split}_{key}" in history[-1]:
+                ax.plot(epochs, [h[f"{split}_{key}"] for h in history], marker="o", ms=3, label=split)
+        ax.set_xlabel("epoch")
+        ax.set_ylabel({"loss": "loss", "trans_mm": "mean translation error over windows (mm)"}[key])
+        ax.grid(alpha=0.3)
+        ax.legend()
+    fig.suptitle("learned weighting: training through the fusion EKF")
+    fig.tight_layout()
+    save_atomic(fig, path)
+    plt.close(fig)
+
+
+def _tensorboard(out_dir: Path, row: dict) -> None:
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except Exception:  # tensorboard not installed: the CSV and the PNG are the record
+        return
+    with SummaryWriter(str(out_dir / "tensorboard")) as w:
+        for k, v in row.items():
+            if k != "epoch" and isinstance(v, float) and math.isfinite(v):
+                w.add_scalar(k, v, row["epoch"])
