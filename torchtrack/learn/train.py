@@ -52,6 +52,7 @@ class TrainConfig:
         epochs, lr, weight_decay, clip: Adam and the gradient-norm clip.
         loss: "supervised" or "nll"; w_trans (1/m), w_rot (1/rad): the supervised loss's weights.
         gate, refit: the back end's chi-square quantiles during training (None = off), as in the tracker.
+        jacobian: the filter's Jacobian mode while training ("analytic": the same numbers as autograd, faster).
         seed: torch seed of the initialisation and the window order.
         model: :class:`~torchtrack.learn.model.LearnedWeighting` arguments (mode, hidden, sigma2_pix, ...).
         max_windows: cap on the training windows per epoch (random subset each epoch; None = all).
@@ -69,6 +70,7 @@ class TrainConfig:
     w_rot: float = 1.0
     gate: float | None = 0.999
     refit: float | None = 0.999
+    jacobian: str = "analytic"
     seed: int = 0
     max_windows: int | None = None
     model: dict = field(default_factory=dict)
