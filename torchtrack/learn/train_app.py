@@ -26,7 +26,7 @@ from torchtrack.cli import CONF_DIR
 from torchtrack.data.errors import DataError
 from torchtrack.learn.cache import SequenceObservations, load_observations
 from torchtrack.learn.model import LearnedWeighting
-from torchtrack.learn.train import TrainConfig, fit, windows_of
+from torchtrack.learn.train import TrainConfig, evaluate, fit, windows_of
 from torchtrack.runtime import configure
 
 log = logging.getLogger("torchtrack.train")
@@ -77,6 +77,11 @@ def train_from_config(cfg: DictConfig, out: Path, progress: bool = True) -> list
         "train_sequences": [s.sequence for s in train_seqs],
         "val_sequences": [s.sequence for s in val_seqs],
     }
+    if val_w is not None:  # what the learned model has to beat, on the same validation windows
+        for name in ("paper", "fixed"):
+            base = instantiate(OmegaConf.load(CONF_DIR / "weighting" / f"{name}.yaml"))
+            extra[f"val_{name}"] = evaluate(ekf, base, val_w, tc)
+            log.info("validation, weighting=%s: %s", name, _fmt(extra[f"val_{name}"]))
     history = fit(model, ekf, train_w, tc, val=val_w, out_dir=out, extra=extra, progress=progress)
     if cfg.get("export"):
         export(out / "best.pt", Path(cfg.export))
@@ -91,6 +96,10 @@ def export(src: Path, dst: Path) -> None:
     log.info("best checkpoint copied to %s", dst)
 
 
+def _fmt(stats: dict) -> str:
+    return "  ".join(f"{k}={v:.4g}" for k, v in stats.items())
+
+
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="learn")
 def app(cfg: DictConfig) -> None:
     configure(cfg.threads)
@@ -102,7 +111,7 @@ def app(cfg: DictConfig) -> None:
         sys.exit(2)
     if history:
         best = min(history, key=lambda h: h["select"])
-        log.info("best epoch %d: %s", best["epoch"], "  ".join(f"{k}={v:.4g}" for k, v in best.items() if k != "epoch"))
+        log.info("best epoch %d: %s", best["epoch"], _fmt({k: v for k, v in best.items() if k != "epoch"}))
     log.info("run folder: %s", out)
 
 
