@@ -83,6 +83,8 @@ class TrackResult(NamedTuple):
     valid: kept: valid input, tracked, inside the image, d_TIM <= threshold.
     d_tim: d_TIM of the winner (eq. 10), +inf where not tracked. d_tim_int, d_tim_sim: of each tracker.
     winner: int64, 0 intensity, 1 SIM. status_int, status_sim: each tracker's forward and backward success.
+    residual: the winner's forward LK residual, mean |I_next(x + d) - I_prev(x)| over the final level-0 window in
+        image units ([0, 1]); 0 where that pass did not track, and zeros everywhere unless asked (``with_residual``).
     """
 
     points: Tensor
@@ -93,14 +95,16 @@ class TrackResult(NamedTuple):
     winner: Tensor
     status_int: Tensor
     status_sim: Tensor
+    residual: Tensor
 
 
 def _inside(points: Tensor, h: int, w: int) -> Tensor:
     return (points >= 0).all(-1) & (points[..., 0] <= w - 1) & (points[..., 1] <= h - 1)
 
 
-def _track_torch(prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tensor, channels, lk_kwargs):
-    """Forward and backward LK for each channel k in channels: (fwd points, status, d_tim), each (K, B, N[, 2])."""
+def _track_torch(prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tensor, channels, lk_kwargs, with_residual):
+    """Forward and backward LK for each channel k in channels: (fwd points, status, d_tim, forward residual), each
+    (K, B, N[, 2])."""
     b, n = points.shape[:2]
     k = len(channels)
     image = torch.tensor(channels)[:, None, None] * b + torch.arange(b)[None, :, None]  # K,B,1
@@ -109,8 +113,11 @@ def _track_torch(prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tensor
     sel = valid.expand(k, b, n).reshape(-1).nonzero().squeeze(1)
     fwd_pts, status = pts.clone(), torch.zeros(pts.shape[0], dtype=torch.bool)
     x0, img = pts[sel], image[sel]
-    x1, ok, _ = lk_track_flat(prev.pyramid, next.pyramid, x0, img, x0, with_residual=False, **lk_kwargs)
+    x1, ok, res = lk_track_flat(prev.pyramid, next.pyramid, x0, img, x0, with_residual=with_residual, **lk_kwargs)
     fwd_pts[sel] = x1
+    residual = torch.zeros(pts.shape[0])
+    if with_residual:
+        residual[sel] = res
     good = ok.nonzero().squeeze(1)
     back, ok_back, _ = lk_track_flat(  # template inverse matching: from the result back to prev
         next.pyramid, prev.pyramid, x1[good], img[good], x1[good], with_residual=False, **lk_kwargs
@@ -119,11 +126,13 @@ def _track_torch(prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tensor
     rows = sel[good]
     d_tim[rows] = torch.where(ok_back, torch.linalg.vector_norm(x0[good] - back, dim=-1), float("inf"))  # eq. (10)
     status[rows] = ok_back
-    return fwd_pts.view(k, b, n, 2), status.view(k, b, n), d_tim.view(k, b, n)
+    return fwd_pts.view(k, b, n, 2), status.view(k, b, n), d_tim.view(k, b, n), residual.view(k, b, n)
 
 
-def _track_opencv(prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tensor, channels, lk_kwargs):
-    """The same with cv2.calcOpticalFlowPyrLK on uint8 images, looped over channels and sequences."""
+def _track_opencv(prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tensor, channels, lk_kwargs, with_residual):
+    """The same with cv2.calcOpticalFlowPyrLK on uint8 images, looped over channels and sequences. The residual is
+    OpenCV's ``err`` of the forward pass (mean absolute difference over the window, 0..255 units) divided by 255, the
+    torch back end's image units; ``with_residual`` does not change the work (OpenCV always computes it)."""
     import cv2
 
     b, n = points.shape[:2]
@@ -138,13 +147,14 @@ def _track_opencv(prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tenso
     fwd_pts = points.float().expand(len(channels), b, n, 2).clone()
     status = torch.zeros(len(channels), b, n, dtype=torch.bool)
     d_tim = torch.full((len(channels), b, n), float("inf"))
+    residual = torch.zeros(len(channels), b, n)
     for i, k in enumerate(channels):
         for s in range(b):
             sel = valid[s].nonzero().squeeze(1)
             if sel.numel() == 0:
                 continue
             x0 = points[s, sel].float().numpy().reshape(-1, 1, 2)
-            x1, st1, _ = cv2.calcOpticalFlowPyrLK(prev.u8(k, s), next.u8(k, s), x0, None, **args)
+            x1, st1, err = cv2.calcOpticalFlowPyrLK(prev.u8(k, s), next.u8(k, s), x0, None, **args)
             back, st2, _ = cv2.calcOpticalFlowPyrLK(next.u8(k, s), prev.u8(k, s), x1, None, **args)
             x1t, backt = torch.from_numpy(x1.reshape(-1, 2)), torch.from_numpy(back.reshape(-1, 2))
             ok = torch.from_numpy((st1[:, 0] == 1) & (st2[:, 0] == 1)) & _inside(x1t, h, w) & _inside(backt, h, w)
@@ -152,7 +162,9 @@ def _track_opencv(prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tenso
             status[i, s, sel] = ok
             d = torch.linalg.vector_norm(torch.from_numpy(x0.reshape(-1, 2)) - backt, dim=-1)  # eq. (10)
             d_tim[i, s, sel] = torch.where(ok, d, float("inf"))
-    return fwd_pts, status, d_tim
+            if with_residual:
+                residual[i, s, sel] = torch.where(ok, torch.from_numpy(err.reshape(-1)) / 255.0, 0.0)
+    return fwd_pts, status, d_tim, residual
 
 
 def combined_track(
@@ -171,6 +183,7 @@ def combined_track(
     ic_iters: int = 3,
     backend: Literal["torch", "opencv"] = "torch",
     policy: Literal["min_tim", "fallback"] = "min_tim",
+    with_residual: bool = False,
 ) -> TrackResult:
     """Track features from prev to next with the combined intensity + SIM tracker (§III-C, eq. (10)).
 
@@ -185,6 +198,8 @@ def combined_track(
             (improvement): the SIM tracker only where the intensity tracker failed step IV. On smooth SIM
             patches LK barely moves forward or backward, so a SIM track can have a tiny d_TIM and still be
             wrong; min_tim then prefers it over a correct intensity track.
+        with_residual: also return the winner's forward LK residual (a cue for learned weighting; the torch back
+            end samples one more window per point, the tracks are unchanged); zeros otherwise.
 
     Returns:
         TrackResult; d_tim_* and status_* of a tracker that did not run are +inf and False.
@@ -205,37 +220,39 @@ def combined_track(
     channels = _CHANNELS[mode]
     lk_kwargs = dict(window=window, levels=levels, iters=iters, eps=eps, min_eig=min_eig)
     if backend == "torch":
-        track = partial(_track_torch, prev, next, points, lk_kwargs=dict(lk_kwargs, ic_iters=ic_iters))
+        lk_kwargs["ic_iters"] = ic_iters
+        track = partial(_track_torch, prev, next, points, lk_kwargs=lk_kwargs, with_residual=with_residual)
     elif backend == "opencv":
-        track = partial(_track_opencv, prev, next, points, lk_kwargs=lk_kwargs)
+        track = partial(_track_opencv, prev, next, points, lk_kwargs=lk_kwargs, with_residual=with_residual)
     else:
         raise ValueError(f"combined_track: backend must be 'torch' or 'opencv', got {backend!r}")
     if policy not in ("min_tim", "fallback"):
         raise ValueError(f"combined_track: policy must be 'min_tim' or 'fallback', got {policy!r}")
     if policy == "fallback" and len(channels) == 2:
         # the SIM tracker runs only where the intensity tracker failed step IV (its d_TIM elsewhere: inf)
-        fwd, status, d_tim = track(valid=valid, channels=channels[:1])
-        failed = valid & ~(d_tim[0] <= tim_threshold)
-        fwd_s, status_s, d_tim_s = track(valid=failed, channels=channels[1:])
-        fwd, status, d_tim = torch.cat([fwd, fwd_s]), torch.cat([status, status_s]), torch.cat([d_tim, d_tim_s])
+        first = track(valid=valid, channels=channels[:1])
+        failed = valid & ~(first[2][0] <= tim_threshold)
+        second = track(valid=failed, channels=channels[1:])
+        fwd, status, d_tim, residual = (torch.cat([a, b]) for a, b in zip(first, second, strict=True))
     else:
-        fwd, status, d_tim = track(valid=valid, channels=channels)
+        fwd, status, d_tim, residual = track(valid=valid, channels=channels)
     pick = (d_tim[-1] < d_tim[0]).long()  # step III: the tracker with the smaller d_TIM (ties: intensity)
     best = d_tim.gather(0, pick[None])[0]
     chosen = fwd.gather(0, pick[None, ..., None].expand(1, b, n, 2))[0]
     winner = torch.tensor(channels)[pick]
+    residual = residual.gather(0, pick[None])[0]
     h, w = prev.images[0].shape[-2:]
     keep = valid & torch.isfinite(best) & (best <= tim_threshold) & _inside(chosen, h, w)  # step IV
     full = {c: (d_tim[i], status[i]) for i, c in enumerate(channels)}
     none = (torch.full((b, n), float("inf")), torch.zeros(b, n, dtype=torch.bool))
     (d_int, st_int), (d_sim, st_sim) = full.get(0, none), full.get(1, none)
     points_out = torch.where(keep[..., None], chosen, points.float()).to(points.dtype)
-    return TrackResult(points_out, keep, best, d_int, d_sim, winner, st_int, st_sim)
+    return TrackResult(points_out, keep, best, d_int, d_sim, winner, st_int, st_sim, residual)
 
 
 class CombinedTracker:
-    """Holds the combined tracker's parameters; ``__call__(prev, next, points, valid)`` delegates to
-    :func:`combined_track` and ``prepare(gray, sim)`` to :func:`prepare_frame`."""
+    """Holds the combined tracker's parameters; ``__call__(prev, next, points, valid, with_residual=False)`` delegates
+    to :func:`combined_track` and ``prepare(gray, sim)`` to :func:`prepare_frame`."""
 
     def __init__(
         self,
@@ -261,5 +278,7 @@ class CombinedTracker:
     def prepare(self, gray: Tensor, sim: Tensor | None = None) -> FlowFrame:
         return prepare_frame(gray, sim, self.levels)
 
-    def __call__(self, prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tensor | None = None) -> TrackResult:
-        return combined_track(prev, next, points, valid, **self.kwargs)
+    def __call__(
+        self, prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tensor | None = None, with_residual: bool = False
+    ) -> TrackResult:
+        return combined_track(prev, next, points, valid, **self.kwargs, with_residual=with_residual)

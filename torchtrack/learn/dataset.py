@@ -1,0 +1,118 @@
+"""The synthetic training set for learned weighting: many rendered variants, each recorded into the observation cache.
+
+A set is a config (conf/dataset/*.yaml, under the key ``dataset``): the product of seeds x scene modes x motion
+speeds x noise levels, each one :class:`~torchtrack.data.synthetic.SyntheticConfig` on a common ``base``. Every
+variant is rendered once (the renderer's cache, keyed by the config's digest) and recorded with the pipeline of
+the composed config (:func:`torchtrack.learn.record.record_sequences`) into ``out_dir/<variant>.pt``, tracked with
+the region its mode needs (``regions``: scene -> the whole frame, object -> depth thresholding). Resumable: files
+recorded from the same rendered sequence with the same config are kept. ``out_dir/dataset.json`` lists the
+variants (file, region, full SyntheticConfig). Missing renders are made by ``render_workers`` processes in parallel.
+
+    torchtrack-record +dataset=synthetic out=DIR        # the default set
+    torchtrack-record +dataset=synthetic_tiny out=DIR   # 2 sequences of 6 frames at 160 x 120 (tests)
+
+The renderer has no photometric change over time (lighting is fixed to each rigid group, so brightness constancy
+holds exactly); the only photometric variation is the colour noise of the Kinect model (``kinect.rgb_sigma``).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+import multiprocessing
+import os
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from torchtrack.cli import CONF_DIR
+from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence, sequence_name
+from torchtrack.data.tum import TumSequence
+from torchtrack.learn.record import record_sequences
+
+log = logging.getLogger("torchtrack.record")
+
+
+@dataclass
+class Variant:
+    """One sequence of a synthetic set: its name (the cache file's), renderer config and region config name."""
+
+    name: str
+    config: SyntheticConfig
+    region: str
+
+
+def synthetic_variants(spec: DictConfig | dict) -> list[Variant]:
+    """Every combination of ``spec``'s seeds, modes, speeds and noises, on ``spec.base``; named
+    ``<mode>-<speed>-<noise>-seed<seed>`` after the keys of those maps. A speed gives the steps per renderer mode
+    (``speeds.<speed>.<scene|object>``)."""
+    spec = OmegaConf.create(spec) if isinstance(spec, dict) else spec
+    out = []
+    for seed, mode, speed, noise in itertools.product(spec.seeds, spec.modes, spec.speeds, spec.noises):
+        kind = spec.modes[mode].get("mode", "scene")
+        parts = (spec.base, spec.modes[mode], spec.speeds[speed][kind], spec.noises[noise])
+        params = OmegaConf.to_container(OmegaConf.merge(OmegaConf.create(), *parts), resolve=True)
+        cfg = SyntheticConfig(**params, seed=int(seed))
+        out.append(Variant(f"{mode}-{speed}-{noise}-seed{seed}", cfg, spec.regions[cfg.mode]))
+    return out
+
+
+def render_variants(variants: list[Variant], cache: Path, workers: int = 1, progress: bool = True) -> list[Path]:
+    """The rendered folder of every variant (:func:`~torchtrack.data.synthetic.ensure_sequence`: cached, safe
+    against concurrent renderers), rendering the missing ones in ``workers`` processes."""
+    todo = [v for v in variants if not (cache / sequence_name(v.config) / "SOURCE.txt").is_file()]
+    log.info("%d of %d variants to render into %s", len(todo), len(variants), cache)
+    if workers > 1 and len(todo) > 1:
+        with ProcessPoolExecutor(min(workers, len(todo)), mp_context=multiprocessing.get_context("spawn")) as pool:
+            jobs = [pool.submit(ensure_sequence, v.config, cache) for v in todo]
+            for job in tqdm(as_completed(jobs), total=len(jobs), desc="rendering", unit="seq", disable=not progress):
+                job.result()
+    else:
+        for v in tqdm(todo, desc="rendering", unit="seq", disable=not progress):
+            ensure_sequence(v.config, cache)
+    return [ensure_sequence(v.config, cache) for v in variants]
+
+
+def build_synthetic_set(cfg: DictConfig, out_dir: str | Path, progress: bool = True) -> list[Path]:
+    """Render (cached) and record every variant of ``cfg.dataset`` into ``out_dir``; returns the files in variant
+    order. ``cfg``: the composed config (conf/config.yaml's groups) whose pipeline records; its ``region`` and
+    ``data`` are replaced per variant."""
+    spec = cfg.dataset
+    out_dir = Path(out_dir)
+    variants = synthetic_variants(spec)
+    cache, workers = Path(spec.cache_dir).expanduser(), int(spec.get("render_workers") or 1)
+    folders = render_variants(variants, cache, workers, progress)
+    paths: list[Path | None] = [None] * len(variants)
+    for region in dict.fromkeys(v.region for v in variants):
+        group = [i for i, v in enumerate(variants) if v.region == region]
+        files = record_sequences(
+            _with_region(cfg, region), [TumSequence(folders[i]) for i in group], out_dir,
+            names=[variants[i].name for i in group], batch=spec.get("batch"), progress=progress,
+        )  # fmt: skip
+        for i, f in zip(group, files, strict=True):
+            paths[i] = f
+    index = {
+        "name": spec.name,
+        "variants": [
+            {"name": v.name, "file": p.name, "region": v.region, "synthetic": v.config.to_dict()}
+            for v, p in zip(variants, paths, strict=True)
+        ],
+    }
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tmp = out_dir / f".dataset.json.tmp-{os.getpid()}"
+    tmp.write_text(json.dumps(index, indent=1) + "\n")
+    os.replace(tmp, out_dir / "dataset.json")
+    return paths
+
+
+def _with_region(cfg: DictConfig, region: str) -> DictConfig:
+    """cfg with conf/region/<region>.yaml as its region, and data naming the set (the sequences come from it)."""
+    g = cfg.copy()
+    OmegaConf.set_struct(g, False)
+    g.region = OmegaConf.load(CONF_DIR / "region" / f"{region}.yaml")
+    g.data = OmegaConf.create({"kind": "synthetic", "set": str(cfg.dataset.name)})
+    return g
