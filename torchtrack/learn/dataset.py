@@ -30,6 +30,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from torchtrack.cli import CONF_DIR
+from torchtrack.data.perturb import make_variant
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence, sequence_name
 from torchtrack.data.tum import TumSequence
 from torchtrack.learn.record import record_sequences
@@ -44,6 +45,7 @@ class Variant:
     name: str
     config: SyntheticConfig
     region: str
+    photometric: bool = False  # recorded from the photometric variant of the render (torchtrack.data.perturb)
 
 
 def synthetic_variants(spec: DictConfig | dict) -> list[Variant]:
@@ -57,7 +59,9 @@ def synthetic_variants(spec: DictConfig | dict) -> list[Variant]:
         parts = (spec.base, spec.modes[mode], spec.speeds[speed][kind], spec.noises[noise])
         params = OmegaConf.to_container(OmegaConf.merge(OmegaConf.create(), *parts), resolve=True)
         cfg = SyntheticConfig(**params, seed=int(seed))
-        out.append(Variant(f"{mode}-{speed}-{noise}-seed{seed}", cfg, spec.regions[cfg.mode]))
+        photo = int(seed) in set(spec.get("photometric_seeds") or [])
+        name = f"{mode}-{speed}-{noise}-seed{seed}" + ("-photometric" if photo else "")
+        out.append(Variant(name, cfg, spec.regions[cfg.mode], photo))
     return out
 
 
@@ -86,6 +90,9 @@ def build_synthetic_set(cfg: DictConfig, out_dir: str | Path, progress: bool = T
     variants = synthetic_variants(spec)
     cache, workers = Path(spec.cache_dir).expanduser(), int(spec.get("render_workers") or 1)
     folders = render_variants(variants, cache, workers, progress)
+    for i, v in enumerate(variants):  # the renderer's lighting is fixed: photometric change comes from perturb
+        if v.photometric:
+            folders[i] = make_variant(folders[i], "photometric", cache / "perturbed", seed=v.config.seed)
     paths: list[Path | None] = [None] * len(variants)
     for region in dict.fromkeys(v.region for v in variants):
         group = [i for i, v in enumerate(variants) if v.region == region]
