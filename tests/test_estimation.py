@@ -28,7 +28,7 @@ def observation(outlier_px=0.0, outlier_m=0.0, drop_outlier=False):
 def estimate(backend, obs_var):
     obs, var = obs_var
     backend.reset(true_pose(0.0), torch.ones(obs.dt.shape[0], dtype=torch.bool))
-    return backend(obs, var)
+    return backend.step(obs, var).T_cam_obj
 
 
 def test_refit_equals_the_update_without_the_outlier():

@@ -64,7 +64,7 @@ def test_replay_reproduces_the_tracker(recorded):
     backend = build_tracker(config()).backend  # a fresh EKFBackend of the recording's config
     backend.reset(obs.model_T_cam_obj[:1], torch.ones(1, dtype=torch.bool))
     for t in range(1, obs.frames):
-        T = backend(obs.observation(t), obs.variances(t)).double()
+        T = backend.step(obs.observation(t), obs.variances(t)).T_cam_obj.double()
         torch.testing.assert_close(T[0], obs.T_cam_obj_est[t], atol=1e-9, rtol=0)
         if obs.reselected[t]:  # the new model's start, after this frame's update of the old one
             backend.reset(obs.model_T_cam_obj[t : t + 1], torch.ones(1, dtype=torch.bool))
@@ -122,14 +122,15 @@ def test_survivors_keep_their_age_and_cornerness(seq):
     frames = list(iterate_batched([seq], prefetch=False))[:4]
     for f in frames:
         tracker.step(f)
-    keep = tracker.valid[0].clone()
-    age, corner = tracker.age[0][keep], tracker.cornerness[0][keep]
+    s = lambda: tracker.state  # noqa: E731
+    keep = s().valid[0].clone()
+    age, corner = s().age[0][keep], s().cornerness[0][keep]
     assert bool((age == 3).all())  # selected at frame 0, tracked through 3 frames
-    tracker._new_model(frames[-1], tracker.prev, torch.ones(1, dtype=torch.bool))
+    tracker._new_model(frames[-1], s().prev, torch.ones(1, dtype=torch.bool))
     k = len(age)
-    assert torch.equal(tracker.age[0][:k], age) and torch.equal(tracker.cornerness[0][:k], corner)
-    assert not tracker.age[0][k:].any(), "new features start at age 0"
-    assert tracker.age.shape == tracker.valid.shape and tracker.cornerness.shape == (*tracker.valid.shape, 2)
+    assert torch.equal(s().age[0][:k], age) and torch.equal(s().cornerness[0][:k], corner)
+    assert not s().age[0][k:].any(), "new features start at age 0"
+    assert s().age.shape == s().valid.shape and s().cornerness.shape == (*s().valid.shape, 2)
 
 
 class CueReader(PaperWeighting):

@@ -13,6 +13,7 @@ from torchtrack.cli import build_tracker
 from torchtrack.data import TumSequence, iterate_batched
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 from torchtrack.geometry import T_inv, rotation_angle
+from torchtrack.run import world_anchor
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 
@@ -35,10 +36,12 @@ def synth(tmp_path_factory):
 
 
 def track(tracker, sequences):
-    poses, results = [], []
+    """Camera poses (B, F, 4, 4) in ground truth's world (anchored at the first frame, as the runner does)."""
+    poses, results, anchor = [], [], None
     for frame in iterate_batched(sequences, prefetch=False):
         res = tracker.step(frame)
-        poses.append(res.T_world_cam.clone())
+        anchor = world_anchor(frame.T_world_cam_gt, frame.gt_valid) if anchor is None else anchor
+        poses.append(anchor @ res.T_world_cam)
         results.append(res)
     return torch.stack(poses, 1), results  # B,F,4,4
 
@@ -88,9 +91,10 @@ def test_reselection_keeps_trajectory_continuous(synth):
     for frame in iterate_batched([seq], prefetch=False):
         res = tracker.step(frame)
         assert bool(res.reselected[0])
-        after = tracker.T_world_obj @ T_inv(tracker.T_cam_obj.double())  # pose under the new model
+        after = tracker.state.T_world_obj @ T_inv(tracker.state.T_cam_obj.double())  # pose under the new model
         torch.testing.assert_close(after, res.T_world_cam, atol=1e-9, rtol=0)
-    trans, rot = pose_errors(res.T_world_cam, seq.groundtruth[-1:])
+    anchor = torch.as_tensor(seq.groundtruth[0])
+    trans, rot = pose_errors(anchor @ res.T_world_cam, seq.groundtruth[-1:])
     frozen_trans, frozen_rot = frozen_errors(seq)
     assert trans < 0.2 * frozen_trans and rot < 0.2 * frozen_rot  # chaining 8 models still follows the motion
 
@@ -114,25 +118,26 @@ def test_keep_survivors_keeps_their_world_points_and_the_pose(synth):
     frames = list(iterate_batched([seq], prefetch=False))
     for frame in frames:
         tracker.step(frame)
-    world = lambda: tracker.T_world_obj[:, None, :3, :3].float() @ tracker.points_obj[..., None]  # noqa: E731
-    keep = tracker.valid[0].clone()
-    pixels, points = tracker.pixels[0][keep], (world()[..., 0] + tracker.T_world_obj[:, None, :3, 3].float())[0][keep]
-    pose = tracker.T_world_obj @ T_inv(tracker.T_cam_obj)
-    n_select = len(tracker.select(tracker.prev.gray, tracker.prev.depth, frames[-1].K, sim=tracker.prev.sim).valid[0])
-    width = max(n_select, tracker.pixels.shape[1])  # the new model: the selector's width or the old model's
+    s = lambda: tracker.state  # noqa: E731
+    world = lambda: s().T_world_obj[:, None, :3, :3].float() @ s().points_obj[..., None]  # noqa: E731
+    keep = s().valid[0].clone()
+    pixels, points = s().pixels[0][keep], (world()[..., 0] + s().T_world_obj[:, None, :3, 3].float())[0][keep]
+    pose = s().T_world_cam
+    n_select = len(tracker.select(s().prev.gray, s().prev.depth, frames[-1].K, sim=s().prev.sim).valid[0])
+    width = max(n_select, s().pixels.shape[1])  # the new model: the selector's width or the old model's
 
-    tracker._new_model(frames[-1], tracker.prev, torch.ones(1, dtype=torch.bool))
-    valid = tracker.valid[0]
-    new_pixels = tracker.pixels[0][valid]
-    new_points = (world()[..., 0] + tracker.T_world_obj[:, None, :3, 3].float())[0][valid]
+    tracker._new_model(frames[-1], s().prev, torch.ones(1, dtype=torch.bool))
+    valid = s().valid[0]
+    new_pixels = s().pixels[0][valid]
+    new_points = (world()[..., 0] + s().T_world_obj[:, None, :3, 3].float())[0][valid]
     k = len(pixels)
     assert 0 < k < len(new_pixels) <= width
     torch.testing.assert_close(new_pixels[:k], pixels, atol=0, rtol=0)  # survivors first, in order
     torch.testing.assert_close(new_points[:k], points, atol=1e-5, rtol=0)
-    torch.testing.assert_close(tracker.T_world_obj @ T_inv(tracker.T_cam_obj), pose, atol=1e-9, rtol=0)
+    torch.testing.assert_close(s().T_world_obj @ T_inv(s().T_cam_obj), pose, atol=1e-9, rtol=0)
     gap = torch.cdist(new_pixels[k:], pixels).amin(1)
     assert bool((gap >= 8.0).all()), f"a new feature {float(gap.min()):.1f} px from a survivor"
-    assert int(tracker.n_model[0]) == len(new_pixels)
+    assert int(s().n_model[0]) == len(new_pixels)
 
 
 def test_keep_survivors_keeps_them_all_when_the_selection_is_poor(synth):
@@ -142,7 +147,7 @@ def test_keep_survivors_keeps_them_all_when_the_selection_is_poor(synth):
     frames = list(iterate_batched([seq], prefetch=False))
     for frame in frames:
         tracker.step(frame)
-    survivors = int(tracker.valid.sum())
+    survivors = int(tracker.state.valid.sum())
     select = tracker.select
     tracker.select = lambda *a, **k: select(*a, **k)._replace(
         **{
@@ -150,5 +155,5 @@ def test_keep_survivors_keeps_them_all_when_the_selection_is_poor(synth):
             for f in ("pixels", "points", "cornerness", "cornerness_int", "cornerness_sim", "valid")
         }
     )  # noqa: E501
-    tracker._new_model(frames[-1], tracker.prev, torch.ones(1, dtype=torch.bool))
-    assert survivors > 5 and int(tracker.valid.sum()) >= survivors
+    tracker._new_model(frames[-1], tracker.state.prev, torch.ones(1, dtype=torch.bool))
+    assert survivors > 5 and int(tracker.state.valid.sum()) >= survivors

@@ -56,8 +56,8 @@ def build_sequences(data: DictConfig) -> list[TumSequence]:
     return [TumSequence(Path(r).expanduser(), **opts, **extra) for r in roots]
 
 
-def build_tracker(cfg: DictConfig) -> Tracker:
-    """The pipeline from the config groups (one per stage)."""
+def build_tracker(cfg: DictConfig, *, record: bool = False) -> Tracker:
+    """The pipeline from the config groups (one per stage); ``record``: see :class:`Tracker`."""
     return Tracker(
         frontend=instantiate(cfg.frontend),
         region=instantiate(cfg.region),
@@ -71,6 +71,7 @@ def build_tracker(cfg: DictConfig) -> Tracker:
         max_residual_px=cfg.tracker.get("max_residual_px"),
         keep_survivors=cfg.tracker.get("keep_survivors", False),
         min_separation_px=cfg.tracker.get("min_separation_px", 8.0),
+        record=record,
     )
 
 

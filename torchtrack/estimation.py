@@ -46,12 +46,21 @@ class Observation:
     T_color_depth: Tensor
 
 
+class BackendResult(Protocol):
+    @property
+    def T_cam_obj(self) -> Tensor:
+        """(B, 4, 4) the frame's object pose in the depth camera."""
+
+
 class PoseBackend(Protocol):
+    """A pose estimator that owns its state (the filter's, or the previous pose) between frames."""
+
     def reset(self, T_cam_obj: Tensor, mask: Tensor) -> None:
         """Start over at pose ``T_cam_obj`` (B, 4, 4) for the sequences where ``mask`` (B,) is True."""
 
-    def __call__(self, obs: Observation, var: Variances) -> Tensor:
-        """One frame: observation and per-feature variances in, ``T_cam_obj`` (B, 4, 4) out."""
+    def step(self, obs: Observation, var: Variances, active: Tensor | None = None) -> BackendResult:
+        """One frame: observation and per-feature variances in, a named result with ``T_cam_obj`` (B, 4, 4) out.
+        Sequences where ``active`` (B,) is False (ended) keep their state."""
 
 
 @functools.lru_cache(maxsize=64)
@@ -246,25 +255,43 @@ class EKFBackend:
             torch.where(mask[:, None, None], init.cov, self.state.cov),
         )
 
-    def step(self, obs: Observation, var: Variances) -> FrameUpdate:
-        """One frame: the named result of :func:`ekf_frame`; the posterior becomes the state."""
+    def step(self, obs: Observation, var: Variances, active: Tensor | None = None) -> FrameUpdate:
+        """One frame: the named result of :func:`ekf_frame`; the posterior becomes the state of the sequences where
+        ``active`` (B,) is True (default: all); ended sequences keep theirs (no prediction runs on without them)."""
         if self.state is None:
             raise ValueError("EKFBackend: call reset(T_cam_obj, mask) before the first frame")
         out = ekf_frame(self.ekf, self.state, obs, var, gate=self.gate, refit=self.refit)
-        self.state = FilterState(out.mean, out.cov)
+        if active is None:
+            self.state = FilterState(out.mean, out.cov)
+        else:
+            self.state = FilterState(
+                torch.where(active[:, None], out.mean, self.state.mean),
+                torch.where(active[:, None, None], out.cov, self.state.cov),
+            )
         if bool((out.mean[:, 1].abs() > 1.4).any()):
             log.warning("EKFBackend: |theta| > 80 deg, near the Euler singularity; re-select the model frame")
         return out
 
-    def __call__(self, obs: Observation, var: Variances) -> Tensor:
-        return self.step(obs, var).T_cam_obj
+
+class Registration(NamedTuple):
+    """One frame of a :class:`RegistrationBackend`, batched over B.
+
+    Attributes:
+        T_cam_obj: (B, 4, 4) the registered object pose in the depth camera.
+        used: (B, N) bool, the 3D-3D correspondences it was given (the observation's valid features).
+        weights: (B, N) the per-correspondence weights (``1 / var_xyz``), or None when unweighted.
+    """
+
+    T_cam_obj: Tensor
+    used: Tensor
+    weights: Tensor | None
 
 
 class RegistrationBackend:
     """A 3D-3D registration baseline (Horn, ICP or CPD) started from the previous pose (paper §IV).
 
     ``estimator(points_obj, points_d, valid, T_prev, weights)`` returns ``T_cam_obj`` (B, 4, 4).
-    With ``weighted`` the 3D variances of eq. (14) become weights ``1 / var_xyz``.
+    With ``weighted`` the 3D variances of eq. (14) become weights ``1 / var_xyz``. Owns the previous pose.
     """
 
     def __init__(self, estimator, weighted: bool = False) -> None:
@@ -277,9 +304,12 @@ class RegistrationBackend:
             self.T_prev = T_cam_obj.clone()
         self.T_prev = torch.where(mask[:, None, None], T_cam_obj, self.T_prev)
 
-    def __call__(self, obs: Observation, var: Variances) -> Tensor:
+    def step(self, obs: Observation, var: Variances, active: Tensor | None = None) -> Registration:
+        """One frame; the result becomes the previous pose of the sequences where ``active`` (B,) is True."""
+        if self.T_prev is None:
+            raise ValueError("RegistrationBackend: call reset(T_cam_obj, mask) before the first frame")
         weights = 1.0 / var.var_xyz.clamp_min(1e-12) if self.weighted else None
         T_prev = self.T_prev.to(obs.points_obj.dtype)
         T = self.estimator(obs.points_obj, obs.points_d, obs.valid, T_prev, weights)
-        self.T_prev = T
-        return T
+        self.T_prev = T if active is None else torch.where(active[:, None, None], T, T_prev)
+        return Registration(T, obs.valid, weights)

@@ -33,6 +33,14 @@ def write_json(path: Path, data: dict) -> None:
     os.replace(tmp, path)
 
 
+def world_anchor(T_world_cam_gt: torch.Tensor, gt_valid: torch.Tensor) -> torch.Tensor:
+    """(..., 4, 4) float64 the tracker's world (its first camera) in ground truth's world: the first frame's
+    ground-truth camera pose ``T_world_cam_gt`` (..., 4, 4) where ``gt_valid`` (...,), else the identity. The
+    written trajectory is ``T_world_cam = anchor @ T_world_cam_tracker``, comparable with ground truth unaligned."""
+    eye = torch.eye(4, dtype=torch.float64).expand_as(T_world_cam_gt)
+    return torch.where(gt_valid[..., None, None], T_world_cam_gt.double(), eye)
+
+
 @dataclass
 class Recorder:
     """Accumulates one sequence's per-frame outputs."""
@@ -43,10 +51,13 @@ class Recorder:
     rows: list[dict] = field(default_factory=list)
     poses: list[np.ndarray] = field(default_factory=list)
     tiles: list[np.ndarray] = field(default_factory=list)
+    T_world_tracker: torch.Tensor | None = None  # (4, 4) the tracker's world in ground truth's, from the first frame
 
     def add(self, b: int, frame, res: StepResult) -> None:
         i = int(frame.index[b])
-        self.poses.append(res.T_world_cam[b].numpy())
+        if self.T_world_tracker is None:
+            self.T_world_tracker = world_anchor(frame.T_world_cam_gt[b], frame.gt_valid[b])
+        self.poses.append((self.T_world_tracker @ res.T_world_cam[b]).numpy())
         win = res.winner[b][res.valid[b]]
         self.rows.append(
             {

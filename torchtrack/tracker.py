@@ -4,8 +4,10 @@ Frames. ``cam`` is the depth camera. The object frame ``obj`` is the model frame
 to the centroid of the selected features (so rotations about it stay well-conditioned); the model
 points X_o live in it. The tracker estimates ``T_cam_obj`` per frame; with the object static in the
 world (scene tracking, or a camera moving around an object), the camera pose follows as
-``T_world_cam = T_world_obj @ inv(T_cam_obj)``. A re-selection makes the current frame the new model
-frame and chains ``T_world_obj`` through the current estimate, so the trajectory stays continuous.
+``T_world_cam = T_world_obj @ inv(T_cam_obj)``. The tracker's world is its first camera (identity); the
+runner maps it onto ground truth (:func:`torchtrack.run.anchor`). A re-selection makes the current frame
+the new model frame and chains ``T_world_obj`` through the current estimate, so the trajectory stays
+continuous.
 
 References:
     O. S. Gedik, A. A. Alatan, "Fusing 2D and 3D Clues for 3D Tracking Using Visual and Range Data",
@@ -37,7 +39,8 @@ class StepResult:
 
     Attributes:
         T_cam_obj: (B, 4, 4) float64 object pose in the depth camera.
-        T_world_cam: (B, 4, 4) float64 camera pose (camera-to-world) for a static object/scene.
+        T_world_cam: (B, 4, 4) float64 camera pose (camera-to-world) for a static object/scene, in the tracker's
+            world (the first camera is the identity; :func:`torchtrack.run.anchor` maps it onto ground truth).
         pixels: (B, N, 2) tracked feature pixels in the colour image; valid (B, N).
         winner: (B, N) 0 where the intensity tracker won, 1 where the SIM tracker won, -1 unknown.
         points_obj: (B, N, 3) model points; reprojection_error (B,) eq. (16) in pixels.
@@ -68,12 +71,52 @@ class StepResult:
     model_T_cam_obj: Tensor | None = None
 
 
+@dataclass
+class TrackerState:
+    """What the tracker carries from one frame to the next, batched over B; empty (all None) before the first frame.
+
+    Attributes:
+        prev: the previous frame as the front end prepared it; timestamp (B,) its time stamps.
+        pixels: (B, N, 2) the model's features, tracked to the previous frame (colour pixels); valid (B, N).
+        points_obj: (B, N, 3) their model points X_o (object frame).
+        age: (B, N) frames since selection; cornerness (B, N, 2) intensity and SIM cornerness of eq. (9) at selection.
+        residuals: (B, N) reprojection error (eq. 16) of each feature under ``T_cam_obj``; inf where undefined.
+        n_model: (B,) features of the current model when it was taken (the re-selection criterion).
+        T_cam_obj: (B, 4, 4) float64 current object pose in the depth camera.
+        T_world_obj: (B, 4, 4) float64 the model frame in the tracker's world (first camera = identity).
+    """
+
+    prev: PreparedFrame | None = None
+    timestamp: Tensor | None = None
+    pixels: Tensor | None = None
+    valid: Tensor | None = None
+    points_obj: Tensor | None = None
+    age: Tensor | None = None
+    cornerness: Tensor | None = None
+    residuals: Tensor | None = None
+    n_model: Tensor | None = None
+    T_cam_obj: Tensor | None = None
+    T_world_obj: Tensor | None = None
+
+    @property
+    def started(self) -> bool:
+        return self.prev is not None
+
+    @property
+    def T_world_cam(self) -> Tensor:
+        """(B, 4, 4) the current camera in the tracker's world (static object/scene)."""
+        return self.T_world_obj @ T_inv(self.T_cam_obj)
+
+
 def pad_to(x: Tensor, n: int) -> Tensor:
     """Pad (or keep) the feature dimension (dim 1) of x to n with zeros (False for masks)."""
     if x.shape[1] >= n:
         return x
     pad = torch.zeros(x.shape[0], n - x.shape[1], *x.shape[2:], dtype=x.dtype, device=x.device)
     return torch.cat([x, pad], dim=1)
+
+
+_FEATURE_FIELDS = ("pixels", "valid", "points_obj", "age", "cornerness")  # (B, N, ...) per-feature state
 
 
 class Tracker:
@@ -86,7 +129,7 @@ class Tracker:
         select: ``select(gray, depth, K, roi=, sim=) -> Features``, spatio-textural selection (eq. 9).
         flow: combined LK + TIM tracker (eq. 10), ``flow(prev, next, pixels, valid) -> TrackResult``.
         weighting: per-feature noise variances (eqs. 11-14).
-        backend: the pose estimator (fusion EKF or a registration baseline).
+        backend: the pose estimator (fusion EKF or a registration baseline), :class:`PoseBackend`.
         reselect_fraction: take a new model when fewer than this fraction of the model's features survive.
         min_features: ... or fewer than this many.
         edge_step: improvement (None = paper): select only where the depth in a 5x5 window varies by less
@@ -103,8 +146,7 @@ class Tracker:
             ``StepResult.cues`` even when the weighting does not need them (for the observation cache). Poses are
             the same with and without; a weighting with ``needs_cues = True`` gets them in any case.
 
-    Per-feature state, (B, N) like ``pixels``/``valid``: ``age`` (frames since selection) and ``cornerness``
-    (B, N, 2) (intensity and SIM cornerness of eq. (9) at selection); survivors of a re-selection keep theirs.
+    The tracker's model and last estimate live in one :class:`TrackerState`, ``self.state``.
     """
 
     def __init__(
@@ -132,7 +174,7 @@ class Tracker:
         self.edge_step, self.max_residual_px = edge_step, max_residual_px
         self.keep_survivors, self.min_separation_px = keep_survivors, min_separation_px
         self.record = record
-        self.prev: PreparedFrame | None = None
+        self.state = TrackerState()
 
     @property
     def wants_cues(self) -> bool:
@@ -140,75 +182,82 @@ class Tracker:
         return self.record or bool(getattr(self.weighting, "needs_cues", False))
 
     def step(self, frame: FrameBatch) -> StepResult:
-        """Process one frame of every sequence; reads like the paper's algorithm."""
+        """One frame of every sequence (paper §III)."""
         cur = self.frontend(frame)  # depth in the colour camera, SIM (eq. 8), LK pyramids
-        if self.prev is None:
+        if not self.state.started:
             return self._start(frame, cur)
-        want_cues = self.wants_cues
-        flow_args = dict(with_residual=True) if want_cues else {}  # the LK residual is a cue
-        track = self.flow(self.prev.flow, cur.flow, self.pixels, self.valid, **flow_args)  # §III-C, eq. (10)
+        s, with_cues = self.state, self.wants_cues
+        track = self.flow(s.prev.flow, cur.flow, s.pixels, s.valid, **self._flow_args(with_cues))  # eq. (10)
         points_d, has_depth = measure_points(cur, frame, track.points)  # X_d of eq. (6)
         valid = track.valid & has_depth & frame.active[:, None]
-        cues = self._cues(frame, cur, track, points_d, valid) if want_cues else None
+        cues = self._cues(frame, cur, track, points_d, valid) if with_cues else None
         inputs = WeightingInputs(track.d_tim, points_d[..., 2], points_d, valid, frame.K_depth[:, 0, 0], cues=cues)
-        var = self.weighting(inputs)
-        dt = (frame.timestamp - self.timestamp).to(points_d.dtype).clamp_min(1e-3)
-        obs = Observation(dt, self.points_obj, points_d, track.points, valid, frame.K, frame.T_color_depth)
-        T_cam_obj = self.backend(obs, var).double()  # eqs. (2)-(7), (15)
-        self._advance(frame, track.points, valid, T_cam_obj)
-        n = self.valid.sum(1)
-        reselect = frame.active & ((n < self.reselect_fraction * self.n_model) | (n < self.min_features))
-        result = self._result(frame, track.winner, track.d_tim, reselect, observation=obs, variances=var, cues=cues)
-        if reselect.any():
-            result = replace(result, model_T_cam_obj=self._new_model(frame, cur, reselect))  # §III re-selection
-        self.prev = cur
+        var = self.weighting(inputs)  # eqs. (11)-(14)
+        dt = (frame.timestamp - s.timestamp).to(points_d.dtype).clamp_min(1e-3)
+        obs = Observation(dt, s.points_obj, points_d, track.points, valid, frame.K, frame.T_color_depth)
+        est = self.backend.step(obs, var, active=frame.active)  # eqs. (2)-(7), (15)
+        self.state = self._advanced(frame, cur, track.points, valid, est.T_cam_obj.double())  # and the residual drop
+        reselect = self._needs_model(frame.active)
+        result = self._result(track.winner, track.d_tim, reselect, observation=obs, variances=var, cues=cues)
+        if reselect.any():  # §III model re-selection
+            result = replace(result, model_T_cam_obj=self._new_model(frame, cur, reselect))
         return result
+
+    # ---------------------------------------------------------------------------------------------- per frame
+    @staticmethod
+    def _flow_args(with_cues: bool) -> dict:
+        return dict(with_residual=True) if with_cues else {}  # the LK residual is a cue
+
+    def _needs_model(self, active: Tensor) -> Tensor:
+        """(B,) bool: too few features survive (a fraction of the model's, or an absolute count)."""
+        n, s = self.state.valid.sum(1), self.state
+        return active & ((n < self.reselect_fraction * s.n_model) | (n < self.min_features))
 
     def _cues(self, frame: FrameBatch, cur: PreparedFrame, track: TrackResult, points_d: Tensor, valid: Tensor):
         """(B, N, C) cues of the tracked features (:data:`torchtrack.learn.cues.CUE_NAMES`), zeros where not valid."""
         H, W = cur.gray.shape[-2:]
+        s = self.state
         centroid = masked_mean(points_d, valid.to(points_d.dtype))
         sim = sample_depth(cur.sim.si, track.points) if cur.sim is not None else torch.full_like(track.d_tim, 0.5)
         cues = stack_cues(
             d_tim_int=track.d_tim_int, d_tim_sim=track.d_tim_sim, sim_won=track.winner == 1,
             lk_residual=track.residual, depth=points_d[..., 2],
             centroid_dist=torch.linalg.vector_norm(points_d - centroid[:, None], dim=-1),
-            cornerness_int=self.cornerness[..., 0], cornerness_sim=self.cornerness[..., 1],
+            cornerness_int=s.cornerness[..., 0], cornerness_sim=s.cornerness[..., 1],
             sim_value=sim,  # nearest pixel of the SI map: masked (planar, no depth) pixels carry its fill value
-            track_age=self.age + 1,
-            prev_reproj=torch.where(self.age > 0, self.residuals, 0.0),  # a new feature has no previous frame
+            track_age=s.age + 1,
+            prev_reproj=torch.where(s.age > 0, s.residuals, 0.0),  # a new feature has no previous frame
             u_norm=track.points[..., 0] / W, v_norm=track.points[..., 1] / H,
         )  # fmt: skip
         return torch.where(valid[..., None], cues, 0.0)
 
-    def _advance(self, frame: FrameBatch, pixels: Tensor, valid: Tensor, T_cam_obj: Tensor) -> None:
-        """Keep the new pose and tracks (ended sequences keep theirs); drop features that do not fit the pose."""
-        self.T_cam_obj = torch.where(frame.active[:, None, None], T_cam_obj, self.T_cam_obj)
-        self.pixels, self.valid, self.timestamp = pixels, valid, frame.timestamp
-        self.age = self.age + 1
-        self.residuals = self._residuals(frame)  # computed once: for the drop and for eq. (16)
+    def _advanced(
+        self, frame: FrameBatch, cur: PreparedFrame, pixels: Tensor, valid: Tensor, T_cam_obj: Tensor
+    ) -> TrackerState:
+        """The state after this frame's update: the new pose (ended sequences keep theirs) and tracks, one frame
+        older; features that do not fit the pose dropped (``max_residual_px``)."""
+        s = self.state
+        T_cam_obj = torch.where(frame.active[:, None, None], T_cam_obj, s.T_cam_obj)
+        residuals = self._residuals(frame, T_cam_obj, s.points_obj, pixels, valid)  # for the drop and for eq. (16)
         if self.max_residual_px is not None:
-            self.valid = valid & (self.residuals <= self.max_residual_px)
+            valid = valid & (residuals <= self.max_residual_px)
+        return replace(s, prev=cur, timestamp=frame.timestamp, pixels=pixels, valid=valid, age=s.age + 1,
+                       residuals=residuals, T_cam_obj=T_cam_obj)  # fmt: skip
 
-    # ----------------------------------------------------------------------------------------------
+    # ---------------------------------------------------------------------------------------------- the model
     def _start(self, frame: FrameBatch, cur: PreparedFrame) -> StepResult:
+        """First frame: every sequence takes it as its model; the world is the first camera."""
         B = frame.rgb.shape[0]
-        self.T_world_cam0 = torch.where(
-            frame.gt_valid[:, None, None], frame.T_world_cam_gt, torch.eye(4, dtype=torch.float64).expand(B, 4, 4)
-        )
-        self.T_cam_obj = torch.eye(4, dtype=torch.float64).expand(B, 4, 4).clone()
-        self.T_world_obj = torch.eye(4, dtype=torch.float64).expand(B, 4, 4).clone()
-        self.timestamp = frame.timestamp
-        self.pixels = self.valid = self.points_obj = self.n_model = self.age = self.cornerness = None
+        eye = torch.eye(4, dtype=torch.float64).expand(B, 4, 4).clone()
+        self.state = TrackerState(timestamp=frame.timestamp, T_cam_obj=eye, T_world_obj=eye.clone())
         everyone = torch.ones(B, dtype=torch.bool)
         model_T_cam_obj = self._new_model(frame, cur, everyone)
-        self.prev = cur
-        return self._result(frame, None, None, everyone, model_T_cam_obj=model_T_cam_obj)
+        return self._result(None, None, everyone, model_T_cam_obj=model_T_cam_obj)
 
     def _new_model(self, frame: FrameBatch, cur: PreparedFrame, mask: Tensor) -> Tensor:
-        """Take the current frame as the model of the sequences in ``mask`` (B,): PCM features, pose, chain.
-
-        Returns the pose (B, 4, 4) the back end is reset to (meaningful where ``mask``)."""
+        """Take the current frame as the model of the sequences in ``mask`` (B,): PCM features, pose, chain; the
+        back end starts over there. Returns the pose (B, 4, 4) the back end is reset to (meaningful where ``mask``)."""
+        s = self.state
         roi = self.region(cur.depth)
         if self.edge_step is not None:
             roi = roi & smooth_depth_mask(cur.depth, self.edge_step)
@@ -217,35 +266,29 @@ class Tracker:
         points_d, has_depth = measure_points(cur, frame, pixels)
         valid = feats.valid & has_depth
         age = torch.zeros_like(valid, dtype=torch.long)
-        if self.keep_survivors and self.pixels is not None:
+        if self.keep_survivors and s.pixels is not None:
             pixels, points_d, valid, age, cornerness = self._with_survivors(pixels, points_d, valid, cornerness, mask)
         centroid = masked_mean(points_d, valid.to(points_d.dtype))
         points_obj = torch.where(valid[..., None], points_d - centroid[:, None], torch.zeros_like(points_d))
         T_cam_obj = make_T(torch.eye(3, dtype=torch.float64).expand(len(mask), 3, 3), centroid.double())
-        if self.pixels is None:  # first frame: the world is where the first camera is
-            T_world_cam = self.T_world_cam0
-        else:
-            T_world_cam = self.T_world_obj @ T_inv(self.T_cam_obj)
-        m3, m2 = mask[:, None, None], mask[:, None]
-        if self.pixels is not None:  # selections differ in size: pad old and new to the larger N
-            n = max(self.pixels.shape[1], valid.shape[1])
-            self.pixels, self.valid, self.points_obj, self.age, self.cornerness = (
-                pad_to(t, n) for t in (self.pixels, self.valid, self.points_obj, self.age, self.cornerness)
-            )
-            pixels, valid, points_obj = pad_to(pixels, n), pad_to(valid, n), pad_to(points_obj, n)
-            age, cornerness = pad_to(age, n), pad_to(cornerness, n)
-        self.T_world_obj = torch.where(m3, T_world_cam @ T_cam_obj, self.T_world_obj)
-        self.T_cam_obj = torch.where(m3, T_cam_obj, self.T_cam_obj)
-        self.pixels = pixels if self.pixels is None else torch.where(m2[..., None], pixels, self.pixels)
-        self.valid = valid if self.valid is None else torch.where(m2, valid, self.valid)
-        self.points_obj = points_obj if self.points_obj is None else torch.where(m3, points_obj, self.points_obj)
-        self.age = age if self.age is None else torch.where(m2, age, self.age)
-        self.cornerness = cornerness if self.cornerness is None else torch.where(m3, cornerness, self.cornerness)
-        n = valid.sum(1)
-        self.n_model = n if self.n_model is None else torch.where(mask, n, self.n_model)
-        self.residuals = self._residuals(frame)  # in the new layout: the next frame's prev_reproj cue
-        self.backend.reset(self.T_cam_obj, mask)
-        return self.T_cam_obj
+        new = dict(pixels=pixels, valid=valid, points_obj=points_obj, age=age, cornerness=cornerness)
+        old = {k: getattr(s, k) for k in _FEATURE_FIELDS}
+        if s.pixels is not None:  # selections differ in size: pad both to the larger N; old rows outside mask
+            n = max(s.pixels.shape[1], valid.shape[1])
+            new = {k: _where(mask, pad_to(v, n), pad_to(old[k], n)) for k, v in new.items()}
+        m3 = mask[:, None, None]
+        n_model = new["valid"].sum(1)
+        T_cam_obj = torch.where(m3, T_cam_obj, s.T_cam_obj)
+        state = replace(
+            s, prev=cur, **new, T_cam_obj=T_cam_obj,
+            T_world_obj=torch.where(m3, s.T_world_cam @ T_cam_obj, s.T_world_obj),
+            n_model=n_model if s.n_model is None else torch.where(mask, n_model, s.n_model),
+        )  # fmt: skip
+        # in the new layout: the next frame's prev_reproj cue
+        self.state = replace(state, residuals=self._residuals(frame, T_cam_obj, state.points_obj, state.pixels,
+                                                              state.valid))  # fmt: skip
+        self.backend.reset(T_cam_obj, mask)
+        return T_cam_obj
 
     def _with_survivors(self, pixels: Tensor, points_d: Tensor, valid: Tensor, cornerness: Tensor, mask: Tensor):
         """Keep the tracked features of the sequences in ``mask``, add the new ones (B, M) that are at least
@@ -254,47 +297,54 @@ class Tracker:
         the current pose, so that the new model frame sees them where the old one did; they keep their age and
         cornerness (B, M, 2 for the new ones).
         Returns (pixels (B, W, 2), points in the camera (B, W, 3), valid (B, W), age (B, W), cornerness (B, W, 2))."""
-        keep = self.valid & mask[:, None]
-        old_points = transform_points(self.T_cam_obj.to(points_d.dtype), self.points_obj)
-        gap = torch.cdist(pixels, self.pixels).masked_fill(~keep[:, None, :], float("inf")).amin(2)
+        s = self.state
+        keep = s.valid & mask[:, None]
+        old_points = transform_points(s.T_cam_obj.to(points_d.dtype), s.points_obj)
+        gap = torch.cdist(pixels, s.pixels).masked_fill(~keep[:, None, :], float("inf")).amin(2)
         ok = torch.cat([keep, valid & (gap >= self.min_separation_px)], 1)
-        width = max(valid.shape[1], self.pixels.shape[1])
+        width = max(valid.shape[1], s.pixels.shape[1])
         order = torch.sort((~ok).to(torch.uint8), dim=1, stable=True).indices[:, :width]  # valid first
         rows = torch.arange(ok.shape[0])[:, None]
         ok = ok[rows, order]
-        pixels = torch.cat([self.pixels, pixels], 1)[rows, order]
+        pixels = torch.cat([s.pixels, pixels], 1)[rows, order]
         points = torch.cat([old_points, points_d], 1)[rows, order]
-        age = torch.cat([self.age, torch.zeros_like(valid, dtype=torch.long)], 1)[rows, order]
-        cornerness = torch.cat([self.cornerness, cornerness], 1)[rows, order]
+        age = torch.cat([s.age, torch.zeros_like(valid, dtype=torch.long)], 1)[rows, order]
+        cornerness = torch.cat([s.cornerness, cornerness], 1)[rows, order]
         ok3 = ok[..., None]
         return (
             torch.where(ok3, pixels, 0.0), torch.where(ok3, points, 0.0), ok, torch.where(ok, age, 0),
             torch.where(ok3, cornerness, 0.0),
         )  # fmt: skip
 
-    def _residuals(self, frame: FrameBatch) -> Tensor:
-        """(B, N) reprojection error of each feature (eq. 16) under the current pose; inf where undefined."""
-        T_color_obj = frame.T_color_depth.double() @ self.T_cam_obj
-        err = reprojection_errors(frame.K, T_color_obj, self.points_obj, self.pixels, self.valid).float()
+    # ---------------------------------------------------------------------------------------------- outputs
+    @staticmethod
+    def _residuals(frame: FrameBatch, T_cam_obj: Tensor, points_obj: Tensor, pixels: Tensor, valid: Tensor) -> Tensor:
+        """(B, N) reprojection error of each feature (eq. 16) under ``T_cam_obj``; inf where undefined."""
+        T_color_obj = frame.T_color_depth.double() @ T_cam_obj
+        err = reprojection_errors(frame.K, T_color_obj, points_obj, pixels, valid).float()
         return torch.nan_to_num(err, nan=float("inf"))
 
-    def _result(
-        self, frame: FrameBatch, winner: Tensor | None, d_tim: Tensor | None, reselected: Tensor, **extra
-    ) -> StepResult:
+    def _result(self, winner: Tensor | None, d_tim: Tensor | None, reselected: Tensor, **extra) -> StepResult:
         """The frame's result from the current state (``extra``: StepResult's optional fields)."""
-        B, N = self.valid.shape
-        res = torch.where(self.valid, self.residuals, torch.zeros_like(self.pixels[..., 0]))
-        err = res.sum(1) / self.valid.sum(1).clamp_min(1)  # mean reprojection error, eq. (16)
+        s = self.state
+        B, N = s.valid.shape
+        res = torch.where(s.valid, s.residuals, torch.zeros_like(s.pixels[..., 0]))
+        err = res.sum(1) / s.valid.sum(1).clamp_min(1)  # mean reprojection error, eq. (16)
         return StepResult(
-            T_cam_obj=self.T_cam_obj,
-            T_world_cam=self.T_world_obj @ T_inv(self.T_cam_obj),
-            pixels=self.pixels,
-            valid=self.valid,
+            T_cam_obj=s.T_cam_obj,
+            T_world_cam=s.T_world_cam,
+            pixels=s.pixels,
+            valid=s.valid,
             winner=winner if winner is not None else torch.full((B, N), -1, dtype=torch.long),
-            points_obj=self.points_obj,
+            points_obj=s.points_obj,
             reprojection_error=err,
-            n_features=self.valid.sum(1),
+            n_features=s.valid.sum(1),
             reselected=reselected,
             d_tim=d_tim if d_tim is not None else torch.zeros(B, N),
             **extra,
         )
+
+
+def _where(mask: Tensor, new: Tensor, old: Tensor) -> Tensor:
+    """Rows of ``new`` where ``mask`` (B,), else of ``old``; any trailing shape."""
+    return torch.where(mask.view(-1, *([1] * (new.dim() - 1))), new, old)

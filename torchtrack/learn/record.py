@@ -77,7 +77,7 @@ class ObservationLog:
         obs = res.observation
         if obs is not None:
             if res.cues is None:
-                raise ValueError("ObservationLog: the tracker did not compute cues (set tracker.record = True)")
+                raise ValueError("ObservationLog: the tracker did not compute cues (build it with record=True)")
             row |= dict(
                 dt=obs.dt[b].double(), points_obj=obs.points_obj[b], points_d=obs.points_d[b], pixels=obs.pixels[b],
                 valid=obs.valid[b], cues=res.cues[b], var_pix=res.variances.var_pix[b],
@@ -166,8 +166,7 @@ def record_sequences(
 
 
 def _record_batch(cfg, sequences, names, paths, config: str, progress: bool) -> None:
-    tracker = build_tracker(cfg)
-    tracker.record = True
+    tracker = build_tracker(cfg, record=True)
     w = type(tracker.weighting)
     weighting = f"{w.__module__}.{w.__qualname__}"
     logs = [ObservationLog(n, source_of(s), config, weighting) for n, s in zip(names, sequences, strict=True)]
