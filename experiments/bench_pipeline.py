@@ -191,7 +191,7 @@ def best_of(repeats: int, fn) -> dict:
 
 
 def peer_fps(seq) -> float:
-    from torchtrack.peers import open3d_rgbd_odometry
+    from peers import open3d_rgbd_odometry
 
     return open3d_rgbd_odometry(seq, progress=False)[1]
 

@@ -118,7 +118,7 @@ def sha16(text: str) -> str:
 
 def peer_key(seq: TumSequence) -> dict:
     """What the peer's result depends on: the frames, the camera and the peer's own code."""
-    from torchtrack.peers import open3d_rgbd_odometry
+    from peers import open3d_rgbd_odometry
 
     frames = zip(seq.timestamps, seq.rgb_paths, seq.depth_paths, strict=True)
     return {
@@ -133,7 +133,7 @@ def peer_key(seq: TumSequence) -> dict:
 
 def run_peer(seq: TumSequence, out: Path) -> dict:
     """Open3D RGB-D odometry on ``seq``, cached in ``out/<sequence>/`` (metrics.json holds the cache key)."""
-    from torchtrack.peers import open3d_rgbd_odometry
+    from peers import open3d_rgbd_odometry
 
     folder, key = out / seq.name, peer_key(seq)
     cached = folder / "metrics.json"

@@ -20,7 +20,7 @@ made with different settings never mix silently.
 For every method one Hydra multirun (``torchtrack -m``) covers its unfinished sequences: ``+seq`` is
 swept, ``data.root=DATA/${seq}`` and ``hydra.sweep.subdir=${seq}`` follow it, and the launcher
 (``--launcher joblib|basic|submitit_local|submitit_slurm|ray``) runs the jobs. The peer method
-(Open3D RGB-D odometry) runs in this process through :func:`torchtrack.peers.open3d_rgbd_odometry`
+(Open3D RGB-D odometry) runs in this process through :func:`peers.open3d_rgbd_odometry`
 and writes the same layout.
 """
 
@@ -215,10 +215,10 @@ def write_json(path: Path, data: dict) -> None:
 def run_peer(out: Path, seq: str, data: Path, extra: list[str]) -> dict:
     """Open3D RGB-D odometry on one sequence, written like a tracker run (trajectory.txt, metrics.json)."""
     import numpy as np
+    from peers import open3d_rgbd_odometry
 
     from torchtrack.data.tum import TumSequence, write_tum_trajectory
     from torchtrack.metrics import trajectory_metrics
-    from torchtrack.peers import open3d_rgbd_odometry
 
     method = METHODS["open3d_odometry"]
     jd, rd = job_dir(out, method.name, seq), result_dir(out, method.name, seq)

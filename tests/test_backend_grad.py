@@ -8,7 +8,7 @@ import pytest
 import torch
 from test_fusion import DT, body, measurements, true_pose
 
-from torchtrack.estimation import EKFBackend, Observation, ekf_frame, innovation_nll
+from torchtrack.estimators.backends import EKFBackend, Observation, ekf_frame, innovation_nll
 from torchtrack.filter import FusionEKF, PaperWeighting, Variances, WeightingInputs
 from torchtrack.filter.fusion import FilterState
 from torchtrack.filter.models import measure
@@ -154,7 +154,7 @@ def test_batched_equals_looped():
 def reference_backend_step(ekf: FusionEKF, obs, var, gate, refit):
     """The stateful back end as it was before the pure function (FusionEKF.reset/predict/update, gate and refit
     written out): the oracle that EKFBackend reproduces."""
-    from torchtrack.estimation import _chi2_tests, _keep
+    from torchtrack.estimators.backends import _chi2_tests, _keep
 
     ekf.predict(obs.dt)
     prior = (ekf.mean, ekf.cov)

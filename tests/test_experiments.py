@@ -33,6 +33,7 @@ def _load(name: str):
 sweep = _load("sweep")
 report = _load("report")
 _load("report_plots")  # imported by report.main
+_load("peers")  # experiments/peers.py: imported by sweep.run_peer and evaluate.run_peer
 
 
 # ----------------------------------------------------------------------------------------------- fixtures

@@ -8,7 +8,7 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from torchtrack.estimators import HornEstimator, PoseEstimate
+from torchtrack.estimators import HornEstimator, RigidFit
 from torchtrack.estimators.horn import horn
 from torchtrack.geometry import rotation_angle, se3_exp, so3_log, transform_points
 
@@ -33,7 +33,7 @@ def all_valid(B, N):
 def test_smoke_shapes_and_type():
     src = random_cloud(2, 10)
     est = horn(src, src, all_valid(2, 10))
-    assert isinstance(est, PoseEstimate)
+    assert isinstance(est, RigidFit)
     assert est.T.shape == (2, 4, 4) and est.valid.shape == (2,) and est.valid.dtype == torch.bool
     torch.testing.assert_close(est.T, torch.eye(4, dtype=torch.float64).expand(2, 4, 4))
 

@@ -12,6 +12,7 @@ from hydra import compose, initialize_config_dir
 from torchtrack.cli import build_tracker
 from torchtrack.data import TumSequence, iterate_batched
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
+from torchtrack.filter import state_to_pose
 from torchtrack.geometry import T_inv, rotation_angle
 from torchtrack.run import world_anchor
 
@@ -82,6 +83,16 @@ def test_batched_equals_looped(synth):
     alone_b, _ = track(make_tracker(), [b])
     torch.testing.assert_close(batched[0], alone_a[0], atol=1e-5, rtol=0)
     torch.testing.assert_close(batched[1, :6], alone_b[0], atol=1e-5, rtol=0)
+
+
+def test_an_ended_sequence_keeps_its_pose_in_the_tracker_and_the_back_end(synth):
+    """Once b ends, its pose stays put, and the back end's state agrees with the tracker's (no prediction runs on)."""
+    a, b = synth(seed=1, frames=8), synth(seed=2, frames=6)
+    tracker = make_tracker()
+    poses, _ = track(tracker, [a, b])
+    torch.testing.assert_close(poses[1, 6:], poses[1, 5:6].expand(2, 4, 4), atol=0, rtol=0)
+    backend_pose = state_to_pose(tracker.backend.state.mean)
+    torch.testing.assert_close(backend_pose[1], tracker.state.T_cam_obj[1], atol=1e-9, rtol=0)
 
 
 def test_reselection_keeps_trajectory_continuous(synth):

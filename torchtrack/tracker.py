@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from torchtrack.data.frame import FrameBatch
-from torchtrack.estimation import Observation, PoseBackend
+from torchtrack.estimators.backends import Observation, PoseBackend
 from torchtrack.estimators.base import masked_mean
 from torchtrack.filter.weighting import Variances, WeightingInputs
 from torchtrack.frontend import FrontEnd, PreparedFrame, measure_points, smooth_depth_mask

@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 
-class PoseEstimate(NamedTuple):
+class RigidFit(NamedTuple):
     """Closed-form pose from correspondences.
 
     T: (B, 4, 4) ``T_dst_src`` (identity where not ``valid``).

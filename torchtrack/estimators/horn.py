@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from torchtrack.estimators.base import (
-    PoseEstimate,
+    RigidFit,
     check_mask,
     check_points,
     check_T,
@@ -50,7 +50,7 @@ def horn_N_matrix(S: Tensor) -> Tensor:
     return torch.stack(rows, -1).reshape(*S.shape[:-2], 4, 4)
 
 
-def horn(src: Tensor, dst: Tensor, valid: Tensor, weights: Tensor | None = None) -> PoseEstimate:
+def horn(src: Tensor, dst: Tensor, valid: Tensor, weights: Tensor | None = None) -> RigidFit:
     """Least-squares rigid transform from known correspondences: ``dst ≈ R @ src + t``.
 
     Args:
@@ -60,7 +60,7 @@ def horn(src: Tensor, dst: Tensor, valid: Tensor, weights: Tensor | None = None)
         weights: optional (B, N) non-negative per-pair weights (minimises sum_i w_i |dst_i - R src_i - t|^2).
 
     Returns:
-        PoseEstimate(T (B, 4, 4) = T_dst_src, valid (B,)): ``valid`` needs >= 3 pairs with positive weight
+        RigidFit(T (B, 4, 4) = T_dst_src, valid (B,)): ``valid`` needs >= 3 pairs with positive weight
         whose source and destination points are not collinear; T is the identity elsewhere.
         The rotation is always proper (det +1), also for planar sets: the quaternion cannot reflect.
     """
@@ -81,7 +81,7 @@ def horn(src: Tensor, dst: Tensor, valid: Tensor, weights: Tensor | None = None)
     return horn_weighted(zero_invalid(src, valid), zero_invalid(dst, valid), w)
 
 
-def horn_weighted(src: Tensor, dst: Tensor, w: Tensor, check_collinear: bool = True) -> PoseEstimate:
+def horn_weighted(src: Tensor, dst: Tensor, w: Tensor, check_collinear: bool = True) -> RigidFit:
     """:func:`horn` without input checks, for inner loops: finite src, dst (B, N, 3), weights w (B, N) >= 0.
     ``check_collinear=False`` only requires 3 positive weights (callers that checked the full sets once)."""
     mu_s, mu_d = masked_mean(src, w), masked_mean(dst, w)  # centroids: t = mu_d - R mu_s
@@ -94,7 +94,7 @@ def horn_weighted(src: Tensor, dst: Tensor, w: Tensor, check_collinear: bool = T
     if check_collinear:
         ok = ok & not_collinear(src, w) & not_collinear(dst, w)
     eye = torch.eye(4, dtype=src.dtype, device=src.device).expand(src.shape[0], 4, 4)
-    return PoseEstimate(torch.where(ok[:, None, None], make_T(R, t), eye), ok)
+    return RigidFit(torch.where(ok[:, None, None], make_T(R, t), eye), ok)
 
 
 class HornEstimator:

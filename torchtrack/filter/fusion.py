@@ -152,7 +152,7 @@ class FusionEKF:
 
     The pure methods (:meth:`initial_state`, :meth:`predicted`, :meth:`linearize_at`, :meth:`updated`) take and
     return a :class:`FilterState` and never touch ``self``'s state: the differentiable back end
-    (:func:`torchtrack.estimation.ekf_frame`) is built from them. ``reset``/``predict``/``update`` keep a state of
+    (:func:`torchtrack.estimators.backends.ekf_frame`) is built from them. ``reset``/``predict``/``update`` keep a state of
     their own on top of them, for direct use.
 
     Args:

@@ -61,7 +61,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from torchtrack.estimation import Observation
+from torchtrack.estimators.backends import Observation
 from torchtrack.filter.weighting import Variances
 from torchtrack.geometry import T_inv
 from torchtrack.learn.cues import CUE_NAMES, CUE_VERSION, check_cue_names

@@ -1,7 +1,7 @@
 """Replay recorded observations through the differentiable back end, in windows of T frames.
 
 A :class:`Windows` batch holds B windows (from one or several sequences) of T frames each, padded to N features:
-everything :func:`torchtrack.estimation.ekf_frame` and a weighting need, plus the ground truth. :func:`rollout`
+everything :func:`torchtrack.estimators.backends.ekf_frame` and a weighting need, plus the ground truth. :func:`rollout`
 runs the weighting and the fusion EKF over them exactly as the tracker does (the same per-frame back end; a model
 re-selection resets the filter to the recorded model pose, as the tracker's ``_new_model`` does) and returns the
 poses and the innovation likelihoods, differentiable in the weighting's parameters.
@@ -20,7 +20,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.estimation import Observation, ekf_frame
+from torchtrack.estimators.backends import Observation, ekf_frame
 from torchtrack.filter.fusion import FilterState, FusionEKF
 from torchtrack.filter.weighting import Variances, WeightingInputs
 from torchtrack.geometry import T_inv, rotation_angle
@@ -129,7 +129,7 @@ def rollout(
     refit: float | None = None,
     with_nll: bool = False,
 ) -> Rollout:
-    """Run ``weighting`` and :func:`~torchtrack.estimation.ekf_frame` over the T frames of ``win``."""
+    """Run ``weighting`` and :func:`~torchtrack.estimators.backends.ekf_frame` over the T frames of ``win``."""
     state = ekf.initial_state(win.start_T_cam_obj)
     poses, nll, n_used, vp, vx = [], [], [], [], []
     for t in range(win.frames):

@@ -4,7 +4,7 @@ import pytest
 import torch
 from test_fusion import DT, body, measurements, true_pose
 
-from torchtrack.estimation import EKFBackend, Observation, chi2_quantile
+from torchtrack.estimators.backends import EKFBackend, Observation, chi2_quantile
 from torchtrack.filter import FusionEKF, Variances
 
 F64 = torch.float64
