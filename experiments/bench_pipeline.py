@@ -34,8 +34,8 @@ from omegaconf import DictConfig
 
 import torchtrack.frontend as frontend_module
 import torchtrack.tracker as tracker_module
-from torchtrack.cli import build_sequences, build_tracker
 from torchtrack.data.batching import iterate_batched
+from torchtrack.factory import build_sequences, build_tracker
 from torchtrack.runtime import configure
 
 REPO = Path(__file__).resolve().parents[1]

@@ -52,6 +52,7 @@ import torch
 from evaluate import compose_config, find_sequences, git_describe, run_ours, split_argv  # experiments/evaluate.py
 from omegaconf import OmegaConf
 
+from torchtrack.config import load_option
 from torchtrack.data.perturb import DEFAULTS as PERTURB_DEFAULTS
 from torchtrack.data.perturb import make_variant
 from torchtrack.run import write_json
@@ -92,7 +93,7 @@ class Method:
 
 def default_checkpoint() -> Path:
     """The model ``weighting=learned`` loads when ``weighting.checkpoint`` is not given."""
-    cfg = OmegaConf.load(CONF / "weighting" / "learned.yaml")
+    cfg = load_option("weighting", "learned")
     if cfg.get("checkpoint") is not None:
         return Path(cfg.checkpoint).expanduser().resolve()
     try:

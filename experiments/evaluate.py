@@ -35,8 +35,8 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, OmegaConf
 
-from torchtrack.cli import build_sequences, build_tracker
 from torchtrack.data.tum import TumSequence, read_tum_trajectory, write_tum_trajectory
+from torchtrack.factory import build_sequences, build_tracker
 from torchtrack.metrics import shared_error, trajectory_metrics
 from torchtrack.run import run_tracker, write_json
 

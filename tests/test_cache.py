@@ -170,7 +170,7 @@ def recorded(tmp_path_factory):
     )
     seq = TumSequence(ensure_sequence(synth, root / "synth"))
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose("config", overrides=["tracker.min_features=70"])
+        cfg = compose("config", overrides=["pipeline.min_features=70"])
     (path,) = record_sequences(cfg, [seq], root / "out", progress=False)
     return synth, load_observations(path)
 

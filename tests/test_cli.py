@@ -32,6 +32,9 @@ METRIC_KEYS = ("ate_rmse_m", "rpe_trans_m", "rpe_rot_deg", "frames", "fps")
 # accumulates over the frames. Bound: 3x the measurement, and 4x below the ATE of a camera frozen at the first
 # pose (19.6 mm on these frames), so that a tracker that does not follow the motion fails.
 SYNTH_ATE_BOUND_M = 0.005
+# Values the data schema refuses when composing (types) or validating (ranges): exit code 2, one line naming the key.
+BAD_VALUES = {"depth_scale": "abc", "max_frames": -1, "stride": 0, "root": "[]"}
+FRAMES_CSV_COLUMNS = ["frame", "timestamp", "features", "sim_wins", "reprojection_px", "mean_tim_px", "reselected"]
 
 
 def cli_command() -> list[str]:
@@ -75,6 +78,7 @@ def runs(tmp_path_factory) -> Iterator[dict[str, Future]]:
         "empty_root": ["data=tum", f"data.root={base / 'empty'}"],  # a folder without rgb.txt
         "unknown_key": ["data.no_such_key=1"],
         "unknown_group": ["tracker=no_such_tracker"],
+        **{f"bad_{k}": ["data=tum", f"data.{k}={v}"] for k, v in BAD_VALUES.items()},
     }
     if (CASTLE / "rgb.txt").is_file():
         jobs["castle"] = ["data=tum", f"data.root={CASTLE}", f"data.max_frames={FRAMES}", "plots=false"]
@@ -176,3 +180,69 @@ def test_unknown_config_key_fails_clearly(name, runs):
     assert "Traceback" not in text, text
     assert "no_such" in text
     assert not out.exists()  # refused before anything ran
+
+
+@pytest.mark.parametrize("key", sorted(BAD_VALUES))
+def test_bad_data_values_fail_when_composing_with_one_line(key, runs):
+    proc, out, _ = result(runs, f"bad_{key}")
+    text = (proc.stdout + proc.stderr).strip()
+    assert proc.returncode == 2, text
+    assert "Traceback" not in text, text
+    lines = [line for line in text.splitlines() if line.strip()]
+    assert len(lines) == 1 and f"data.{key}" in lines[0], text
+    assert not out.exists()  # refused before anything ran
+
+
+def read_frames_csv(path: Path) -> dict[str, np.ndarray]:
+    header, *rows = [line.split(",") for line in path.read_text().splitlines()]
+    assert header == FRAMES_CSV_COLUMNS
+    cols = {k: [r[i] for r in rows] for i, k in enumerate(header)}
+    assert set(cols["reselected"]) <= {"True", "False"}
+    out = {k: np.array(v, dtype=np.float64) for k, v in cols.items() if k != "reselected"}
+    out["reselected"] = np.array([v == "True" for v in cols["reselected"]])
+    return out
+
+
+def test_frames_csv_contents(any_run):
+    """Every column of frames.csv: one row per frame, the trajectory's timestamps, counts and errors in range."""
+    _, out, gt = any_run
+    (seq,) = sequence_dirs(out)
+    f = read_frames_csv(seq / "frames.csv")
+    ts, _ = read_tum_strict(seq / "trajectory.txt")
+    ts_gt, _ = read_tum_strict(gt)
+    np.testing.assert_array_equal(f["frame"], np.arange(FRAMES))
+    np.testing.assert_allclose(f["timestamp"], ts, atol=1e-6)
+    np.testing.assert_allclose(f["timestamp"], ts_gt[:FRAMES], atol=1e-6)
+    assert (f["features"] == np.round(f["features"])).all() and (f["features"] >= 12).all()  # min_features
+    assert (f["sim_wins"] == np.round(f["sim_wins"])).all() and (0 <= f["sim_wins"]).all()
+    assert (f["sim_wins"] <= f["features"]).all()
+    assert f["reselected"][0], "the first frame takes the first model"
+    assert f["sim_wins"][0] == 0 and f["mean_tim_px"][0] == 0 and f["reprojection_px"][0] < 0.05  # nothing tracked yet
+    assert (f["mean_tim_px"][1:] > 0).all() and (f["mean_tim_px"] <= 1.0).all()  # d_TIM threshold 1 px
+    assert (f["reprojection_px"][1:] > 0).all() and (f["reprojection_px"] < 3.0).all()  # max_residual_px
+
+
+def test_metrics_json_every_field(any_run):
+    """Every field of metrics.json, recomputed from frames.csv and trajectory.txt (and ground truth)."""
+    _, out, gt = any_run
+    (seq,) = sequence_dirs(out)
+    m = json.loads((seq / "metrics.json").read_text())
+    f = read_frames_csv(seq / "frames.csv")
+    ts, T = read_tum_strict(seq / "trajectory.txt")
+    _, T_gt = read_tum_strict(gt)
+    expect = {
+        "sequence": seq.name,
+        "frames": FRAMES,
+        "reselections": int(f["reselected"][1:].sum()),
+        "mean_reprojection_px": float(f["reprojection_px"].mean()),
+        "mean_features": float(f["features"].mean()),
+        **trajectory_metrics(ts, T, T_gt[:FRAMES]),
+    }
+    assert set(m) == set(expect) | {"fps"}
+    assert 0 < m["fps"] < 1e4
+    assert m["frames_with_gt"] == FRAMES
+    for k, v in expect.items():
+        if isinstance(v, float):
+            assert m[k] == pytest.approx(v, rel=1e-4, abs=1e-7), k
+        else:
+            assert m[k] == v, k

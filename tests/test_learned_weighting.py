@@ -275,7 +275,7 @@ def test_config_composition(tmp_path):
     path = save_checkpoint(tmp_path / "w.pt", m)
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("config", overrides=["weighting=learned", f"weighting.checkpoint={path}"])
-        bad = compose("config", overrides=["weighting=learned", f"weighting.checkpoint={path}", "+weighting.mode=absolute"])  # fmt: skip
+        bad = compose("config", overrides=["weighting=learned", f"weighting.checkpoint={path}", "weighting.mode=absolute"])  # fmt: skip
     w = instantiate(cfg.weighting)
     assert isinstance(w, LearnedWeighting) and w.config == m.config
     assert isinstance(build_tracker(cfg).weighting, LearnedWeighting)

@@ -118,7 +118,7 @@ def test_cues_follow_their_definitions(recorded):
 
 
 def test_survivors_keep_their_age_and_cornerness(seq):
-    tracker = build_tracker(config("tracker.reselect_fraction=0.0", "tracker.min_features=1"))  # no re-selection
+    tracker = build_tracker(config("pipeline.reselect_fraction=0.0", "pipeline.min_features=1"))  # no re-selection
     frames = list(iterate_batched([seq], prefetch=False))[:4]
     for f in frames:
         tracker.step(f)

@@ -140,7 +140,7 @@ def test_features_are_eligible_and_backprojected():
     roi[..., :, : W // 2 + 40] = True
     sim = compute_sim(depth, K)
     border = 10
-    f = select_features(gray, depth, K, roi=roi, sim=sim, lam=0.5, border=border, patch_size=16)
+    f = select_features(gray, depth, K, roi=roi, sim=sim, lam=0.5, border=border, patch_size=16, require_sim=True)
     px = f.pixels[0][f.valid[0]].long()
     u, v = px[:, 0], px[:, 1]
     assert len(px) > 20

@@ -98,7 +98,7 @@ def test_an_ended_sequence_keeps_its_pose_in_the_tracker_and_the_back_end(synth)
 def test_reselection_keeps_trajectory_continuous(synth):
     """Re-selecting at every frame chains the poses without a jump and stays accurate."""
     seq = synth(seed=3, frames=8)
-    tracker = make_tracker("tracker.min_features=100000")  # never enough features: re-select every frame
+    tracker = make_tracker("pipeline.min_features=100000")  # never enough features: re-select every frame
     for frame in iterate_batched([seq], prefetch=False):
         res = tracker.step(frame)
         assert bool(res.reselected[0])
@@ -125,7 +125,7 @@ def test_keep_survivors_keeps_their_world_points_and_the_pose(synth):
     """A re-selection with keep_survivors re-expresses the tracked features in the new model frame (their world
     points and the camera pose do not move) and adds new features only away from them, up to the model's width."""
     seq = synth(seed=5, frames=4)
-    tracker = make_tracker("tracker.keep_survivors=true", "tracker.reselect_fraction=0.0")
+    tracker = make_tracker("pipeline.keep_survivors=true", "pipeline.reselect_fraction=0.0")
     frames = list(iterate_batched([seq], prefetch=False))
     for frame in frames:
         tracker.step(frame)
@@ -154,7 +154,7 @@ def test_keep_survivors_keeps_their_world_points_and_the_pose(synth):
 def test_keep_survivors_keeps_them_all_when_the_selection_is_poor(synth):
     """A re-selection frame where the selector finds only 5 features (blur, no texture) keeps every survivor."""
     seq = synth(seed=7, frames=3)
-    tracker = make_tracker("tracker.keep_survivors=true", "tracker.reselect_fraction=0.0")
+    tracker = make_tracker("pipeline.keep_survivors=true", "pipeline.reselect_fraction=0.0")
     frames = list(iterate_batched([seq], prefetch=False))
     for frame in frames:
         tracker.step(frame)

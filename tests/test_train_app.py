@@ -85,5 +85,5 @@ def test_replay_of_a_recording_equals_the_tracker(tmp_path):
         t = next(calls)
         return seq.variances(t)
 
-    out = rollout(ekf, recorded, win, gate=cfg.tracker.backend.gate, refit=cfg.tracker.backend.refit)
+    out = rollout(ekf, recorded, win, gate=cfg.tracker.gate, refit=cfg.tracker.refit)
     torch.testing.assert_close(out.T_cam_obj[:, 0], seq.T_cam_obj_est[1:], rtol=0, atol=1e-9)

@@ -15,64 +15,16 @@ from pathlib import Path
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
-from hydra.utils import instantiate
-from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig
+from omegaconf.errors import OmegaConfBaseException
 
+from torchtrack.config import CONF_DIR, validate
 from torchtrack.data.errors import DataError
-from torchtrack.data.tum import TumSequence
+from torchtrack.factory import build_sequences, build_tracker
 from torchtrack.run import run_tracker
 from torchtrack.runtime import configure
-from torchtrack.tracker import Tracker
 
 log = logging.getLogger("torchtrack")
-# The configs live beside the package (top-level conf/); torchtrack is installed in editable mode.
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
-
-
-def build_sequences(data: DictConfig) -> list[TumSequence]:
-    """TUM-layout sequences from ``data`` (kind tum: one or several roots; kind synthetic: rendered and cached)."""
-    opts = dict(max_frames=data.get("max_frames"), stride=data.get("stride", 1))
-    if data.kind == "synthetic":
-        from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
-
-        params = OmegaConf.to_container(data.scene, resolve=True)
-        root = ensure_sequence(SyntheticConfig(**params), Path(data.cache_dir).expanduser())
-        return [TumSequence(root, **opts)]  # registered by construction
-    if data.kind != "tum":
-        raise DataError(f"data.kind must be 'tum' or 'synthetic', got {data.kind!r}")
-    if data.root is None:
-        raise DataError("data.root is not set: pass data.root=DIR (or data.root=[DIR1,DIR2])")
-    roots = list(data.root) if isinstance(data.root, ListConfig) else [data.root]
-    extra = {
-        k: data.get(k) for k in ("camera", "depth_scale", "max_dt", "intrinsics_camera") if data.get(k) is not None
-    }
-    if data.get("depth_alignment") is not None:
-        align = data.depth_alignment
-        extra["depth_alignment"] = tuple(align) if isinstance(align, ListConfig) else align
-    if data.get("intrinsics") is not None:
-        extra["intrinsics"] = tuple(data.intrinsics)
-    if data.get("T_color_depth") is not None:
-        extra["T_color_depth"] = OmegaConf.to_container(data.T_color_depth)
-    return [TumSequence(Path(r).expanduser(), **opts, **extra) for r in roots]
-
-
-def build_tracker(cfg: DictConfig, *, record: bool = False) -> Tracker:
-    """The pipeline from the config groups (one per stage); ``record``: see :class:`Tracker`."""
-    return Tracker(
-        frontend=instantiate(cfg.frontend),
-        region=instantiate(cfg.region),
-        select=instantiate(cfg.select),
-        flow=instantiate(cfg.flow),
-        weighting=instantiate(cfg.weighting),
-        backend=instantiate(cfg.tracker.backend),
-        reselect_fraction=cfg.tracker.reselect_fraction,
-        min_features=cfg.tracker.min_features,
-        edge_step=cfg.tracker.get("edge_step"),
-        max_residual_px=cfg.tracker.get("max_residual_px"),
-        keep_survivors=cfg.tracker.get("keep_survivors", False),
-        min_separation_px=cfg.tracker.get("min_separation_px", 8.0),
-        record=record,
-    )
 
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
@@ -80,6 +32,7 @@ def app(cfg: DictConfig) -> None:
     out = Path(HydraConfig.get().runtime.output_dir)
     configure(cfg.threads)
     try:
+        validate(cfg)
         sequences = build_sequences(cfg.data)
         tracker = build_tracker(cfg)
         log.info("tracking %d sequence(s) into %s", len(sequences), out)
@@ -94,8 +47,40 @@ def app(cfg: DictConfig) -> None:
         log.info("%s: %s", r["sequence"], "  ".join(f"{k}={r[k]:.4g}" for k in keys if k in r))
 
 
+def check_overrides(config_name: str, argv: list[str]) -> str | None:
+    """The one-line reason why ``argv``'s overrides do not compose into a valid config (types, ranges), else None.
+
+    Hydra reports composition errors over several lines with exit code 1; the CLI checks first and exits with 2.
+    Multirun sweeps and Hydra's own flags are left to Hydra.
+    """
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+
+    if any(a.startswith("-") for a in argv):
+        return None
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            validate(compose(config_name, overrides=argv))
+    except (HydraException, OmegaConfBaseException, DataError) as e:
+        cause = e.__cause__ if isinstance(e.__cause__, OmegaConfBaseException) else e
+        lines = [
+            ln.strip() for ln in str(cause).splitlines() if ln.strip() and not ln.strip().startswith("object_type")
+        ]
+        return "; ".join(lines[:2])
+    return None
+
+
+def exit_on_bad_overrides(prog: str, config_name: str) -> None:
+    """Exit with code 2 and one line on stderr when the command line's overrides do not compose."""
+    error = check_overrides(config_name, sys.argv[1:])
+    if error is not None:
+        print(f"{prog}: error: {error}", file=sys.stderr)
+        sys.exit(2)
+
+
 def main() -> None:
     logging.getLogger("PIL").setLevel(logging.WARNING)
+    exit_on_bad_overrides("torchtrack", "config")
     app()
 
 

@@ -91,7 +91,7 @@ def learned_weighting(checkpoint: str | Path | None = None, **expected) -> Learn
         checkpoint: path of a ``.pt`` written by :func:`save_checkpoint`; None for the default model.
         **expected: constructor arguments (``mode``, ``sigma2_pix``, ...) the caller relies on. They do not
             override the checkpoint — a model is defined by what it was trained with — and a value that differs
-            from the checkpoint's is a ValueError rather than a silent disagreement.
+            from the checkpoint's is a ValueError rather than a silent disagreement; None is not checked.
     """
     if checkpoint is None:
         if not DEFAULT_CHECKPOINT.is_file():
@@ -102,6 +102,7 @@ def learned_weighting(checkpoint: str | Path | None = None, **expected) -> Learn
         checkpoint = DEFAULT_CHECKPOINT
     model, _ = load_checkpoint(checkpoint)
     config = model.config
+    expected = {k: v for k, v in expected.items() if v is not None}  # null in the config: not checked
     if unknown := sorted(set(expected) - set(config)):
         raise ValueError(f"learned_weighting: unknown arguments {unknown}; a checkpoint defines {sorted(config)}")
     if diff := {k: (v, config[k]) for k, v in expected.items() if v != config[k]}:

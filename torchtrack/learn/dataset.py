@@ -29,7 +29,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from torchtrack.cli import CONF_DIR
+from torchtrack.config import load_option
 from torchtrack.data.perturb import make_variant
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence, sequence_name
 from torchtrack.data.tum import TumSequence
@@ -120,6 +120,6 @@ def _with_region(cfg: DictConfig, region: str) -> DictConfig:
     """cfg with conf/region/<region>.yaml as its region, and data naming the set (the sequences come from it)."""
     g = cfg.copy()
     OmegaConf.set_struct(g, False)
-    g.region = OmegaConf.load(CONF_DIR / "region" / f"{region}.yaml")
+    g.region = load_option("region", region)
     g.data = OmegaConf.create({"kind": "synthetic", "set": str(cfg.dataset.name)})
     return g

@@ -22,7 +22,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from torchtrack.cli import CONF_DIR
+from torchtrack.config import CONF_DIR, load_option
 from torchtrack.data.errors import DataError
 from torchtrack.learn.cache import SequenceObservations, load_observations
 from torchtrack.learn.model import LearnedWeighting
@@ -79,7 +79,7 @@ def train_from_config(cfg: DictConfig, out: Path, progress: bool = True) -> list
     }
     if val_w is not None:  # what the learned model has to beat, on the same validation windows
         for name in ("paper", "fixed"):
-            base = instantiate(OmegaConf.load(CONF_DIR / "weighting" / f"{name}.yaml"))
+            base = instantiate(load_option("weighting", name))
             extra[f"val_{name}"] = evaluate(ekf, base, val_w, tc)
             log.info("validation, weighting=%s: %s", name, _fmt(extra[f"val_{name}"]))
     history = fit(model, ekf, train_w, tc, val=val_w, out_dir=out, extra=extra, progress=progress)

@@ -57,6 +57,9 @@ class SyntheticConfig:
     Intrinsics left as None are derived from the image size (525 px focal at 640 x 480, centre
     ``(W - 1) / 2, (H - 1) / 2``). Motion: smooth sums of sinusoids whose RMS step per frame is
     ``trans_step_m`` metres and ``rot_step_deg`` degrees.
+    ``depth_camera`` (None: depth registered to colour): a second camera for the depth images, same image size,
+    ``{"fx", "fy", "cx", "cy", "T_color_depth"}`` (its intrinsics and the 4x4 depth-to-colour extrinsic, row-major
+    nested lists); ground truth stays the colour camera's, as in TUM.
     """
 
     width: int = 640
@@ -75,6 +78,7 @@ class SyntheticConfig:
     fps: float = 30.0
     depth_scale: float = 5000.0
     kinect: KinectNoise = field(default_factory=KinectNoise)
+    depth_camera: dict | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.kinect, dict):  # from JSON / Hydra
@@ -103,10 +107,24 @@ class SyntheticConfig:
             raise ValueError(f"SyntheticConfig.kinect parameters must be >= 0, got {k}")
         if not 0 <= k.dropout_prob < 1 or k.min_depth_m >= k.max_depth_m:
             raise ValueError(f"SyntheticConfig.kinect has a bad dropout or depth range: {k}")
+        d = self.depth_camera
+        if d is not None:
+            T = d.get("T_color_depth")
+            if set(d) != {"fx", "fy", "cx", "cy", "T_color_depth"} or min(d["fx"], d["fy"]) <= 0:
+                raise ValueError(f"SyntheticConfig.depth_camera needs fx, fy > 0, cx, cy and T_color_depth, got {d}")
+            if len(T) != 4 or any(len(row) != 4 for row in T):
+                raise ValueError(f"SyntheticConfig.depth_camera.T_color_depth must be 4x4, got {T}")
+            self.depth_camera = {k: float(d[k]) for k in ("fx", "fy", "cx", "cy")} | {
+                "T_color_depth": [[float(v) for v in row] for row in T]
+            }
 
     def to_dict(self) -> dict:
-        """Resolved, JSON-serialisable parameters."""
-        return asdict(self)
+        """Resolved, JSON-serialisable parameters (no ``depth_camera`` when depth is registered: same digests as
+        before the option existed)."""
+        out = asdict(self)
+        if out["depth_camera"] is None:
+            del out["depth_camera"]
+        return out
 
     def digest(self) -> str:
         """12 hex digits identifying the rendered output (config plus renderer version)."""

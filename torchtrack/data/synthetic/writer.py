@@ -7,6 +7,7 @@ import logging
 import os
 import shutil
 import uuid
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -18,9 +19,9 @@ from tqdm import tqdm
 from torchtrack.data.synthetic.config import RENDERER_VERSION, SyntheticConfig
 from torchtrack.data.synthetic.motion import sequence_poses
 from torchtrack.data.synthetic.noise import apply_kinect_noise
-from torchtrack.data.synthetic.render import render_frame
-from torchtrack.data.synthetic.scene import default_scene
-from torchtrack.geometry import T_inv, matrix_to_quat_xyzw
+from torchtrack.data.synthetic.render import RGBD, render_frame
+from torchtrack.data.synthetic.scene import Scene, default_scene
+from torchtrack.geometry import T_inv, intrinsics_matrix, matrix_to_quat_xyzw
 
 log = logging.getLogger(__name__)
 
@@ -76,9 +77,15 @@ def _source_text(cfg: SyntheticConfig, T_world_cam0: Tensor) -> str:
         f"noise: {noise}\n"
         f"Timestamps: frame index / {cfg.fps:g} s; colour and depth share them and their file names.\n"
         f"Layout (TUM): rgb/*.png 8-bit RGB, depth/*.png 16-bit, metres = value / {cfg.depth_scale:g}, 0 = none;\n"
-        "  rgb.txt, depth.txt 'timestamp filename'; intrinsics.txt 'fx fy cx cy depth_scale'; depth registered\n"
-        "  to colour (same camera). config.json: the full resolved configuration.\n"
-        "Reproduce: torchtrack-synth --out DIR "
+        + (
+            "  rgb.txt, depth.txt 'timestamp filename'; intrinsics.txt 'fx fy cx cy depth_scale'; depth registered\n"
+            "  to colour (same camera). config.json: the full resolved configuration.\n"
+            if cfg.depth_camera is None
+            else "  rgb.txt, depth.txt 'timestamp filename'; intrinsics.txt 'fx fy cx cy depth_scale' of the colour camera;\n"
+            "  depth from a second camera: depth_camera in config.json (fx, fy, cx, cy, T_color_depth = depth-to-colour).\n"
+            "  config.json: the full resolved configuration.\n"
+        )
+        + "Reproduce: torchtrack-synth --out DIR "
         f"--frames {cfg.frames} --seed {cfg.seed} --mode {cfg.mode} --noise {cfg.noise} "
         f"--width {cfg.width} --height {cfg.height} (other parameters: config.json)\n"
         "Licence: generated data, no third-party content.\n"
@@ -86,14 +93,28 @@ def _source_text(cfg: SyntheticConfig, T_world_cam0: Tensor) -> str:
     )
 
 
+def _depth_camera(cfg: SyntheticConfig, scene: Scene) -> tuple[Scene, Tensor] | None:
+    """The depth camera's scene (its intrinsics, same primitives) and T_color_depth (4, 4); None when registered."""
+    d = cfg.depth_camera
+    if d is None:
+        return None
+    K = intrinsics_matrix(d["fx"], d["fy"], d["cx"], d["cy"]).to(scene.K.dtype)
+    return replace(scene, K=K, _dirs=None, _xy_flat=None), torch.tensor(d["T_color_depth"], dtype=torch.float64)
+
+
 def _render_into(cfg: SyntheticConfig, folder: Path, progress: bool) -> None:
     (folder / "rgb").mkdir(parents=True)
     (folder / "depth").mkdir()
     scene, poses = default_scene(cfg), sequence_poses(cfg)
+    depth_camera = _depth_camera(cfg, scene)
     stamps = [f"{i / cfg.fps:.6f}" for i in range(cfg.frames)]
     for i in tqdm(range(cfg.frames), desc=f"synth {cfg.mode}", unit="frame", disable=not progress):
         obj = None if poses.T_world_obj is None else poses.T_world_obj[i]
         frame = render_frame(scene, poses.T_world_cam[i], obj)
+        if depth_camera is not None:  # depth seen from the depth camera at T_world_cam @ T_color_depth
+            depth_scene, T_color_depth = depth_camera
+            T_world_depth = (poses.T_world_cam[i].double() @ T_color_depth).to(poses.T_world_cam.dtype)
+            frame = RGBD(frame.rgb, render_frame(depth_scene, T_world_depth, obj).depth)
         if cfg.noise == "kinect":
             frame = apply_kinect_noise(frame, cfg.kinect, frame_generator(cfg, i))
         _write_images(folder, f"{stamps[i]}.png", frame.rgb, frame.depth, cfg.depth_scale)

@@ -1,0 +1,317 @@
+"""Structured configs: one dataclass schema per configurable stage, registered in one ConfigStore.
+
+Each YAML file under ``conf/<group>/`` starts from its schema (``defaults: [/schema/<group>@_here_: <name>]``) and
+only changes values, so Hydra checks types when the config is composed (``data.depth_scale=abc`` fails there) and the
+schema's ``__post_init__`` checks ranges when :func:`validate` turns a node into its dataclass.
+
+Defaults. The schemas hold torchtrack's defaults (the improvements on); the Python signatures of the classes they
+build hold the paper's values where the two differ, and ``conf/method/paper.yaml`` (``+experiment=paper``) sets
+every one of those back (``tests/test_config.py`` checks that no other default differs).
+
+Derived knobs are resolved in one place, :func:`torchtrack.factory.build_tracker`: the front end's pyramid levels
+are the LK tracker's (``flow.levels``). The measurement variances belong to the weighting; the filter gets its
+per-feature variances from it and has no nominal ones in the config.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import DictConfig, OmegaConf
+
+from torchtrack.data.errors import DataError
+
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"  # beside the package; torchtrack is installed editable
+EKF_BACKEND = "torchtrack.estimators.backends.EKFBackend"
+REGISTRATION_BACKEND = "torchtrack.estimators.backends.RegistrationBackend"
+
+
+# --- data -------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class TumDataConfig:
+    """A TUM-layout folder, or a list of them tracked together (:class:`torchtrack.data.tum.TumSequence`)."""
+
+    kind: str = "tum"
+    root: Any = None  # a folder or a list of folders
+    camera: str | None = None  # fr1 | fr2 | fr3 | kinect_default when there is no intrinsics.txt
+    intrinsics: list[float] | None = None  # colour [fx, fy, cx, cy] when neither intrinsics.txt nor camera
+    depth_intrinsics: list[float] | None = None  # the depth camera's [fx, fy, cx, cy]; null = the colour ones
+    depth_scale: float | None = None  # depth units per metre (TUM: 5000); intrinsics.txt wins when present
+    max_dt: float = 0.02  # seconds, maximum timestamp difference when associating rgb/depth/groundtruth
+    T_color_depth: list[Any] | None = None  # 4x4 depth-to-colour extrinsic; null = registered
+    depth_alignment: Any = "none"  # none | auto | [dx, dy] | [dx, dy, s] (see conf/data/tum.yaml)
+    intrinsics_camera: str = "colour"  # whose intrinsics the given ones are when a map applies: colour | depth
+    max_frames: int | None = None
+    stride: int = 1
+
+    def __post_init__(self) -> None:
+        _check_common(self.max_frames, self.stride)
+        if self.root is not None and (not isinstance(self.root, (str, list)) or self.root in ("", [])):
+            raise DataError(f"data.root must be a folder or a non-empty list of folders, got {self.root!r}")
+        if isinstance(self.root, list) and not all(isinstance(r, str) and r for r in self.root):
+            raise DataError(f"data.root: every entry must be a folder, got {self.root!r}")
+        for key in ("intrinsics", "depth_intrinsics"):
+            k = getattr(self, key)
+            if k is not None and (len(k) != 4 or min(k[0], k[1]) <= 0):
+                raise DataError(f"data.{key} must be [fx, fy, cx, cy] with fx, fy > 0, got {k}")
+        if self.depth_scale is not None and self.depth_scale <= 0:
+            raise DataError(f"data.depth_scale must be > 0, got {self.depth_scale}")
+        if self.max_dt <= 0:
+            raise DataError(f"data.max_dt must be > 0, got {self.max_dt}")
+        T = self.T_color_depth
+        if T is not None and (len(T) != 4 or any(not isinstance(r, list) or len(r) != 4 for r in T) or not _numbers(T)):
+            raise DataError(f"data.T_color_depth must be a 4x4 matrix, got {T}")
+        if self.intrinsics_camera not in ("colour", "depth"):
+            raise DataError(f"data.intrinsics_camera must be colour or depth, got {self.intrinsics_camera!r}")
+
+
+@dataclass
+class SyntheticDataConfig:
+    """The embedded synthetic sequence: ``scene`` is a :class:`torchtrack.data.synthetic.SyntheticConfig`."""
+
+    kind: str = "synthetic"
+    cache_dir: str = "${oc.env:TORCHTRACK_CACHE,${oc.env:HOME}/.cache/torchtrack}/synthetic"
+    max_frames: int | None = None
+    stride: int = 1
+    scene: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        _check_common(self.max_frames, self.stride)
+
+
+def _numbers(rows: list) -> bool:
+    return all(isinstance(v, (int, float)) and not isinstance(v, bool) for row in rows for v in row)
+
+
+def _check_common(max_frames: int | None, stride: int) -> None:
+    if max_frames is not None and max_frames < 1:
+        raise DataError(f"data.max_frames must be >= 1 (or null for all), got {max_frames}")
+    if stride < 1:
+        raise DataError(f"data.stride must be >= 1, got {stride}")
+
+
+# --- front end --------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class RegionConfig:
+    """:class:`torchtrack.image.object_model.ObjectRegion`: the model's region of interest."""
+
+    _target_: str = "torchtrack.image.object_model.ObjectRegion"
+    whole_frame: bool = False  # true: every pixel with depth (scene tracking)
+    near: float | None = None  # m; null: from the depth histogram (nearest mode)
+    far: float | None = None
+    largest_component: bool = False
+
+
+@dataclass
+class SelectConfig:
+    """:func:`torchtrack.image.select.select_features` (eq. 9), bound to its keyword arguments."""
+
+    _target_: str = "torchtrack.image.select.select_features"
+    _partial_: bool = True
+    lam: float = 0.5  # lambda of eq. (9); 1 = intensity only
+    patch_size: int = 32  # pixels (32 -> 15 x 20 = 300 patches on 640 x 480)
+    grid: list[int] | None = None  # [rows, cols] instead of patch_size
+    spread: bool = True  # false = global top-N by cornerness, no patches (ablation EKF-1)
+    max_features: int | None = None
+    border: int = 12  # keep features this far from the image edge (LK window)
+    nms_radius: int = 2  # non-maximum suppression radius when spread is false
+    min_cornerness: float = 0.05
+    require_sim: bool = False  # true: with lam < 1 only pixels with a defined (non-planar) shape index
+
+
+@dataclass
+class FlowConfig:
+    """:class:`torchtrack.image.flow.CombinedTracker`: LK on intensity and SIM with the TIM check (eq. 10)."""
+
+    _target_: str = "torchtrack.image.flow.CombinedTracker"
+    mode: str = "combined"  # combined | intensity (ablation EKF-2) | sim
+    tim_threshold: float = 1.0  # px
+    window: int = 21  # px, LK window (odd)
+    levels: int = 3  # pyramid levels (the front end builds this many)
+    iters: int = 30  # max iterations per level
+    eps: float = 0.01  # px, convergence
+    min_eig: float = 1.0e-4  # minimum eigenvalue of the 2x2 gradient matrix (normalised, as OpenCV)
+    ic_iters: int = 3  # inverse-compositional iterations before Newton steps
+    backend: str = "torch"  # torch | opencv (cv2.calcOpticalFlowPyrLK, reference)
+    policy: str = "fallback"  # improvement (paper: min_tim): the SIM tracker only where the intensity tracker failed
+
+
+@dataclass
+class FrontendConfig:
+    """:class:`torchtrack.frontend.FrontEnd`; its pyramid levels come from ``flow.levels`` (in the factory)."""
+
+    _target_: str = "torchtrack.frontend.FrontEnd"
+    use_sim: bool = True  # compute the SIM (SIM-assisted tracking, lambda < 1 selection)
+    sim_kwargs: dict[str, Any] | None = None
+
+
+# --- back end ---------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class FilterConfig:
+    """:class:`torchtrack.filter.fusion.FusionEKF` (eqs. 2-7, 15); variances per feature come from the weighting."""
+
+    _target_: str = "torchtrack.filter.fusion.FusionEKF"
+    sigma_ang_acc: float = 3.0  # rad/s^2, constant-velocity process noise (eqs. 3-4)
+    sigma_lin_acc: float = 2.0  # m/s^2
+    init_sigma_angle: float = 1.0e-3  # rad, pose std right after a (re-)selection
+    init_sigma_trans: float = 1.0e-3  # m
+    init_sigma_ang_vel: float = 1.0  # rad/s
+    init_sigma_lin_vel: float = 0.5  # m/s
+    iterations: int = 1  # 1 = the paper's EKF; > 1 = iterated EKF
+    form: str = "information"  # information (fast) | gain (the paper's eq. 15, slow)
+    jacobian: str = "forward"  # forward (torch.func.jacfwd) | reverse | analytic
+
+
+@dataclass
+class PaperWeightingConfig:
+    """:class:`torchtrack.filter.weighting.PaperWeighting`: eqs. (11)-(14)."""
+
+    _target_: str = "torchtrack.filter.weighting.PaperWeighting"
+    sigma2_pix: float = 1.0  # px^2, mean 2D variance (kept by eq. 11)
+    sigma2_xyz: float = 4.0e-6  # m^2, mean 3D variance at depth_ref (kept by eq. 14): (2 mm)^2 (paper: 1e-4)
+    d_tim_floor: float = 0.01  # px; a perfect TIM match would otherwise get zero variance
+    dist_floor: float = 1.0e-3  # m; guards eq. (13) at the centroid
+    depth_var_exponent: float = 4.0  # improvement (0 = paper): 3D variance x (z / depth_ref)^4
+    depth_ref: float = 1.0
+
+
+@dataclass
+class FixedWeightingConfig:
+    """:class:`torchtrack.filter.weighting.FixedWeighting`: the same variances for every feature (EKF-3)."""
+
+    _target_: str = "torchtrack.filter.weighting.FixedWeighting"
+    sigma2_pix: float = 1.0
+    sigma2_xyz: float = 1.0e-4
+
+
+@dataclass
+class LearnedWeightingConfig:
+    """:func:`torchtrack.learn.checkpoint.learned_weighting`. The optional values are checks, not overrides: the
+    factory raises when one differs from the checkpoint's (null: not checked)."""
+
+    _target_: str = "torchtrack.learn.checkpoint.learned_weighting"
+    checkpoint: str | None = None  # a .pt from torchtrack-train; null = the shipped default
+    mode: str | None = None
+    hidden: int | None = None
+    sigma2_pix: float | None = None
+    sigma2_xyz: float | None = None
+    depth_var_exponent: float | None = None
+    depth_ref: float | None = None
+
+
+@dataclass
+class EKFBackendConfig:
+    """The fusion EKF as the pose estimator (``tracker=fusion_ekf``); its filter is the ``filter`` node."""
+
+    _target_: str = EKF_BACKEND
+    ekf: Any = "${filter}"
+    gate: float | None = 0.999  # improvement (null = paper): chi-square gate on each feature's innovations
+    refit: float | None = 0.999  # improvement (null = paper): re-update without features failing this quantile
+
+
+@dataclass
+class ICPConfig:
+    _target_: str = "torchtrack.estimators.icp.ICPEstimator"
+    max_iters: int = 50
+    tol: float = 1.0e-6
+    max_corr_dist: float | None = None
+
+
+@dataclass
+class CPDConfig:
+    _target_: str = "torchtrack.estimators.cpd.CPDEstimator"
+    w: float = 0.0
+    max_iters: int = 100
+    tol: float = 1.0e-5
+    scale: bool = False
+
+
+@dataclass
+class HornConfig:
+    _target_: str = "torchtrack.estimators.horn.HornEstimator"
+    use_weights: bool = True
+
+
+@dataclass
+class RegistrationBackendConfig:
+    """A registration baseline (``tracker=icp|cpd|horn``) on the tracked 3D-3D correspondences."""
+
+    _target_: str = REGISTRATION_BACKEND
+    weighted: bool = False  # weight points by the weighting's inverse 3D variances
+    estimator: Any = None
+
+
+# --- the pipeline's policy --------------------------------------------------------------------------------------
+
+
+@dataclass
+class PipelineConfig:
+    """:class:`torchtrack.tracker.Tracker`'s policy; its stages are the other nodes (see the factory)."""
+
+    _target_: str = "torchtrack.tracker.Tracker"
+    reselect_fraction: float = 0.5  # new model when fewer than this fraction of the model's features survive
+    min_features: int = 12  # ... or fewer than this many
+    edge_step: float | None = 0.03  # improvement (null = paper): no features where depth jumps > 3% in 5x5 px
+    max_residual_px: float | None = 3.0  # improvement (null = paper): drop features > 3 px from their reprojection
+    keep_survivors: bool = True  # improvement (false = paper): a re-selection keeps the features still tracked
+    min_separation_px: float = 8.0  # ... and adds new ones only this far from a survivor
+    record: bool = False  # compute every frame's per-feature cues (torchtrack-record)
+
+
+SCHEMAS: dict[str, dict[str, type]] = {
+    "data": {"tum": TumDataConfig, "synthetic": SyntheticDataConfig},
+    "region": {"region": RegionConfig},
+    "select": {"select": SelectConfig},
+    "flow": {"flow": FlowConfig},
+    "frontend": {"frontend": FrontendConfig},
+    "filter": {"ekf": FilterConfig},
+    "weighting": {"paper": PaperWeightingConfig, "fixed": FixedWeightingConfig, "learned": LearnedWeightingConfig},
+    "tracker": {"ekf": EKFBackendConfig, "registration": RegistrationBackendConfig},
+    "estimator": {"icp": ICPConfig, "cpd": CPDConfig, "horn": HornConfig},
+    "pipeline": {"pipeline": PipelineConfig},
+}
+
+
+def register() -> None:
+    """Store every schema as ``schema/<group>/<name>`` (YAML files extend them; idempotent)."""
+    cs = ConfigStore.instance()
+    for group, nodes in SCHEMAS.items():
+        for name, node in nodes.items():
+            cs.store(group=f"schema/{group}", name=name, node=node)
+
+
+def load_option(group: str, name: str) -> DictConfig:
+    """``conf/<group>/<name>.yaml`` on its schema, without composing the whole config (usable inside a running app).
+
+    Only the schema entries of its defaults list are followed (``/schema/<group>@_here_`` or ``@<key>``).
+    """
+    node = OmegaConf.load(CONF_DIR / group / f"{name}.yaml")
+    out = OmegaConf.create()
+    for entry in node.pop("defaults", []):
+        if not isinstance(entry, DictConfig):
+            continue  # _self_
+        ((key, choice),) = entry.items()
+        path, _, package = key.partition("@")
+        schema = OmegaConf.structured(SCHEMAS[path.rsplit("/", 1)[-1]][choice])
+        out = OmegaConf.merge(out, schema if package == "_here_" else {package: schema})
+    return OmegaConf.merge(out, node)
+
+
+def validate(cfg: DictConfig) -> None:
+    """Range checks that types cannot express: build the data node's dataclass (its ``__post_init__``).
+
+    Raises :class:`~torchtrack.data.errors.DataError` with a one-line message.
+    """
+    OmegaConf.to_object(cfg.data)
+
+
+register()

@@ -1,0 +1,55 @@
+"""Builders from a composed config: the sequences of ``data`` and the tracker of the stage nodes.
+
+Every object is built by its node's ``_target_`` (schemas in :mod:`torchtrack.config`); the only knob derived here
+is the front end's pyramid levels, which are the LK tracker's (``flow.levels``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from hydra.utils import instantiate
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
+from torchtrack.data.errors import DataError
+from torchtrack.data.tum import TumSequence
+from torchtrack.tracker import Tracker
+
+
+def build_sequences(data: DictConfig) -> list[TumSequence]:
+    """TUM-layout sequences from ``data`` (kind tum: one or several roots; kind synthetic: rendered and cached)."""
+    opts = dict(max_frames=data.max_frames, stride=data.stride)
+    if data.kind == "synthetic":
+        from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
+
+        params = OmegaConf.to_container(data.scene, resolve=True)
+        root = ensure_sequence(SyntheticConfig(**params), Path(data.cache_dir).expanduser())
+        return [TumSequence(root, **opts)]  # registered by construction
+    if data.kind != "tum":
+        raise DataError(f"data.kind must be 'tum' or 'synthetic', got {data.kind!r}")
+    if data.root is None:
+        raise DataError("data.root is not set: pass data.root=DIR (or data.root=[DIR1,DIR2])")
+    roots = list(data.root) if isinstance(data.root, ListConfig) else [data.root]
+    align = data.depth_alignment
+    extra = dict(
+        camera=data.camera, depth_scale=data.depth_scale, max_dt=data.max_dt, intrinsics_camera=data.intrinsics_camera,
+        depth_alignment=tuple(align) if isinstance(align, ListConfig) else align,
+        intrinsics=None if data.intrinsics is None else tuple(data.intrinsics),
+        intrinsics_depth=None if data.depth_intrinsics is None else tuple(data.depth_intrinsics),
+        T_color_depth=None if data.T_color_depth is None else OmegaConf.to_container(data.T_color_depth),
+    )  # fmt: skip
+    return [TumSequence(Path(r).expanduser(), **opts, **extra) for r in roots]
+
+
+def build_tracker(cfg: DictConfig, *, record: bool = False) -> Tracker:
+    """The pipeline (``cfg.pipeline``: the policy) with its stages, one node each; ``record``: see :class:`Tracker`."""
+    return instantiate(
+        cfg.pipeline,
+        frontend=instantiate(cfg.frontend, levels=cfg.flow.levels),
+        region=instantiate(cfg.region),
+        select=instantiate(cfg.select),
+        flow=instantiate(cfg.flow),
+        weighting=instantiate(cfg.weighting),
+        backend=instantiate(cfg.tracker),
+        record=record or cfg.pipeline.record,
+    )
