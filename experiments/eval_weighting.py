@@ -55,7 +55,7 @@ from omegaconf import OmegaConf
 from torchtrack.config import load_option
 from torchtrack.data.perturb import DEFAULTS as PERTURB_DEFAULTS
 from torchtrack.data.perturb import make_variant
-from torchtrack.run import write_json
+from torchtrack.io import write_json, write_text
 
 log = logging.getLogger("eval_weighting")
 
@@ -375,9 +375,7 @@ def replace_section(text: str, heading: str, body: str) -> str:
 
 def write_results(path: Path, body: str) -> None:
     text = path.read_text() if path.is_file() else ""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(replace_section(text, HEADING, body))
-    os.replace(tmp, path)
+    write_text(path, replace_section(text, HEADING, body))
 
 
 # ----------------------------------------------------------------------------------------------- main

@@ -37,8 +37,9 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchtrack.data.tum import TumSequence, read_tum_trajectory, write_tum_trajectory
 from torchtrack.factory import build_sequences, build_tracker
+from torchtrack.io import write_json
 from torchtrack.metrics import shared_error, trajectory_metrics
-from torchtrack.run import run_tracker, write_json
+from torchtrack.run import run_tracker
 
 log = logging.getLogger("evaluate")
 

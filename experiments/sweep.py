@@ -39,6 +39,8 @@ from pathlib import Path
 
 import yaml
 
+from torchtrack.io import write_json
+
 log = logging.getLogger("sweep")
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -202,14 +204,6 @@ def _extra_value(extra: list[str], key: str):
         if k == key:
             return None if v in ("null", "None") else yaml.safe_load(v)
     return None
-
-
-def write_json(path: Path, data: dict) -> None:
-    """Atomic JSON write (temporary name, then rename): a reader never sees half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
-    os.replace(tmp, path)
 
 
 def run_peer(out: Path, seq: str, data: Path, extra: list[str]) -> dict:

@@ -2,15 +2,13 @@
 
 Per sequence, in ``out_dir/<name>/``: ``trajectory.txt`` (TUM, camera-to-world), ``metrics.json``,
 ``frames.csv`` (per-frame diagnostics), ``trajectory.png`` and ``features.png`` (the paper's Figs.
-6/7 as an image strip). Every file is written to a temporary name and renamed, so a sequence that
-finished is never lost when a later one fails.
+6/7 as an image strip). Every file is written atomically (:func:`torchtrack.io.write_atomic`), so a
+sequence that finished is never lost when a later one fails.
 """
 
 from __future__ import annotations
 
-import json
 import logging
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,16 +19,11 @@ from tqdm import tqdm
 
 from torchtrack.data.batching import iterate_batched
 from torchtrack.data.tum import TumSequence, write_tum_trajectory
+from torchtrack.io import write_json, write_text
 from torchtrack.tracker import StepResult, Tracker
 from torchtrack.viz.overlay import draw_frame, save_strip, snapshot_indices
 
 log = logging.getLogger(__name__)
-
-
-def write_json(path: Path, data: dict) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
-    os.replace(tmp, path)
 
 
 def world_anchor(T_world_cam_gt: torch.Tensor, gt_valid: torch.Tensor) -> torch.Tensor:
@@ -115,9 +108,7 @@ class Recorder:
     def _write_csv(self, path: Path) -> None:
         keys = list(self.rows[0])
         lines = [",".join(keys)] + [",".join(str(r[k]) for k in keys) for r in self.rows]
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text("\n".join(lines) + "\n")
-        os.replace(tmp, path)
+        write_text(path, "\n".join(lines) + "\n")
 
     def _plots(self, T_est: np.ndarray, gt_valid: np.ndarray) -> None:
         from torchtrack.viz.plots import plot_trajectory

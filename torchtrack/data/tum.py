@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import logging
 import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NamedTuple
@@ -29,6 +28,7 @@ from torchtrack.data.alignment import colour_intrinsics, depth_intrinsics, resol
 from torchtrack.data.cameras import TUM_DEPTH_SCALE, get_camera
 from torchtrack.data.errors import DataError
 from torchtrack.geometry import intrinsics_matrix, matrix_to_quat_xyzw, quat_xyzw_to_matrix
+from torchtrack.io import write_text
 
 log = logging.getLogger(__name__)
 
@@ -128,16 +128,7 @@ def write_tum_trajectory(path: PathLike, timestamps, T_world_cam) -> Path:
     q = matrix_to_quat_xyzw(T[:, :3, :3]).numpy()
     rows = np.concatenate([t[:, None], T[:, :3, 3].numpy(), q], axis=1)
     text = "# timestamp tx ty tz qx qy qz qw\n" + "".join(" ".join(f"{x:.9f}" for x in r) + "\n" for r in rows)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return write_text(path, text)
 
 
 def read_intrinsics_file(path: PathLike) -> tuple[tuple[float, float, float, float], float | None]:

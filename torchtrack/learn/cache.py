@@ -3,7 +3,7 @@
 The front end (selection, LK + TIM, depth lookup, re-selection) does not depend on the measurement variances, so
 a learned weighting is trained by replaying only the back end on what the tracker's back end saw. One file per
 sequence, ``<sequence name>.pt``: ``torch.save`` of a dict (read with ``torch.load(weights_only=True)``, no images
-needed), written atomically (temporary name, then ``os.replace``).
+needed), written atomically (:func:`torchtrack.io.write_atomic`).
 
 Metadata: ``format`` = ``"torchtrack-observations"``, ``version`` (:data:`VERSION`), ``cue_names`` and
 ``cue_version`` (:mod:`torchtrack.learn.cues`), ``sequence`` (name), ``source`` (the sequence's folder),
@@ -53,8 +53,6 @@ at which re-selections happen (the number of surviving features).
 
 from __future__ import annotations
 
-import os
-import uuid
 from dataclasses import dataclass, fields
 from pathlib import Path
 
@@ -64,6 +62,7 @@ from torch import Tensor
 from torchtrack.estimators.backends import Observation
 from torchtrack.filter.weighting import Variances
 from torchtrack.geometry import T_inv
+from torchtrack.io import write_atomic
 from torchtrack.learn.cues import CUE_NAMES, CUE_VERSION, check_cue_names
 
 FORMAT = "torchtrack-observations"
@@ -195,18 +194,11 @@ def validate(obs: SequenceObservations, where: str) -> None:
 
 
 def save_observations(obs: SequenceObservations, path: str | Path) -> Path:
-    """Write ``obs`` to ``path`` atomically: a temporary file in the same folder, then ``os.replace``; a failed
-    write leaves no partial file and any previous file intact."""
+    """Write ``obs`` to ``path`` atomically (:func:`torchtrack.io.write_atomic`): a failed write leaves no partial
+    file and any previous file intact."""
     path = Path(path)
     validate(obs, str(path))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
-    try:
-        torch.save(obs.to_dict(), tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    return write_atomic(path, lambda tmp: torch.save(obs.to_dict(), tmp))
 
 
 def load_observations(path: str | Path) -> SequenceObservations:

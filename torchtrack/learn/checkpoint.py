@@ -14,11 +14,11 @@ The module's variances and mode are part of what it learned, so they come from t
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import torch
 
+from torchtrack.io import write_atomic
 from torchtrack.learn.cues import CUE_NAMES, CUE_VERSION, check_cue_names
 from torchtrack.learn.model import LearnedWeighting
 
@@ -43,9 +43,8 @@ def save_checkpoint(path: str | Path, model: LearnedWeighting, *, extra: dict | 
         format=FORMAT, version=VERSION, cue_names=list(CUE_NAMES), cue_version=CUE_VERSION,
         model=model.config, state_dict=state, **extra,
     )  # fmt: skip
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
+
+    def write(tmp: Path) -> None:
         torch.save(blob, tmp)
         try:
             torch.load(tmp, map_location="cpu", weights_only=True)
@@ -54,10 +53,8 @@ def save_checkpoint(path: str | Path, model: LearnedWeighting, *, extra: dict | 
                 f"save_checkpoint: {path}: extra must hold only plain Python containers, numbers, strings and "
                 f"tensors (weights_only loading failed: {e})"
             ) from e
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+
+    return write_atomic(path, write)
 
 
 def load_checkpoint(path: str | Path) -> tuple[LearnedWeighting, dict]:

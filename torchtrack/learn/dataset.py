@@ -18,10 +18,8 @@ holds exactly); the only photometric variation is the colour noise of the Kinect
 from __future__ import annotations
 
 import itertools
-import json
 import logging
 import multiprocessing
-import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +31,7 @@ from torchtrack.config import load_option
 from torchtrack.data.perturb import make_variant
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence, sequence_name
 from torchtrack.data.tum import TumSequence
+from torchtrack.io import write_json
 from torchtrack.learn.record import record_sequences
 
 log = logging.getLogger("torchtrack.record")
@@ -109,10 +108,7 @@ def build_synthetic_set(cfg: DictConfig, out_dir: str | Path, progress: bool = T
             for v, p in zip(variants, paths, strict=True)
         ],
     }
-    out_dir.mkdir(parents=True, exist_ok=True)
-    tmp = out_dir / f".dataset.json.tmp-{os.getpid()}"
-    tmp.write_text(json.dumps(index, indent=1) + "\n")
-    os.replace(tmp, out_dir / "dataset.json")
+    write_json(out_dir / "dataset.json", index, indent=1)
     return paths
 
 

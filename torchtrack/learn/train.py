@@ -23,7 +23,6 @@ from __future__ import annotations
 import csv
 import logging
 import math
-import os
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -33,6 +32,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from torchtrack.filter.fusion import FusionEKF
+from torchtrack.io import write_atomic
 from torchtrack.learn.cache import SequenceObservations
 from torchtrack.learn.checkpoint import load_checkpoint, save_checkpoint
 from torchtrack.learn.model import LearnedWeighting
@@ -244,12 +244,14 @@ def _resume(model: LearnedWeighting, opt: torch.optim.Optimizer, out_dir: Path |
 def write_metrics(out_dir: Path, history: list[dict]) -> None:
     """metrics.csv and loss.png (atomic), and TensorBoard scalars when tensorboard is installed."""
     keys = list(dict.fromkeys(k for row in history for k in row))
-    tmp = out_dir / ".metrics.csv.tmp"
-    with tmp.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=keys)
-        w.writeheader()
-        w.writerows(history)
-    os.replace(tmp, out_dir / "metrics.csv")
+
+    def write(tmp: Path) -> None:
+        with tmp.open("w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=keys)
+            w.writeheader()
+            w.writerows(history)
+
+    write_atomic(out_dir / "metrics.csv", write)
     plot_losses(out_dir / "loss.png", history)
     _tensorboard(out_dir, history[-1])
 

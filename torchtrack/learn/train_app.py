@@ -11,7 +11,6 @@ lists), and copies best.pt to ``export`` when set.
 from __future__ import annotations
 
 import logging
-import os
 import shutil
 import sys
 from pathlib import Path
@@ -24,6 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchtrack.config import CONF_DIR, load_option
 from torchtrack.data.errors import DataError
+from torchtrack.io import write_atomic
 from torchtrack.learn.cache import SequenceObservations, load_observations
 from torchtrack.learn.model import LearnedWeighting
 from torchtrack.learn.train import TrainConfig, evaluate, fit, windows_of
@@ -89,10 +89,7 @@ def train_from_config(cfg: DictConfig, out: Path, progress: bool = True) -> list
 
 
 def export(src: Path, dst: Path) -> None:
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
-    shutil.copyfile(src, tmp)
-    os.replace(tmp, dst)
+    write_atomic(dst, lambda tmp: shutil.copyfile(src, tmp))
     log.info("best checkpoint copied to %s", dst)
 
 

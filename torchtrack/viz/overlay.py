@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import cv2
@@ -11,6 +10,7 @@ import torch
 from torch import Tensor
 
 from torchtrack.geometry import project, transform_points
+from torchtrack.io import write_atomic
 
 INTENSITY_BGR = (60, 220, 60)  # green: the intensity tracker won
 SIM_BGR = (230, 60, 230)  # magenta: the SIM tracker won
@@ -71,9 +71,12 @@ def save_strip(path: Path, tiles: list[np.ndarray], columns: int = 3, scale: flo
         r, c = divmod(i, columns)
         grid[r * h : (r + 1) * h, c * w : (c + 1) * w] = t
     grid = np.vstack([grid, legend(grid.shape[1])])
-    tmp = path.with_name(path.stem + ".tmp.png")
-    cv2.imwrite(str(tmp), grid)
-    os.replace(tmp, path)
+    write_atomic(path, lambda tmp: _imwrite(tmp, grid))
+
+
+def _imwrite(path: Path, image: np.ndarray) -> None:
+    if not cv2.imwrite(str(path), image):
+        raise OSError(f"cv2.imwrite could not write {path}")
 
 
 def snapshot_indices(length: int, count: int = 6) -> set[int]:

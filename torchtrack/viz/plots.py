@@ -5,7 +5,6 @@ Poses are camera-to-world ``T_world_cam`` (F, 4, 4), numpy arrays or torch tenso
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -15,6 +14,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from torchtrack.geometry import transform_points
+from torchtrack.io import write_atomic
 from torchtrack.metrics import PerAxisErrors, ate
 
 _AXES = "xyz"
@@ -23,16 +23,8 @@ _COLOURS = ("tab:red", "tab:green", "tab:blue")
 
 def save_atomic(fig: Figure, path_png, dpi: int = 100) -> Path:
     """Render to a temporary file beside ``path_png``, then rename: a reader never sees half a PNG."""
-    path = Path(path_png)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     FigureCanvasAgg(fig)
-    try:
-        fig.savefig(tmp, format="png", dpi=dpi)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    return write_atomic(path_png, lambda tmp: fig.savefig(tmp, format="png", dpi=dpi))
 
 
 def _poses(T, name: str, F: int | None = None) -> torch.Tensor:
