@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchtrack.image.lk import lk_track_flat
+from torchtrack.image.lk import lk_track_flat, tim_error
 from torchtrack.image.pyramid import Pyramid, build_pyramid
 
 Mode = Literal["combined", "intensity", "sim"]
@@ -124,8 +124,7 @@ def _track_torch(prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tensor
     )
     d_tim = torch.full((pts.shape[0],), float("inf"))
     rows = sel[good]
-    d_tim[rows] = torch.where(ok_back, torch.linalg.vector_norm(x0[good] - back, dim=-1), float("inf"))  # eq. (10)
-    status[rows] = ok_back
+    d_tim[rows], status[rows] = tim_error(x0[good], back, ok[good], ok_back)  # eq. (10)
     return fwd_pts.view(k, b, n, 2), status.view(k, b, n), d_tim.view(k, b, n), residual.view(k, b, n)
 
 
@@ -157,11 +156,10 @@ def _track_opencv(prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tenso
             x1, st1, err = cv2.calcOpticalFlowPyrLK(prev.u8(k, s), next.u8(k, s), x0, None, **args)
             back, st2, _ = cv2.calcOpticalFlowPyrLK(next.u8(k, s), prev.u8(k, s), x1, None, **args)
             x1t, backt = torch.from_numpy(x1.reshape(-1, 2)), torch.from_numpy(back.reshape(-1, 2))
-            ok = torch.from_numpy((st1[:, 0] == 1) & (st2[:, 0] == 1)) & _inside(x1t, h, w) & _inside(backt, h, w)
-            fwd_pts[i, s, sel] = x1t
-            status[i, s, sel] = ok
-            d = torch.linalg.vector_norm(torch.from_numpy(x0.reshape(-1, 2)) - backt, dim=-1)  # eq. (10)
-            d_tim[i, s, sel] = torch.where(ok, d, float("inf"))
+            ok_fwd = torch.from_numpy(st1[:, 0] == 1) & _inside(x1t, h, w)
+            ok_bwd = torch.from_numpy(st2[:, 0] == 1) & _inside(backt, h, w)
+            d, ok = tim_error(torch.from_numpy(x0.reshape(-1, 2)), backt, ok_fwd, ok_bwd)  # eq. (10)
+            fwd_pts[i, s, sel], status[i, s, sel], d_tim[i, s, sel] = x1t, ok, d
             if with_residual:
                 residual[i, s, sel] = torch.where(ok, torch.from_numpy(err.reshape(-1)) / 255.0, 0.0)
     return fwd_pts, status, d_tim, residual

@@ -388,6 +388,19 @@ def forward_backward(
     kwargs.pop("init", None)
     kwargs.update(valid=fwd.status, with_residual=False)
     bwd = pyramidal_lk(next_p, prev_p, fwd.points, **kwargs)
-    d_tim = torch.linalg.vector_norm(points - bwd.points, dim=-1)  # eq. (10)
-    d_tim = torch.where(fwd.status & bwd.status, d_tim, torch.full_like(d_tim, float("inf")))
+    d_tim, _ = tim_error(points, bwd.points, fwd.status, bwd.status)
     return fwd, bwd.points, d_tim
+
+
+def tim_error(points: Tensor, back_points: Tensor, ok_forward: Tensor, ok_backward: Tensor) -> tuple[Tensor, Tensor]:
+    """Template inverse matching error, eq. (10): ``d_TIM = || x_{t-1} - x'_{t-1} ||`` between the start points
+    (..., 2) and the points tracked forward and then back again (..., 2). The one definition shared by
+    :func:`forward_backward` and both back ends of :func:`torchtrack.image.flow.combined_track`.
+
+    Returns:
+        (d_tim (...), status (...)): status is ``ok_forward & ok_backward`` (both passes tracked); d_tim is +inf
+        where not, so that such a feature never wins the combined tracker's step III and fails its step IV.
+    """
+    status = ok_forward & ok_backward
+    d_tim = torch.linalg.vector_norm(points - back_points, dim=-1)
+    return torch.where(status, d_tim, torch.full_like(d_tim, float("inf"))), status
