@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from torchtrack.data.frame import FrameBatch
-from torchtrack.geometry import T_inv, backproject, sample_depth_bilinear, transform_points, warp_depth
+from torchtrack.geometry import warp_depth
 from torchtrack.image.flow import FlowFrame, prepare_frame
 from torchtrack.image.shape_index import SIM, compute_sim
 
@@ -84,16 +84,3 @@ def _window_max(x: Tensor, radius: int) -> Tensor:
             torch.maximum(y.narrow(dim, 0, n - s), x.narrow(dim, s, n - s), out=y.narrow(dim, 0, n - s))
         x = y
     return x
-
-
-def measure_points(prepared: PreparedFrame, frame: FrameBatch, pixels: Tensor) -> tuple[Tensor, Tensor]:
-    """3D measurements X_d of eq. (6) at colour pixels (B, N, 2) -> (points (B, N, 3) in the depth camera, has_depth (B, N)).
-
-    The depth is interpolated bilinearly on continuous surfaces and read at the nearest pixel across
-    depth edges; the point is back-projected through the sub-pixel colour position and moved into the
-    depth camera.
-    """
-    z = sample_depth_bilinear(prepared.depth, pixels)
-    pts_color = backproject(frame.K, pixels, z)
-    pts_depth = transform_points(T_inv(frame.T_color_depth), pts_color)
-    return pts_depth, z > 0

@@ -25,8 +25,9 @@ from torch import Tensor
 from torchtrack.data.frame import FrameBatch
 from torchtrack.estimators.backends import Observation, PoseBackend
 from torchtrack.estimators.base import masked_mean
+from torchtrack.filter.models import measure_points
 from torchtrack.filter.weighting import Variances, WeightingInputs
-from torchtrack.frontend import FrontEnd, PreparedFrame, measure_points, smooth_depth_mask
+from torchtrack.frontend import FrontEnd, PreparedFrame, smooth_depth_mask
 from torchtrack.geometry import T_inv, make_T, sample_depth, transform_points
 from torchtrack.image.flow import TrackResult
 from torchtrack.learn.cues import stack_cues
@@ -188,7 +189,7 @@ class Tracker:
             return self._start(frame, cur)
         s, with_cues = self.state, self.wants_cues
         track = self.flow(s.prev.flow, cur.flow, s.pixels, s.valid, **self._flow_args(with_cues))  # eq. (10)
-        points_d, has_depth = measure_points(cur, frame, track.points)  # X_d of eq. (6)
+        points_d, has_depth = measure_points(cur.depth, frame.K, frame.T_color_depth, track.points)  # X_d, eq. (6)
         valid = track.valid & has_depth & frame.active[:, None]
         cues = self._cues(frame, cur, track, points_d, valid) if with_cues else None
         inputs = WeightingInputs(track.d_tim, points_d[..., 2], points_d, valid, frame.K_depth[:, 0, 0], cues=cues)
@@ -263,7 +264,7 @@ class Tracker:
             roi = roi & smooth_depth_mask(cur.depth, self.edge_step)
         feats = self.select(cur.gray, cur.depth, frame.K, roi=roi, sim=cur.sim)  # eq. (9)
         pixels, cornerness = feats.pixels, torch.stack([feats.cornerness_int, feats.cornerness_sim], -1)
-        points_d, has_depth = measure_points(cur, frame, pixels)
+        points_d, has_depth = measure_points(cur.depth, frame.K, frame.T_color_depth, pixels)
         valid = feats.valid & has_depth
         age = torch.zeros_like(valid, dtype=torch.long)
         if self.keep_survivors and s.pixels is not None:

@@ -21,7 +21,16 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.geometry import euler_to_matrix, hat, make_T, matrix_to_euler
+from torchtrack.geometry import (
+    T_inv,
+    backproject,
+    euler_to_matrix,
+    hat,
+    make_T,
+    matrix_to_euler,
+    sample_depth_bilinear,
+    transform_points,
+)
 
 STATE_SIZE = 12
 MEAS_SIZE = 5
@@ -142,6 +151,24 @@ def measure(x: Tensor, points_obj: Tensor, K: Tensor, T_color_depth: Tensor) -> 
     (B, N, 3); the same numbers as :func:`measure_analytic`'s h (same operations)."""
     _, X_d, _, _, pix = _project(x, points_obj, K, T_color_depth)
     return torch.cat([X_d, pix], -1)
+
+
+def measure_points(depth: Tensor, K: Tensor, T_color_depth: Tensor, pixels: Tensor) -> tuple[Tensor, Tensor]:
+    """The 3D measurements X_d of eq. (6), read from depth at colour pixels (the prediction is :func:`measure`).
+
+    Args:
+        depth: (B, 1, H, W) depth registered to the colour camera (metres, 0 = none); K (B, 3, 3) colour intrinsics;
+            T_color_depth (B, 4, 4) the depth-to-colour extrinsic (R_dv, t_dv); pixels (B, N, 2) colour pixels.
+
+    Returns:
+        (points (B, N, 3) in the depth camera, has_depth (B, N) bool). The depth is interpolated bilinearly on
+        continuous surfaces and read at the nearest pixel across depth edges; the point is back-projected through
+        the sub-pixel colour position and moved into the depth camera.
+    """
+    z = sample_depth_bilinear(depth, pixels)
+    pts_color = backproject(K, pixels, z)
+    pts_depth = transform_points(T_inv(T_color_depth), pts_color)
+    return pts_depth, z > 0
 
 
 def state_to_pose(x: Tensor) -> Tensor:
