@@ -9,7 +9,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from PIL import Image
 
-from torchtrack.cli import CONF_DIR
+from torchtrack.config import CONF_DIR
 from torchtrack.learn.cache import load_observations
 from torchtrack.learn.dataset import build_synthetic_set, synthetic_variants
 

@@ -269,7 +269,7 @@ def test_factory(tmp_path, monkeypatch):
 
 
 def test_config_composition(tmp_path):
-    from torchtrack.cli import build_tracker
+    from torchtrack.factory import build_tracker
 
     m = randomised(LearnedWeighting())
     path = save_checkpoint(tmp_path / "w.pt", m)

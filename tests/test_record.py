@@ -18,9 +18,9 @@ import torch.nn.functional as F
 from hydra import compose, initialize_config_dir
 from test_flow import split_scene
 
-from torchtrack.cli import build_tracker
 from torchtrack.data import TumSequence, iterate_batched
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
+from torchtrack.factory import build_tracker
 from torchtrack.filter.weighting import PaperWeighting
 from torchtrack.image.flow import combined_track
 from torchtrack.learn import record

@@ -9,9 +9,9 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from torchtrack.cli import build_tracker
 from torchtrack.data import TumSequence, iterate_batched
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
+from torchtrack.factory import build_tracker
 from torchtrack.filter import state_to_pose
 from torchtrack.geometry import T_inv, rotation_angle
 from torchtrack.run import world_anchor

@@ -60,7 +60,7 @@ def test_replay_of_a_recording_equals_the_tracker(tmp_path):
     the tracker's back end (windows from frame 0: the first model's exact pose)."""
     from omegaconf import OmegaConf
 
-    from torchtrack.cli import CONF_DIR
+    from torchtrack.config import CONF_DIR
     from torchtrack.learn.dataset import build_synthetic_set
 
     os.environ["TORCHTRACK_CACHE"] = str(tmp_path / "cache")

@@ -15,6 +15,7 @@ per-feature variances from it and has no nominal ones in the config.
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -312,6 +313,38 @@ def validate(cfg: DictConfig) -> None:
     Raises :class:`~torchtrack.data.errors.DataError` with a one-line message.
     """
     OmegaConf.to_object(cfg.data)
+
+
+def check_overrides(config_name: str, argv: list[str]) -> str | None:
+    """The one-line reason why ``argv``'s overrides do not compose into a valid config (types, ranges), else None.
+
+    Hydra reports composition errors over several lines with exit code 1; the CLI checks first and exits with 2.
+    Multirun sweeps and Hydra's own flags are left to Hydra.
+    """
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    if any(a.startswith("-") for a in argv):
+        return None
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            validate(compose(config_name, overrides=argv))
+    except (HydraException, OmegaConfBaseException, DataError) as e:
+        cause = e.__cause__ if isinstance(e.__cause__, OmegaConfBaseException) else e
+        lines = [
+            ln.strip() for ln in str(cause).splitlines() if ln.strip() and not ln.strip().startswith("object_type")
+        ]
+        return "; ".join(lines[:2])
+    return None
+
+
+def exit_on_bad_overrides(prog: str, config_name: str) -> None:
+    """Exit with code 2 and one line on stderr when the command line's overrides do not compose."""
+    error = check_overrides(config_name, sys.argv[1:])
+    if error is not None:
+        print(f"{prog}: error: {error}", file=sys.stderr)
+        sys.exit(2)
 
 
 register()

@@ -21,10 +21,11 @@ from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 from tqdm import tqdm
 
-from torchtrack.cli import CONF_DIR, build_sequences, build_tracker
+from torchtrack.config import CONF_DIR, exit_on_bad_overrides
 from torchtrack.data.batching import RGBDSequence, iterate_batched
 from torchtrack.data.errors import DataError
 from torchtrack.data.frame import FrameBatch
+from torchtrack.factory import build_sequences, build_tracker
 from torchtrack.learn.cache import SequenceObservations, load_observations, object_poses_gt, save_observations
 from torchtrack.learn.cues import CUE_NAMES
 from torchtrack.run import unique_names
@@ -203,6 +204,7 @@ def app(cfg: DictConfig) -> None:
 
 def main() -> None:
     logging.getLogger("PIL").setLevel(logging.WARNING)
+    exit_on_bad_overrides("torchtrack-record", "record")  # a bad value: one line, exit code 2
     app()
 
 

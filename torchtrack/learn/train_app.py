@@ -21,7 +21,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from torchtrack.config import CONF_DIR, load_option
+from torchtrack.config import CONF_DIR, exit_on_bad_overrides, load_option
 from torchtrack.data.errors import DataError
 from torchtrack.io import write_atomic
 from torchtrack.learn.cache import SequenceObservations, load_observations
@@ -114,6 +114,7 @@ def app(cfg: DictConfig) -> None:
 
 def main() -> None:
     logging.getLogger("PIL").setLevel(logging.WARNING)
+    exit_on_bad_overrides("torchtrack-train", "learn")  # a bad value: one line, exit code 2
     app()
 
 
