@@ -198,11 +198,10 @@ class Tracker:
         obs = Observation(dt, s.points_obj, points_d, track.points, valid, frame.K, frame.T_color_depth)
         est = self.backend.step(obs, var, active=frame.active)  # eqs. (2)-(7), (15)
         self.state = self._advanced(frame, cur, track.points, valid, est.T_cam_obj.double())  # and the residual drop
-        reselect = self._needs_model(frame.active)
-        result = self._result(track.winner, track.d_tim, reselect, observation=obs, variances=var, cues=cues)
-        if reselect.any():  # §III model re-selection
-            result = replace(result, model_T_cam_obj=self._new_model(frame, cur, reselect))
-        return result
+        tracked, reselect = self.state, self._needs_model(frame.active)
+        model_T_cam_obj = self._new_model(frame, cur, reselect) if reselect.any() else None  # §III re-selection
+        extra = dict(observation=obs, variances=var, cues=cues, model_T_cam_obj=model_T_cam_obj)
+        return self._result(tracked, track.winner, track.d_tim, reselect, **extra)  # the frame as tracked
 
     # ---------------------------------------------------------------------------------------------- per frame
     @staticmethod
@@ -253,7 +252,7 @@ class Tracker:
         self.state = TrackerState(timestamp=frame.timestamp, T_cam_obj=eye, T_world_obj=eye.clone())
         everyone = torch.ones(B, dtype=torch.bool)
         model_T_cam_obj = self._new_model(frame, cur, everyone)
-        return self._result(None, None, everyone, model_T_cam_obj=model_T_cam_obj)
+        return self._result(self.state, None, None, everyone, model_T_cam_obj=model_T_cam_obj)
 
     def _new_model(self, frame: FrameBatch, cur: PreparedFrame, mask: Tensor) -> Tensor:
         """Take the current frame as the model of the sequences in ``mask`` (B,): PCM features, pose, chain; the
@@ -325,9 +324,11 @@ class Tracker:
         err = reprojection_errors(frame.K, T_color_obj, points_obj, pixels, valid).float()
         return torch.nan_to_num(err, nan=float("inf"))
 
-    def _result(self, winner: Tensor | None, d_tim: Tensor | None, reselected: Tensor, **extra) -> StepResult:
-        """The frame's result from the current state (``extra``: StepResult's optional fields)."""
-        s = self.state
+    @staticmethod
+    def _result(
+        s: TrackerState, winner: Tensor | None, d_tim: Tensor | None, reselected: Tensor, **extra
+    ) -> StepResult:
+        """The frame's result from the state ``s`` (``extra``: StepResult's optional fields)."""
         B, N = s.valid.shape
         res = torch.where(s.valid, s.residuals, torch.zeros_like(s.pixels[..., 0]))
         err = res.sum(1) / s.valid.sum(1).clamp_min(1)  # mean reprojection error, eq. (16)
