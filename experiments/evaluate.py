@@ -35,7 +35,8 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, OmegaConf
 
-from torchtrack.data.tum import TumSequence, read_tum_trajectory, write_tum_trajectory
+from torchtrack.data.tum import TumSequence
+from torchtrack.data.tum_io import read_tum_trajectory, write_tum_trajectory
 from torchtrack.factory import build_sequences, build_tracker
 from torchtrack.io import write_json
 from torchtrack.metrics import shared_error, trajectory_metrics

@@ -135,7 +135,7 @@ def sequence_root(run: Run, data: Path | None) -> Path | None:
 def per_axis(run: Run, data: Path | None, max_dt: float = 0.02) -> np.ndarray | None:
     """Mean per-axis errors (6,): rotation about x, y, z in mrad, translation along x, y, z in mm; None without
     ground truth. Object poses relative to the first frame with ground truth (module docstring)."""
-    from torchtrack.data.tum import nearest_within, read_tum_trajectory
+    from torchtrack.data.tum_io import nearest_within, read_tum_trajectory
     from torchtrack.geometry import T_inv
     from torchtrack.metrics import per_axis_errors
 

@@ -211,7 +211,8 @@ def run_peer(out: Path, seq: str, data: Path, extra: list[str]) -> dict:
     import numpy as np
     from peers import open3d_rgbd_odometry
 
-    from torchtrack.data.tum import TumSequence, write_tum_trajectory
+    from torchtrack.data.tum import TumSequence
+    from torchtrack.data.tum_io import write_tum_trajectory
     from torchtrack.metrics import trajectory_metrics
 
     method = METHODS["open3d_odometry"]

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchtrack.data.tum import write_tum_trajectory
+from torchtrack.data.tum_io import write_tum_trajectory
 from torchtrack.geometry import T_inv, euler_to_matrix, make_T
 
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
@@ -332,7 +332,8 @@ def test_evaluate_end_to_end_on_a_synthetic_sequence(tmp_path):
     ours = json.loads((out / "ours" / seq.name / "metrics.json").read_text())
     peer = json.loads((out / "peer" / seq.name / "metrics.json").read_text())
     assert row["ratio"]["ate_rmse_m"] == pytest.approx(ours["ate_rmse_m"] / peer["ate_rmse_m"])
-    from torchtrack.data.tum import TumSequence, read_tum_trajectory
+    from torchtrack.data.tum import TumSequence
+    from torchtrack.data.tum_io import read_tum_trajectory
     from torchtrack.metrics import shared_error
 
     trajectories = [

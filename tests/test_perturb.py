@@ -13,7 +13,8 @@ import pytest
 
 from torchtrack.data.perturb import KINDS, make_variant, smooth_walk
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
-from torchtrack.data.tum import TumSequence, read_list_file
+from torchtrack.data.tum import TumSequence
+from torchtrack.data.tum_io import read_list_file
 
 FRAMES = 10
 

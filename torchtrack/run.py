@@ -18,7 +18,8 @@ import torch
 from tqdm import tqdm
 
 from torchtrack.data.batching import iterate_batched
-from torchtrack.data.tum import TumSequence, write_tum_trajectory
+from torchtrack.data.tum import TumSequence
+from torchtrack.data.tum_io import write_tum_trajectory
 from torchtrack.io import write_json, write_text
 from torchtrack.tracker import StepResult, Tracker
 from torchtrack.viz.overlay import draw_frame, save_strip, snapshot_indices

@@ -5,10 +5,9 @@ from torchtrack.data.batching import RGBDSequence, SequenceBatch, iterate_batche
 from torchtrack.data.cameras import CAMERAS, TUM_DEPTH_SCALE, CameraPreset, get_camera
 from torchtrack.data.errors import DataError
 from torchtrack.data.frame import FrameBatch
-from torchtrack.data.tum import (
-    RGBDFrame,
+from torchtrack.data.tum import RGBDFrame, TumSequence
+from torchtrack.data.tum_io import (
     Trajectory,
-    TumSequence,
     associate,
     load_depth,
     load_rgb,

@@ -54,7 +54,7 @@ import numpy as np
 
 from torchtrack.data.cameras import TUM_DEPTH_SCALE
 from torchtrack.data.errors import DataError
-from torchtrack.data.tum import associate, read_intrinsics_file, read_list_file
+from torchtrack.data.tum_io import associate, read_intrinsics_file, read_list_file
 
 log = logging.getLogger(__name__)
 

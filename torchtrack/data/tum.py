@@ -1,4 +1,4 @@
-"""Reader for RGB-D sequences in TUM RGB-D layout, and TUM trajectory file IO.
+"""Reader for RGB-D sequences in TUM RGB-D layout (the files themselves: :mod:`torchtrack.data.tum_io`).
 
 Layout (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats)::
 
@@ -17,9 +17,7 @@ import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple
 
-import cv2
 import numpy as np
 import torch
 from torch import Tensor
@@ -27,8 +25,16 @@ from torch import Tensor
 from torchtrack.data.alignment import colour_intrinsics, depth_intrinsics, resolve_depth_alignment
 from torchtrack.data.cameras import TUM_DEPTH_SCALE, get_camera
 from torchtrack.data.errors import DataError
-from torchtrack.geometry import intrinsics_matrix, matrix_to_quat_xyzw, quat_xyzw_to_matrix
-from torchtrack.io import write_text
+from torchtrack.data.tum_io import (
+    associate,
+    load_depth,
+    load_rgb,
+    nearest_within,
+    read_intrinsics_file,
+    read_list_file,
+    read_tum_trajectory,
+)
+from torchtrack.geometry import intrinsics_matrix
 
 log = logging.getLogger(__name__)
 
@@ -54,167 +60,6 @@ class RGBDFrame:
     T_world_cam_gt: Tensor
     gt_valid: bool
     index: int
-
-
-class Trajectory(NamedTuple):
-    """timestamps (F,) float64 seconds; T_world_cam (F, 4, 4) float64 camera-to-world."""
-
-    timestamps: np.ndarray
-    T_world_cam: np.ndarray
-
-
-# ----------------------------------------------------------------------------------------------- text files
-
-
-def _read_rows(path: Path, n_fields: int) -> list[list[str]]:
-    """Whitespace-split rows of a text file, skipping blank and '#' lines; each row has >= n_fields fields."""
-    if not path.is_file():
-        raise DataError(f"{path}: file not found")
-    rows = []
-    with open(path) as f:
-        for lineno, line in enumerate(f, 1):
-            line = line.strip()
-            if not line or line.startswith("#"):
-                continue
-            fields = line.replace(",", " ").split()
-            if len(fields) < n_fields:
-                raise DataError(f"{path}:{lineno}: expected {n_fields} fields, got {len(fields)}: {line!r}")
-            rows.append(fields)
-    if not rows:
-        raise DataError(f"{path}: no entries (empty or only comments)")
-    return rows
-
-
-def _floats(path: Path, rows: list[list[str]], cols: slice) -> np.ndarray:
-    try:
-        return np.array([[float(v) for v in r[cols]] for r in rows], dtype=np.float64)
-    except ValueError as e:
-        raise DataError(f"{path}: non-numeric value ({e})") from None
-
-
-def read_list_file(path: PathLike) -> tuple[np.ndarray, list[str]]:
-    """TUM image list "timestamp filename" -> (timestamps (F,) float64, filenames relative to the file's folder)."""
-    path = Path(path)
-    rows = _read_rows(path, 2)
-    return _floats(path, rows, slice(0, 1))[:, 0], [r[1] for r in rows]
-
-
-def read_tum_trajectory(path: PathLike) -> Trajectory:
-    """TUM trajectory "timestamp tx ty tz qx qy qz qw" -> Trajectory(timestamps (F,), T_world_cam (F, 4, 4))."""
-    path = Path(path)
-    v = _floats(path, _read_rows(path, 8), slice(0, 8))
-    q = torch.from_numpy(v[:, 4:8])  # xyzw, converted here and only here
-    if (q.norm(dim=-1) < 1e-6).any():
-        raise DataError(f"{path}: zero quaternion at row {int((q.norm(dim=-1) < 1e-6).nonzero()[0, 0]) + 1}")
-    T = np.tile(np.eye(4), (len(v), 1, 1))
-    T[:, :3, :3] = quat_xyzw_to_matrix(q).numpy()
-    T[:, :3, 3] = v[:, 1:4]
-    return Trajectory(v[:, 0].copy(), T)
-
-
-def write_tum_trajectory(path: PathLike, timestamps, T_world_cam) -> Path:
-    """Write (F,) timestamps and (F, 4, 4) camera-to-world poses as a TUM trajectory, atomically.
-
-    Quaternions are xyzw with w >= 0; 9 decimals. Writes a temporary file in the target folder, then renames it,
-    so that a reader never sees a half-written file.
-    """
-    path = Path(path)
-    t = np.asarray(timestamps, dtype=np.float64).reshape(-1)
-    T = torch.as_tensor(np.asarray(T_world_cam, dtype=np.float64))
-    if T.shape != (len(t), 4, 4):
-        raise ValueError(
-            f"write_tum_trajectory({path}): need T_world_cam (F, 4, 4) for F={len(t)}, got {tuple(T.shape)}"
-        )
-    q = matrix_to_quat_xyzw(T[:, :3, :3]).numpy()
-    rows = np.concatenate([t[:, None], T[:, :3, 3].numpy(), q], axis=1)
-    text = "# timestamp tx ty tz qx qy qz qw\n" + "".join(" ".join(f"{x:.9f}" for x in r) + "\n" for r in rows)
-    return write_text(path, text)
-
-
-def read_intrinsics_file(path: PathLike) -> tuple[tuple[float, float, float, float], float | None]:
-    """intrinsics.txt "fx fy cx cy [depth_scale]" -> ((fx, fy, cx, cy), depth_scale or None)."""
-    path = Path(path)
-    v = _floats(path, _read_rows(path, 4)[:1], slice(0, 5))[0]
-    if not (v[0] > 0 and v[1] > 0) or (len(v) == 5 and v[4] <= 0):
-        raise DataError(f"{path}: focal lengths and depth_scale must be positive, got {v.tolist()}")
-    return (v[0], v[1], v[2], v[3]), (float(v[4]) if len(v) == 5 else None)
-
-
-# ----------------------------------------------------------------------------------------------- association
-
-
-def associate(t_a: np.ndarray, t_b: np.ndarray, max_dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """One-to-one timestamp matching, greedy by smallest |t_a - t_b| < max_dt (TUM associate.py).
-
-    Returns index arrays (ia, ib), sorted by ia; empty when nothing matches.
-    """
-    t_a, t_b = np.asarray(t_a, np.float64), np.asarray(t_b, np.float64)
-    order = np.argsort(t_b, kind="stable")
-    lo = np.searchsorted(t_b[order], t_a - max_dt, side="left")
-    hi = np.searchsorted(t_b[order], t_a + max_dt, side="right")
-    ia = np.repeat(np.arange(len(t_a)), hi - lo)  # candidate pairs inside the window only
-    ib = order[np.concatenate([np.arange(s, e) for s, e in zip(lo, hi, strict=True)] or [np.zeros(0, int)])]
-    dt = np.abs(t_a[ia] - t_b[ib])
-    keep = dt < max_dt
-    ia, ib, dt = ia[keep], ib[keep], dt[keep]
-    used_a, used_b = np.zeros(len(t_a), bool), np.zeros(len(t_b), bool)
-    pairs = []
-    for k in np.lexsort((ib, ia, dt)):  # smallest difference first, ties by index: deterministic
-        if not used_a[ia[k]] and not used_b[ib[k]]:
-            used_a[ia[k]] = used_b[ib[k]] = True
-            pairs.append((ia[k], ib[k]))
-    pairs.sort()
-    out = np.array(pairs, dtype=np.int64).reshape(-1, 2)
-    return out[:, 0], out[:, 1]
-
-
-def nearest_within(t_query: np.ndarray, t_ref: np.ndarray, max_dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """For each query time, the index of the nearest reference time and whether it is within max_dt.
-
-    Returns (idx (F,) int64, valid (F,) bool); idx is 0 where not valid. Not one-to-one (ground truth is
-    usually denser than the images).
-    """
-    t_query, t_ref = np.asarray(t_query, np.float64), np.asarray(t_ref, np.float64)
-    order = np.argsort(t_ref, kind="stable")
-    s = t_ref[order]
-    j = np.clip(np.searchsorted(s, t_query), 1, max(len(s) - 1, 1))
-    left = np.abs(t_query - s[j - 1]) <= np.abs(s[np.minimum(j, len(s) - 1)] - t_query)
-    j = np.where(left, j - 1, np.minimum(j, len(s) - 1))
-    valid = np.abs(s[j] - t_query) < max_dt
-    return np.where(valid, order[j], 0), valid
-
-
-# ----------------------------------------------------------------------------------------------- images
-
-
-def load_rgb(path: PathLike) -> Tensor:
-    """Colour image (PNG/JPEG, 8 or 16 bit, colour or grayscale) -> (3, H, W) float32 RGB in [0, 1]."""
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise DataError(f"{path}: missing, unreadable or corrupt colour image")
-    if img.dtype not in (np.uint8, np.uint16):
-        raise DataError(f"{path}: colour image must be 8- or 16-bit, got {img.dtype}")
-    if img.ndim == 2:
-        chans = (img, img, img)
-    elif img.shape[2] in (3, 4):
-        chans = (img[..., 2], img[..., 1], img[..., 0])  # OpenCV stores BGR(A)
-    else:
-        raise DataError(f"{path}: colour image must have 1, 3 or 4 channels, got {img.shape[2]}")
-    rgb = torch.from_numpy(np.stack(chans))  # 3,H,W; the stack copies into contiguous channel planes
-    return rgb.float().div_(255.0 if img.dtype == np.uint8 else 65535.0)
-
-
-def load_depth(path: PathLike, depth_scale: float) -> Tensor:
-    """16-bit depth PNG -> (1, H, W) float32 metres (value / depth_scale), 0 = no measurement."""
-    d = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if d is None:
-        raise DataError(f"{path}: missing, unreadable or corrupt depth image")
-    if d.dtype != np.uint16 or d.ndim != 2:
-        bits = 8 * d.dtype.itemsize
-        raise DataError(f"{path}: depth must be single-channel 16-bit, got {bits}-bit with shape {d.shape}")
-    if not d.any():
-        raise DataError(f"{path}: depth image has no valid pixel (all zero)")
-    return torch.from_numpy(d.astype(np.float32)).div_(depth_scale)[None]
 
 
 # ----------------------------------------------------------------------------------------------- sequence
