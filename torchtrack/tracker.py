@@ -284,9 +284,8 @@ class Tracker:
             T_world_obj=torch.where(m3, s.T_world_cam @ T_cam_obj, s.T_world_obj),
             n_model=n_model if s.n_model is None else torch.where(mask, n_model, s.n_model),
         )  # fmt: skip
-        # in the new layout: the next frame's prev_reproj cue
-        self.state = replace(state, residuals=self._residuals(frame, T_cam_obj, state.points_obj, state.pixels,
-                                                              state.valid))  # fmt: skip
+        residuals = self._residuals(frame, T_cam_obj, state.points_obj, state.pixels, state.valid)
+        self.state = replace(state, residuals=residuals)  # in the new layout: the next frame's prev_reproj cue
         self.backend.reset(T_cam_obj, mask)
         return T_cam_obj
 
