@@ -24,11 +24,11 @@ from torchtrack.geometry import T_inv, intrinsics_matrix, make_T, project, rotat
 F64 = torch.float64
 
 
-def timeit(fns: dict, reps: int) -> dict:
-    """Interleaved timing: {name: (min_ms, median_ms)}."""
+def timeit(fns: dict, reps: int, warmup: int = 3) -> dict:
+    """Interleaved timing, after ``warmup`` calls each: {name: (min_ms, median_ms)}."""
     times = {k: [] for k in fns}
     for f in fns.values():
-        for _ in range(3):
+        for _ in range(warmup):
             f()
     for _ in range(reps):
         for k, f in fns.items():

@@ -12,28 +12,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
-import time
 
 import torch
+from bench_ekf import timeit  # experiments/bench_ekf.py: interleaved timing of both sides in one process
 
 from torchtrack.filter.weighting import PaperWeighting, WeightingInputs
 from torchtrack.learn.cues import CUE_NAMES, D_TIM_CAP
 from torchtrack.learn.model import LearnedWeighting
-
-
-def timeit(fns: dict, reps: int) -> dict:
-    """Interleaved timing: {name: (min_ms, median_ms)}."""
-    times = {k: [] for k in fns}
-    for f in fns.values():
-        for _ in range(20):
-            f()
-    for _ in range(reps):
-        for k, f in fns.items():
-            t = time.perf_counter()
-            f()
-            times[k].append((time.perf_counter() - t) * 1e3)
-    return {k: (min(v), statistics.median(v)) for k, v in times.items()}
 
 
 def inputs(B: int, N: int, seed: int = 0) -> WeightingInputs:
@@ -60,7 +45,7 @@ def main() -> None:
     learned = {mode: LearnedWeighting(mode=mode).eval() for mode in ("normalised", "absolute")}
     fns = {"paper": lambda: paper(inp)} | {f"learned_{m}": (lambda w=w: w(inp)) for m, w in learned.items()}
     with torch.inference_mode():
-        res = timeit(fns, args.reps)
+        res = timeit(fns, args.reps, warmup=20)
     base = res["paper"][1]
     n_params = sum(p.numel() for p in learned["normalised"].parameters())
     print(f"B={args.b} N={args.n} threads=1 reps={args.reps} torch {torch.__version__}; learned: {n_params} parameters")

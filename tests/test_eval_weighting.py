@@ -4,27 +4,13 @@ model is said and left out."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import pytest
+from test_experiments import _load
 
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
-
-EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
-
-
-def _load(name: str):
-    """Import experiments/<name>.py (scripts, not a package) under its own name, once."""
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, EXPERIMENTS / f"{name}.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
-
 
 _load("evaluate")  # eval_weighting imports it as a sibling script
 ew = _load("eval_weighting")

@@ -11,9 +11,12 @@ import sys
 from pathlib import Path
 
 import torch
+from hydra.utils import instantiate
+from test_dataset import tiny_config
 
 from torchtrack.learn.cache import load_observations
 from torchtrack.learn.checkpoint import load_checkpoint
+from torchtrack.learn.dataset import build_synthetic_set
 from torchtrack.learn.rollout import rollout
 from torchtrack.learn.train import sequence_windows
 
@@ -58,25 +61,10 @@ def test_train_export_and_track(tmp_path):
 def test_replay_of_a_recording_equals_the_tracker(tmp_path):
     """The rollout of a recorded sequence with the recording's weighting reproduces the tracker's poses: replay is
     the tracker's back end (windows from frame 0: the first model's exact pose)."""
-    from omegaconf import OmegaConf
-
-    from torchtrack.config import CONF_DIR
-    from torchtrack.learn.dataset import build_synthetic_set
-
-    os.environ["TORCHTRACK_CACHE"] = str(tmp_path / "cache")
-    try:
-        from hydra import compose, initialize_config_dir
-
-        with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
-            cfg = compose("learn", overrides=["dataset=synthetic_tiny"])
-        OmegaConf.resolve(cfg)
-    finally:
-        os.environ.pop("TORCHTRACK_CACHE")
+    cfg = tiny_config(tmp_path, [])
     (path, _) = build_synthetic_set(cfg, tmp_path / "obs", progress=False)
     seq = load_observations(path)
     win = sequence_windows(seq, window=seq.frames - 1, stride=seq.frames)  # one window: all the updates
-
-    from hydra.utils import instantiate
 
     ekf = instantiate(cfg.filter)
     calls = iter(range(1, seq.frames))

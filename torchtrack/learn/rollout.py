@@ -23,7 +23,7 @@ from torch import Tensor
 from torchtrack.estimators.backends import Observation, ekf_frame
 from torchtrack.filter.fusion import FilterState, FusionEKF
 from torchtrack.filter.weighting import Variances, WeightingInputs
-from torchtrack.geometry import T_inv, rotation_angle
+from torchtrack.geometry import T_inv
 from torchtrack.learn.cues import CUE_INDEX
 
 
@@ -72,14 +72,6 @@ class Windows:
         )
         points_d = self.points_d[t]
         return WeightingInputs(d_tim.to(points_d.dtype), points_d[..., 2], points_d, self.valid[t], self.focal, cues=c)
-
-    def to(self, dtype: torch.dtype) -> Windows:
-        """Floating tensors (except the cues, kept float32 as recorded) in ``dtype``."""
-        out = {}
-        for f in fields(self):
-            v = getattr(self, f.name)
-            out[f.name] = v.to(dtype) if v.is_floating_point() and f.name != "cues" else v
-        return Windows(**out)
 
 
 def concat_windows(parts: list[Windows]) -> Windows:
@@ -176,8 +168,3 @@ def nll_loss(out: Rollout) -> Tensor:
 
 def _charbonnier(e: Tensor, eps: float) -> Tensor:
     return torch.sqrt(e * e + eps * eps) - eps
-
-
-def rotation_error_deg(T_est: Tensor, T_gt: Tensor) -> Tensor:
-    """Exact rotation angle (degrees) of ``inv(T_gt) @ T_est``, for reports."""
-    return torch.rad2deg(rotation_angle((T_inv(T_gt) @ T_est)[..., :3, :3]))
