@@ -34,12 +34,13 @@ from omegaconf import DictConfig
 
 import torchtrack.frontend as frontend_module
 import torchtrack.tracker as tracker_module
+from torchtrack.config import CONF_DIR
 from torchtrack.data.batching import iterate_batched
 from torchtrack.factory import build_sequences, build_tracker
 from torchtrack.runtime import configure
 
 REPO = Path(__file__).resolve().parents[1]
-CONF = REPO / "conf"
+CONF = CONF_DIR
 DATA = REPO.parent / "shared" / "data"
 DEFAULT_ROOT = DATA / "sun3d_fragment1"
 TARGET_FPS = 20.0

@@ -52,7 +52,7 @@ import torch
 from evaluate import compose_config, find_sequences, git_describe, run_ours, split_argv  # experiments/evaluate.py
 from omegaconf import OmegaConf
 
-from torchtrack.config import load_option
+from torchtrack.config import CONF_DIR, load_option
 from torchtrack.data.perturb import DEFAULTS as PERTURB_DEFAULTS
 from torchtrack.data.perturb import make_variant
 from torchtrack.io import write_json, write_text
@@ -60,7 +60,7 @@ from torchtrack.io import write_json, write_text
 log = logging.getLogger("eval_weighting")
 
 REPO = Path(__file__).resolve().parents[1]
-CONF = REPO / "conf"
+CONF = CONF_DIR
 DATA = REPO.parent / "shared" / "data"
 HEADING = "## Learned weighting (issue 11)"
 VARIANTS = ("skip3", "reversed", "photometric", "depth_noise")

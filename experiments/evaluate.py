@@ -35,6 +35,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, OmegaConf
 
+from torchtrack.config import CONF_DIR
 from torchtrack.data.tum import TumSequence
 from torchtrack.data.tum_io import read_tum_trajectory, write_tum_trajectory
 from torchtrack.factory import build_sequences, build_tracker
@@ -45,7 +46,7 @@ from torchtrack.run import run_tracker
 log = logging.getLogger("evaluate")
 
 REPO = Path(__file__).resolve().parents[1]
-CONF = REPO / "conf"
+CONF = CONF_DIR
 DATA = REPO.parent / "shared" / "data"
 TARGET_RATIO = 0.7  # issue 5: ours <= 0.7x the peer's ATE and RPE
 # Sequences scored on ATE only, and why (shown under the table).

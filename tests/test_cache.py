@@ -14,6 +14,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+from torchtrack.config import CONF_DIR
 from torchtrack.data import TumSequence
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence, sequence_poses
 from torchtrack.geometry import T_inv, rotation_angle, so3_exp
@@ -22,7 +23,7 @@ from torchtrack.learn.cache import SequenceObservations, load_observations, obje
 from torchtrack.learn.cues import CUE_NAMES
 from torchtrack.learn.record import record_sequences
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
+CONF = CONF_DIR
 
 
 def random_pose(g: torch.Generator, n: int) -> torch.Tensor:

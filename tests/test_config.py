@@ -13,6 +13,7 @@ from hydra.utils import get_object
 from omegaconf import OmegaConf
 
 from torchtrack.config import (
+    CONF_DIR,
     SCHEMAS,
     EKFBackendConfig,
     FlowConfig,
@@ -26,7 +27,7 @@ from torchtrack.learn.checkpoint import save_checkpoint
 from torchtrack.learn.model import LearnedWeighting
 from torchtrack.tracker import Tracker
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
+CONF = CONF_DIR
 EXPERIMENTS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
 TRACKERS = sorted(p.stem for p in (CONF / "tracker").glob("*.yaml"))
 WEIGHTINGS = ("fixed", "paper", "learned")

@@ -12,13 +12,14 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 import torchtrack.learn.checkpoint as ckpt
+from torchtrack.config import CONF_DIR
 from torchtrack.filter.weighting import FixedWeighting, WeightingInputs
 from torchtrack.learn.checkpoint import load_checkpoint, save_checkpoint
 from torchtrack.learn.cues import CUE_INDEX, CUE_NAMES, CUE_VERSION, D_TIM_CAP
 from torchtrack.learn.model import LearnedWeighting, soft_clamp
 
 F64 = torch.float64
-CONF = Path(__file__).resolve().parents[1] / "conf"
+CONF = CONF_DIR
 MODES = ("normalised", "absolute")
 
 

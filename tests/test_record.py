@@ -18,6 +18,7 @@ import torch.nn.functional as F
 from hydra import compose, initialize_config_dir
 from test_flow import split_scene
 
+from torchtrack.config import CONF_DIR
 from torchtrack.data import TumSequence, iterate_batched
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 from torchtrack.factory import build_tracker
@@ -29,7 +30,7 @@ from torchtrack.learn.cues import CUE_INDEX, CUE_NAMES, D_TIM_CAP
 from torchtrack.learn.dataset import synthetic_variants
 from torchtrack.learn.record import record_sequences
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
+CONF = CONF_DIR
 
 
 def config(*overrides: str, name: str = "config"):

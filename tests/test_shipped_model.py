@@ -3,11 +3,10 @@ by the documented recipe (conf/train/default.yaml)."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import torch
 import yaml
 
+from torchtrack.config import CONF_DIR
 from torchtrack.filter import WeightingInputs
 from torchtrack.learn.checkpoint import DEFAULT_CHECKPOINT, learned_weighting, load_checkpoint
 from torchtrack.learn.cues import CUE_NAMES
@@ -35,6 +34,6 @@ def test_default_model_was_trained_on_synthetic_sequences_only_with_the_document
     assert seen and not any(name in s for s in seen for name in SHARED)
     assert all(s.split("-")[0] in ("scene", "object", "object_bare") for s in seen)  # the synthetic set's names
     trained = yaml.safe_load(meta["config"])["train"]
-    recipe = yaml.safe_load((Path(__file__).resolve().parents[1] / "conf" / "train" / "default.yaml").read_text())
+    recipe = yaml.safe_load((CONF_DIR / "train" / "default.yaml").read_text())
     for key in ("window", "stride", "batch", "epochs", "lr", "loss", "gate", "refit", "seed", "model"):
         assert trained[key] == recipe[key], key

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+from torchtrack.config import CONF_DIR
 from torchtrack.data import TumSequence, iterate_batched
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 from torchtrack.factory import build_tracker
@@ -16,7 +15,7 @@ from torchtrack.filter import state_to_pose
 from torchtrack.geometry import T_inv, rotation_angle
 from torchtrack.run import world_anchor
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
+CONF = CONF_DIR
 
 
 def make_tracker(*overrides: str):

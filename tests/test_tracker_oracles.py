@@ -10,13 +10,14 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+from torchtrack.config import CONF_DIR
 from torchtrack.data import TumSequence, iterate_batched
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 from torchtrack.factory import build_sequences, build_tracker
 from torchtrack.geometry import euler_to_matrix
 from torchtrack.metrics import trajectory_metrics
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
+CONF = CONF_DIR
 SIZE, FRAMES = (320, 240), 12
 
 

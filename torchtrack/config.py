@@ -25,7 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchtrack.data.errors import DataError
 
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"  # beside the package; torchtrack is installed editable
+CONF_DIR = Path(__file__).resolve().parent / "conf"  # inside the package, so a wheel install finds it
 EKF_BACKEND = "torchtrack.estimators.backends.EKFBackend"
 REGISTRATION_BACKEND = "torchtrack.estimators.backends.RegistrationBackend"
 
