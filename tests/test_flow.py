@@ -206,3 +206,25 @@ def test_torch_matches_opencv_backend_on_real_frames():
     assert both.sum() >= 0.95 * ref.valid.sum()
     assert (ours.winner[both] == ref.winner[both]).float().mean() >= 0.95
     assert (ours.points - ref.points).norm(dim=-1)[both].median() <= 0.1
+
+
+@pytest.mark.parametrize("backend", ["torch", "opencv"])
+def test_init_starts_the_forward_pass_there(backend):
+    """init = points is the default exactly; a shift beyond the pyramid's reach (60 px with 2 levels: ~3x the
+    coarsest level's window radius) is tracked only when init starts the forward pass near the answer, and d_TIM
+    is still measured against the original points (small when tracked)."""
+    t = (60.0, 0.0)
+    f0, f1, pts, true = split_scene(t)
+    kw = dict(backend=backend, mode="intensity", levels=2, window=15)
+    torch.testing.assert_close(combined_track(f0, f1, pts, **kw), combined_track(f0, f1, pts, init=pts, **kw))
+    inside = torch.from_numpy((true[:, 0] < W - 12) & (true[:, 0] > 12))[None] & (pts[..., 0] < W / 2 - 40)
+    lost = combined_track(f0, f1, pts, **kw)
+    err0 = np.linalg.norm(lost.points[0].numpy() - true, axis=1)[inside[0].numpy()]
+    assert np.median(err0) > 5.0  # without a prior the shift is out of reach
+    guess = pts + torch.tensor([t[0] - 2.5, 1.5])
+    res = combined_track(f0, f1, pts, init=guess, **kw)
+    err = np.linalg.norm(res.points[0].numpy() - true, axis=1)[inside[0].numpy()]
+    assert res.valid[inside].float().mean() > 0.8 and np.median(err) < 0.05
+    assert res.d_tim[res.valid & inside].median() < 0.01
+    with pytest.raises(ValueError, match="init must be"):
+        combined_track(f0, f1, pts, init=pts[:, :3])

@@ -102,9 +102,12 @@ def _inside(points: Tensor, h: int, w: int) -> Tensor:
     return (points >= 0).all(-1) & (points[..., 0] <= w - 1) & (points[..., 1] <= h - 1)
 
 
-def _track_torch(prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tensor, channels, lk_kwargs, with_residual):
+def _track_torch(
+    prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tensor, channels, lk_kwargs, with_residual, init=None
+):
     """Forward and backward LK for each channel k in channels: (fwd points, status, d_tim, forward residual), each
-    (K, B, N[, 2])."""
+    (K, B, N[, 2]). The forward pass starts at ``init`` (B, N, 2) (default: points), the backward pass at its result
+    minus the same prior displacement."""
     b, n = points.shape[:2]
     k = len(channels)
     image = torch.tensor(channels)[:, None, None] * b + torch.arange(b)[None, :, None]  # K,B,1
@@ -113,14 +116,16 @@ def _track_torch(prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tensor
     sel = valid.expand(k, b, n).reshape(-1).nonzero().squeeze(1)
     fwd_pts, status = pts.clone(), torch.zeros(pts.shape[0], dtype=torch.bool)
     x0, img = pts[sel], image[sel]
-    x1, ok, res = lk_track_flat(prev.pyramid, next.pyramid, x0, img, x0, with_residual=with_residual, **lk_kwargs)
+    guess = x0 if init is None else init.float().expand(k, b, n, 2).reshape(-1, 2)[sel]
+    x1, ok, res = lk_track_flat(prev.pyramid, next.pyramid, x0, img, guess, with_residual=with_residual, **lk_kwargs)
     fwd_pts[sel] = x1
     residual = torch.zeros(pts.shape[0])
     if with_residual:
         residual[sel] = res
     good = ok.nonzero().squeeze(1)
+    back_guess = x1[good] - (guess[good] - x0[good])
     back, ok_back, _ = lk_track_flat(  # template inverse matching: from the result back to prev
-        next.pyramid, prev.pyramid, x1[good], img[good], x1[good], with_residual=False, **lk_kwargs
+        next.pyramid, prev.pyramid, x1[good], img[good], back_guess, with_residual=False, **lk_kwargs
     )
     d_tim = torch.full((pts.shape[0],), float("inf"))
     rows = sel[good]
@@ -128,7 +133,9 @@ def _track_torch(prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tensor
     return fwd_pts.view(k, b, n, 2), status.view(k, b, n), d_tim.view(k, b, n), residual.view(k, b, n)
 
 
-def _track_opencv(prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tensor, channels, lk_kwargs, with_residual):
+def _track_opencv(
+    prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tensor, channels, lk_kwargs, with_residual, init=None
+):
     """The same with cv2.calcOpticalFlowPyrLK on uint8 images, looped over channels and sequences. The residual is
     OpenCV's ``err`` of the forward pass (mean absolute difference over the window, 0..255 units) divided by 255, the
     torch back end's image units; ``with_residual`` does not change the work (OpenCV always computes it)."""
@@ -153,8 +160,14 @@ def _track_opencv(prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tenso
             if sel.numel() == 0:
                 continue
             x0 = points[s, sel].float().numpy().reshape(-1, 1, 2)
-            x1, st1, err = cv2.calcOpticalFlowPyrLK(prev.u8(k, s), next.u8(k, s), x0, None, **args)
-            back, st2, _ = cv2.calcOpticalFlowPyrLK(next.u8(k, s), prev.u8(k, s), x1, None, **args)
+            if init is None:
+                x1, st1, err = cv2.calcOpticalFlowPyrLK(prev.u8(k, s), next.u8(k, s), x0, None, **args)
+                back, st2, _ = cv2.calcOpticalFlowPyrLK(next.u8(k, s), prev.u8(k, s), x1, None, **args)
+            else:  # both passes start from the prior displacement (forward) and its reverse (backward)
+                prior = init[s, sel].float().numpy().reshape(-1, 1, 2) - x0
+                flag = dict(flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+                x1, st1, err = cv2.calcOpticalFlowPyrLK(prev.u8(k, s), next.u8(k, s), x0, x0 + prior, **args, **flag)
+                back, st2, _ = cv2.calcOpticalFlowPyrLK(next.u8(k, s), prev.u8(k, s), x1, x1 - prior, **args, **flag)
             x1t, backt = torch.from_numpy(x1.reshape(-1, 2)), torch.from_numpy(back.reshape(-1, 2))
             ok_fwd = torch.from_numpy(st1[:, 0] == 1) & _inside(x1t, h, w)
             ok_bwd = torch.from_numpy(st2[:, 0] == 1) & _inside(backt, h, w)
@@ -182,6 +195,7 @@ def combined_track(
     backend: Literal["torch", "opencv"] = "torch",
     policy: Literal["min_tim", "fallback"] = "min_tim",
     with_residual: bool = False,
+    init: Tensor | None = None,
 ) -> TrackResult:
     """Track features from prev to next with the combined intensity + SIM tracker (§III-C, eq. (10)).
 
@@ -198,6 +212,9 @@ def combined_track(
             wrong; min_tim then prefers it over a correct intensity track.
         with_residual: also return the winner's forward LK residual (a cue for learned weighting; the torch back
             end samples one more window per point, the tracks are unchanged); zeros otherwise.
+        init: (B, N, 2) where each forward pass starts in next (default: points, as the paper); the backward pass
+            starts at the forward result minus the same prior displacement, and d_TIM is still measured against
+            points.
 
     Returns:
         TrackResult; d_tim_* and status_* of a tracker that did not run are +inf and False.
@@ -215,13 +232,15 @@ def combined_track(
     valid = torch.ones(b, n, dtype=torch.bool) if valid is None else valid.bool()
     if valid.shape != (b, n):
         raise ValueError(f"combined_track: valid must be {(b, n)}, got {tuple(valid.shape)}")
+    if init is not None and init.shape != points.shape:
+        raise ValueError(f"combined_track: init must be {tuple(points.shape)}, got {tuple(init.shape)}")
     channels = _CHANNELS[mode]
     lk_kwargs = dict(window=window, levels=levels, iters=iters, eps=eps, min_eig=min_eig)
     if backend == "torch":
         lk_kwargs["ic_iters"] = ic_iters
-        track = partial(_track_torch, prev, next, points, lk_kwargs=lk_kwargs, with_residual=with_residual)
+        track = partial(_track_torch, prev, next, points, lk_kwargs=lk_kwargs, with_residual=with_residual, init=init)
     elif backend == "opencv":
-        track = partial(_track_opencv, prev, next, points, lk_kwargs=lk_kwargs, with_residual=with_residual)
+        track = partial(_track_opencv, prev, next, points, lk_kwargs=lk_kwargs, with_residual=with_residual, init=init)
     else:
         raise ValueError(f"combined_track: backend must be 'torch' or 'opencv', got {backend!r}")
     if policy not in ("min_tim", "fallback"):
@@ -277,6 +296,12 @@ class CombinedTracker:
         return prepare_frame(gray, sim, self.levels)
 
     def __call__(
-        self, prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tensor | None = None, with_residual: bool = False
+        self,
+        prev: FlowFrame,
+        next: FlowFrame,
+        points: Tensor,
+        valid: Tensor | None = None,
+        with_residual: bool = False,
+        init: Tensor | None = None,
     ) -> TrackResult:
-        return combined_track(prev, next, points, valid, **self.kwargs, with_residual=with_residual)
+        return combined_track(prev, next, points, valid, **self.kwargs, with_residual=with_residual, init=init)
