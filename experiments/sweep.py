@@ -170,13 +170,40 @@ def plan_sweep(
 # ----------------------------------------------------------------------------------------------- launching
 
 
-def launcher_overrides(launcher: str, jobs: int) -> list[str]:
-    """Hydra overrides selecting the launcher plugin (``basic`` is Hydra's sequential one)."""
+# The plugin (an importable module under hydra_plugins) each launcher config comes from, and how to install it.
+PLUGINS = {
+    "joblib": ("hydra_joblib_launcher", 'pip install -e ".[dev]"'),
+    "submitit_local": ("hydra_submitit_launcher", 'pip install -e ".[submitit]"'),
+    "submitit_slurm": ("hydra_submitit_launcher", 'pip install -e ".[submitit]"'),
+    "paper_slurm": ("hydra_submitit_launcher", 'pip install -e ".[submitit]"'),
+    "ray": ("hydra_ray_launcher", 'pip install -e ".[ray]" && pip install --no-deps hydra-ray-launcher==1.2.2'),
+}
+RAY_OBJECT_STORE = "hydra.launcher.ray.init.object_store_memory"
+
+
+def missing_plugin(launcher: str) -> str | None:
+    """The install command of ``launcher``'s plugin when it is not importable here, else None."""
+    import importlib.util
+
+    module, install = PLUGINS.get(launcher, (None, None))
+    if module is None or importlib.util.find_spec(f"hydra_plugins.{module}") is not None:
+        return None
+    return install
+
+
+def launcher_overrides(launcher: str, jobs: int, extra: list[str] = ()) -> list[str]:
+    """Hydra overrides selecting the launcher plugin (``basic`` is Hydra's sequential one).
+
+    Ray: hydra-ray-launcher 1.2.2 passes ``object_store_memory`` (75 MB) to ``ray.init`` unless it is set, and
+    Ray >= 2 refuses that when attaching to a running cluster (``hydra.launcher.ray.init.address=...``); null
+    leaves the choice to Ray (the cluster's own store, or Ray's default for a local one)."""
     if launcher == "basic":
         return []
     ov = [f"hydra/launcher={launcher}"]
     if launcher == "joblib":
         ov.append(f"hydra.launcher.n_jobs={jobs}")
+    if launcher == "ray" and not any(o.lstrip("+~").startswith(RAY_OBJECT_STORE) for o in extra):
+        ov.append(f"++{RAY_OBJECT_STORE}=null")
     return ov
 
 
@@ -195,7 +222,7 @@ def hydra_command(
         raise ValueError(f"{method.name} is a peer: it runs in-process, not through Hydra")
     task = job_overrides(method, ",".join(seqs), data, extra) + [o for o in extra if _is_hydra(o)]
     hydra = [f"hydra.sweep.dir={Path(out).resolve() / method.name}", "hydra.sweep.subdir=${seq}"]
-    return [*program, "-m", *task, *hydra, *launcher_overrides(launcher, jobs)]
+    return [*program, "-m", *task, *hydra, *launcher_overrides(launcher, jobs, extra)]
 
 
 def _extra_value(extra: list[str], key: str):
@@ -281,6 +308,9 @@ def _parse(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     p.add_argument("--rerun-changed", action="store_true", help="redo finished jobs whose overrides differ")
     p.add_argument("--dry-run", action="store_true", help="print the plan and the commands, run nothing")
     args = p.parse_args(argv)
+    install = missing_plugin(args.launcher) if args.program == p.get_default("program") else None
+    if install and not args.dry_run:
+        p.error(f"--launcher {args.launcher} needs its Hydra plugin, not installed here: {install}")
     args.methods = [m for m in args.methods.split(",") if m]
     seqs = args.sequences.split(",") if args.sequences else discover_sequences(args.data)
     missing = [s for s in seqs if not (args.data / s).is_dir()]
