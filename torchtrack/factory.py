@@ -20,11 +20,12 @@ def build_sequences(data: DictConfig) -> list[TumSequence]:
     """TUM-layout sequences from ``data`` (kind tum: one or several roots; kind synthetic: rendered and cached)."""
     opts = dict(max_frames=data.max_frames, stride=data.stride)
     if data.kind == "synthetic":
-        from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
+        from torchtrack.data.synthetic import SyntheticConfig, display_name, ensure_sequence
 
-        params = OmegaConf.to_container(data.scene, resolve=True)
-        root = ensure_sequence(SyntheticConfig(**params), Path(data.cache_dir).expanduser())
-        return [TumSequence(root, **opts)]  # registered by construction
+        scene = SyntheticConfig(**OmegaConf.to_container(data.scene, resolve=True))
+        seq = TumSequence(ensure_sequence(scene, Path(data.cache_dir).expanduser()), **opts)  # registered
+        seq.name = display_name(scene)  # the run folder's name; the cache folder's carries the digest
+        return [seq]
     if data.kind != "tum":
         raise DataError(f"data.kind must be 'tum' or 'synthetic', got {data.kind!r}")
     if data.root is None:

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from tqdm import tqdm
+from tqdm.contrib.logging import logging_redirect_tqdm
 
 from torchtrack.data.batching import iterate_batched
 from torchtrack.data.tum import TumSequence
@@ -99,11 +100,10 @@ class Recorder:
         gt_valid = np.asarray(seq.gt_valid[:n])
         if gt_valid.sum() >= 3:
             metrics.update(trajectory_metrics(ts, T_est, np.asarray(seq.groundtruth[:n]), gt_valid))
-        write_json(out / "metrics.json", metrics)
         self._write_csv(out / "frames.csv")
         if plots:
             self._plots(T_est, gt_valid)
-        log.info("%s: %s", seq.name, ", ".join(f"{k}={v:.4g}" for k, v in metrics.items() if isinstance(v, float)))
+        write_json(out / "metrics.json", metrics)  # last: a sweep counts a job with metrics.json as finished
         return metrics
 
     def _write_csv(self, path: Path) -> None:
@@ -141,7 +141,7 @@ def run_tracker(tracker: Tracker, sequences: list[TumSequence], out_dir: Path, *
     lengths = [len(s) for s in sequences]
     results: list[dict | None] = [None] * len(sequences)
     start = time.perf_counter()
-    with torch.inference_mode():
+    with torch.inference_mode(), logging_redirect_tqdm():  # log lines above the bar, not glued onto it
         for frame in tqdm(iterate_batched(sequences), total=max(lengths), desc="tracking", unit="frame"):
             res = tracker.step(frame)
             for b in range(len(sequences)):

@@ -25,6 +25,7 @@ from torchtrack.data.synthetic.render import RGBD, RayHits, raycast, render_fram
 from torchtrack.data.synthetic.scene import Primitive, Scene, TextureParams, default_scene, make_scene, random_texture
 from torchtrack.data.synthetic.writer import (
     default_cache_root,
+    display_name,
     ensure_sequence,
     frame_generator,
     render_sequence,
@@ -33,7 +34,7 @@ from torchtrack.data.synthetic.writer import (
 
 __all__ = [
     "RGBD", "KinectNoise", "Primitive", "RayHits", "Scene", "SequencePoses", "SyntheticConfig", "TextureParams",
-    "apply_kinect_noise", "default_cache_root", "default_scene", "depth_sigma", "edge_holes", "ensure_sequence",
+    "apply_kinect_noise", "default_cache_root", "default_scene", "depth_sigma", "display_name", "edge_holes", "ensure_sequence",
     "frame_generator", "look_at", "main", "make_scene", "quantise_disparity", "random_texture", "raycast", "render_frame", "render_pixels",
     "render_sequence", "sequence_name", "sequence_poses",
 ]  # fmt: skip

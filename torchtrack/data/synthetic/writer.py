@@ -186,6 +186,14 @@ def sequence_name(cfg: SyntheticConfig) -> str:
     return f"synth-{cfg.mode}-{cfg.frames}f-seed{cfg.seed}-{cfg.noise}-{cfg.digest()}"
 
 
+def display_name(cfg: SyntheticConfig) -> str:
+    """A name a person can read for cfg's sequence (run folders, logs, plot titles), e.g.
+    ``synthetic-scene-60frames-640x480-seed0-kinect-noise``. Not unique across every parameter: the cache
+    folder (:func:`sequence_name`) carries the digest for that."""
+    noise = "kinect-noise" if cfg.noise == "kinect" else "noise-free"
+    return f"synthetic-{cfg.mode}-{cfg.frames}frames-{cfg.width}x{cfg.height}-seed{cfg.seed}-{noise}"
+
+
 def ensure_sequence(
     cfg: SyntheticConfig, cache_root: str | Path | None = None, *, progress: bool = False, threads: int | None = 1
 ) -> Path:
