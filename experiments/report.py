@@ -36,6 +36,8 @@ from pathlib import Path
 import numpy as np
 from sweep import METHODS
 
+from torchtrack.io import write_text
+
 log = logging.getLogger("report")
 
 AXES = ("Rot-x", "Rot-y", "Rot-z", "Tr-x", "Tr-y", "Tr-z")
@@ -83,7 +85,10 @@ def load_runs(sweep: Path) -> list[Run]:
         seq = metrics.get("sequence", path.parent.name)
         runs.append(Run(method, seq, path.parent, metrics, read_frames_csv(path.parent / "frames.csv")))
     if not runs:
-        raise FileNotFoundError(f"no run under {sweep} (expected {sweep}/<method>/<job>/<seq>/metrics.json)")
+        raise FileNotFoundError(
+            f"no run under {sweep}: expected {sweep}/<method>/<job>/<seq>/metrics.json, as written by "
+            f"experiments/sweep.py --out {sweep}"
+        )
     return sorted(runs, key=lambda r: (r.sequence, _order(r.method)))
 
 
@@ -297,11 +302,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=None, help="output folder (default SWEEP/report)")
     p.add_argument("--no-plots", action="store_true")
     args = p.parse_args(argv)
+    try:  # no sweep there (or a sequence's ground truth missing): one line, no traceback
+        if not args.sweep.is_dir():
+            raise FileNotFoundError(f"{args.sweep} is not a folder")
+        report = build_report(args.sweep, args.data)
+    except FileNotFoundError as e:
+        print(f"report.py: error: {e}", file=sys.stderr)
+        return 2
     out = args.out or args.sweep / "report"
-    out.mkdir(parents=True, exist_ok=True)
-    report = build_report(args.sweep, args.data)
-    (out / "REPORT.md").write_text(report.markdown)
-    (out / "report.json").write_text(json.dumps(_jsonable(report.numbers), indent=2) + "\n")
+    write_text(out / "REPORT.md", report.markdown)
+    write_text(out / "report.json", json.dumps(_jsonable(report.numbers), indent=2) + "\n")
     if not args.no_plots:
         from report_plots import write_plots
 

@@ -239,6 +239,16 @@ def test_report_without_runs_raises(tmp_path):
         report.build_report(tmp_path)
 
 
+@pytest.mark.parametrize("folder", ["empty", "missing"])
+def test_report_main_on_a_folder_without_a_sweep_says_so_in_one_line(tmp_path, capsys, folder):
+    if folder == "empty":
+        (tmp_path / folder).mkdir()
+    assert report.main([str(tmp_path / folder)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("report.py: error: ") and "Traceback" not in err
+    assert not (tmp_path / folder / "report").exists()  # nothing written into a folder that is not a sweep
+
+
 # ----------------------------------------------------------------------------------------------- Table I
 
 
