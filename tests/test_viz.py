@@ -142,3 +142,45 @@ def test_bad_input_raises(tmp_path):
     with pytest.raises(ValueError, match="no series"):
         plot_errors(tmp_path / "x.png", {})
     assert not list(tmp_path.iterdir())
+
+
+# ----------------------------------------------------------------------------------------------- overlay (features.png)
+
+
+def test_draw_frame_puts_markers_where_the_features_and_the_reprojected_model_are():
+    """A uniform 640x480 image, identity pose: the model point (X, Y, Z) projects to K (X/Z, Y/Z); the panel is
+    the image halved (x' = (x + 0.5) / 2 - 0.5), under a white caption band."""
+    from torchtrack.viz import overlay
+
+    H, W, f, c = 480, 640, 500.0, (319.5, 239.5)
+    K = torch.tensor([[f, 0, c[0]], [0, f, c[1]], [0, 0, 1]])
+    rgb = torch.tensor([0.2, 0.4, 0.6])[:, None, None].expand(3, H, W)
+    pixels = torch.tensor([[100.5, 60.5], [500.5, 400.5], [300.5, 200.5]])
+    points = torch.cat([(pixels - torch.tensor(c)) / f * 2.0, torch.full((3, 1), 2.0)], -1)  # project to pixels
+    valid, winner = torch.tensor([True, True, False]), torch.tensor([0, 1, 0])
+    tile = overlay.draw_frame(rgb, pixels, valid, winner, K, torch.eye(4), points, "frame 7")
+    band, h, w = overlay.BAND, H // 2, W // 2
+    assert tile.shape == (2 * (band + h), w, 3)
+    tracks, model = tile[band : band + h], tile[2 * band + h :]
+    for p, colour in ((pixels[0], overlay.INTENSITY_BGR), (pixels[1], overlay.SIM_BGR)):
+        x, y = (round(v) for v in ((p + 0.5) / 2 - 0.5).tolist())
+        assert tuple(tracks[y, x]) == colour
+        assert tuple(model[y, x + overlay.RING]) == overlay.MODEL_BGR  # on the ring around the reprojection
+    dimmed = tuple(np.round(overlay.DIM * np.array([153, 102, 51]) + (1 - overlay.DIM) * 128).astype(int))
+    x, y = (round(v) for v in ((pixels[2] + 0.5) / 2 - 0.5).tolist())
+    assert tuple(tracks[y, x]) == dimmed and tuple(model[y, x]) == dimmed  # an invalid feature is not drawn
+    assert tuple(tracks[-1, -1]) == dimmed and tuple(model[0, 0]) == dimmed  # no text over the image
+    caption = tile[:band]
+    assert (caption == caption[..., :1]).all() and (caption < 128).any()  # black text on white, above the image
+
+
+def test_save_strip_lays_out_snapshots_with_title_and_legend(tmp_path):
+    from torchtrack.viz import overlay
+
+    tiles = [np.full((100, 80, 3), v, np.uint8) for v in (10, 20, 30, 40, 50)]
+    overlay.save_strip(tmp_path / "f.png", tiles, columns=4, title="seq")
+    img = cv2.imread(str(tmp_path / "f.png"))
+    assert img.shape == (overlay.BAND + 2 * 100 + 6 + 2 * overlay.BAND, 4 * 80 + 3 * 6, 3)
+    assert (img[overlay.BAND + 106 : overlay.BAND + 206, :80] == 50).all()  # fifth snapshot: second row, first column
+    overlay.save_strip(tmp_path / "none.png", [])
+    assert not (tmp_path / "none.png").exists()

@@ -23,7 +23,7 @@ from torchtrack.data.tum import TumSequence
 from torchtrack.data.tum_io import write_tum_trajectory
 from torchtrack.io import write_json, write_text
 from torchtrack.tracker import StepResult, Tracker
-from torchtrack.viz.overlay import draw_frame, save_strip, snapshot_indices
+from torchtrack.viz.overlay import TRAIL, draw_frame, save_strip, snapshot_indices
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +47,7 @@ class Recorder:
     poses: list[np.ndarray] = field(default_factory=list)
     tiles: list[np.ndarray] = field(default_factory=list)
     T_world_tracker: torch.Tensor | None = None  # (4, 4) the tracker's world in ground truth's, from the first frame
+    trail: list[torch.Tensor] = field(default_factory=list)  # (N, 2) pixels of the current model's last frames
 
     def add(self, b: int, frame, res: StepResult) -> None:
         i = int(frame.index[b])
@@ -65,6 +66,8 @@ class Recorder:
                 "reselected": bool(res.reselected[b]),
             }
         )
+        if self.snapshots:
+            self.trail = [*self.trail[-(TRAIL - 1) :], res.pixels[b].clone()]
         if i in self.snapshots:
             T_color_obj = frame.T_color_depth[b].double() @ res.T_cam_obj[b]
             self.tiles.append(
@@ -76,9 +79,12 @@ class Recorder:
                     frame.K[b],
                     T_color_obj,
                     res.points_obj[b],
-                    f"{self.sequence.name} #{i}",
+                    f"frame {i}",
+                    trail=torch.stack(self.trail),
                 )  # fmt: skip
             )
+        if bool(res.reselected[b]):
+            self.trail = []  # the next frame tracks the new model's features
 
     def finish(self, elapsed_s: float, plots: bool = True) -> dict:
         from torchtrack.metrics import trajectory_metrics
@@ -119,7 +125,7 @@ class Recorder:
         plot_trajectory(
             self.out_dir / "trajectory.png", T_est, gt, title=self.sequence.name, timestamps=ts, gt_valid=gt_valid
         )
-        save_strip(self.out_dir / "features.png", self.tiles)
+        save_strip(self.out_dir / "features.png", self.tiles, title=self.sequence.name)
 
 
 def unique_names(sequences: list[TumSequence]) -> list[str]:
