@@ -4,6 +4,7 @@
     python experiments/sweep.py --data ../shared/data --out runs/smoke -- data.max_frames=5 plots=false
     python experiments/sweep.py --out runs/paper --methods fusion_ekf,horn --sequences sun3d_fragment1
     python experiments/sweep.py --out runs/paper --launcher submitit_slurm -- hydra.launcher.partition=cpu
+    python experiments/sweep.py --out runs/paper --launcher ray -- hydra.launcher.ray.init.address=HEAD:6379
     python experiments/sweep.py --out runs/paper --dry-run                                   # print the plan
 
 Layout of ``OUT``::
@@ -19,7 +20,8 @@ made with different settings never mix silently.
 
 For every method one Hydra multirun (``torchtrack -m``) covers its unfinished sequences: ``+seq`` is
 swept, ``data.root=DATA/${seq}`` and ``hydra.sweep.subdir=${seq}`` follow it, and the launcher
-(``--launcher joblib|basic|submitit_local|submitit_slurm|ray``) runs the jobs. The peer method
+(``--launcher joblib|basic|submitit_local|submitit_slurm|paper_slurm|ray``; Hydra's plugins, see
+experiments/README.md for installing them) runs the jobs. The peer method
 (Open3D RGB-D odometry) runs in this process through :func:`peers.open3d_rgbd_odometry`
 and writes the same layout.
 """
@@ -195,14 +197,15 @@ def launcher_overrides(launcher: str, jobs: int, extra: list[str] = ()) -> list[
     """Hydra overrides selecting the launcher plugin (``basic`` is Hydra's sequential one).
 
     Ray: hydra-ray-launcher 1.2.2 passes ``object_store_memory`` (75 MB) to ``ray.init`` unless it is set, and
-    Ray >= 2 refuses that when attaching to a running cluster (``hydra.launcher.ray.init.address=...``); null
-    leaves the choice to Ray (the cluster's own store, or Ray's default for a local one)."""
+    Ray >= 2 refuses that when attaching to a running cluster (``hydra.launcher.ray.init.address=...``): then it
+    is set to null (the cluster's own store). Without an address the plugin starts a local Ray with its 75 MB."""
     if launcher == "basic":
         return []
     ov = [f"hydra/launcher={launcher}"]
     if launcher == "joblib":
         ov.append(f"hydra.launcher.n_jobs={jobs}")
-    if launcher == "ray" and not any(o.lstrip("+~").startswith(RAY_OBJECT_STORE) for o in extra):
+    attach = _extra_value(list(extra), "hydra.launcher.ray.init.address") is not None
+    if launcher == "ray" and attach and _extra_value(list(extra), RAY_OBJECT_STORE) is None:
         ov.append(f"++{RAY_OBJECT_STORE}=null")
     return ov
 

@@ -133,6 +133,28 @@ def test_hydra_command_sweeps_sequences_and_composes_ablations(tmp_path):
         sweep.hydra_command(sweep.METHODS["open3d_odometry"], ["a"], tmp_path, tmp_path, [], "basic", 1, ["x"])
 
 
+def test_ray_launcher_leaves_the_object_store_to_a_cluster_it_attaches_to():
+    """hydra-ray-launcher 1.2.2 sets object_store_memory, which ray.init refuses when attaching to a cluster."""
+    assert sweep.launcher_overrides("ray", 2, []) == ["hydra/launcher=ray"]
+    attach = ["hydra.launcher.ray.init.address=127.0.0.1:6379"]
+    assert sweep.launcher_overrides("ray", 2, attach)[-1] == f"++{sweep.RAY_OBJECT_STORE}=null"
+    mine = [*attach, f"{sweep.RAY_OBJECT_STORE}=1000000000"]
+    assert sweep.launcher_overrides("ray", 2, mine) == ["hydra/launcher=ray"]  # the user's value stays
+
+
+def test_missing_launcher_plugin_is_one_line_with_the_install_command(tmp_path, monkeypatch, capsys):
+    import importlib.util
+
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda n, *a: None if "hydra_ray" in n else find_spec(n, *a))
+    data = make_data(tmp_path / "data")
+    with pytest.raises(SystemExit) as e:
+        sweep.main(["--data", str(data), "--out", str(tmp_path / "o"), "--launcher", "ray"])
+    assert e.value.code == 2
+    assert "needs its Hydra plugin" in capsys.readouterr().err and "hydra-ray-launcher" in sweep.PLUGINS["ray"][1]
+    assert sweep.missing_plugin("basic") is None
+
+
 STAND_IN_APP = """
 import json
 from pathlib import Path
