@@ -8,8 +8,10 @@ both). Time on the 2-core machine: about a minute for the module, most of it int
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -61,14 +63,10 @@ def joblib_metrics(data, tmp_path_factory) -> dict:
     return found
 
 
-@pytest.fixture(scope="module")
-def ray_address() -> str:
-    """A local Ray head on 127.0.0.1 with 2 CPUs, its own temp folder and a free port; stopped at the end (``ray
-    start --block`` stops the processes it started on SIGTERM; its process group is killed after that)."""
-    pytest.importorskip("hydra_plugins.hydra_ray_launcher")
-    ray = Path(sys.executable).with_name("ray")
-    if not ray.is_file():
-        pytest.skip("the ray command is not installed beside this Python")
+@contextlib.contextmanager
+def ray_head(ray: Path):
+    """A Ray head on 127.0.0.1 with 2 CPUs, its own temp folder and a free port -> its address; stopped at the end
+    (``ray start --block`` stops the processes it started on SIGTERM; its process group is killed after that)."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
@@ -94,6 +92,21 @@ def ray_address() -> str:
         except ProcessLookupError:
             pass
         log.close()
+        shutil.rmtree(temp, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def ray_address() -> str:
+    pytest.importorskip("hydra_plugins.hydra_ray_launcher")
+    ray = Path(sys.executable).with_name("ray")
+    if not ray.is_file():
+        pytest.skip("the ray command is not installed beside this Python")
+    with pytest.MonkeyPatch.context() as mp:
+        # Ray 2.60 starts `ray start` with token authentication when ~/.ray/auth_token exists (a local ray.init()
+        # writes one), while a driver attaching by address stays without: one mode for the cluster and its drivers.
+        mp.setenv("RAY_AUTH_MODE", "disabled")
+        with ray_head(ray) as address:
+            yield address
 
 
 def test_ray_sweep_killed_mid_way_resumes_only_missing_jobs_and_equals_joblib(
@@ -102,10 +115,13 @@ def test_ray_sweep_killed_mid_way_resumes_only_missing_jobs_and_equals_joblib(
     out = tmp_path / "sweep"
     argv = sweep_argv(data, out, "ray", f"hydra.launcher.ray.init.address={ray_address}")
     cmd = [sys.executable, str(EXPERIMENTS / "sweep.py"), *argv]
-    driver = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    log = tmp_path / "driver.log"
+    with log.open("w") as f:
+        driver = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, start_new_session=True)
     deadline = time.monotonic() + 300
     while not metrics(out):  # kill the driver (sweep.py and its Hydra multirun) once the first job has finished
-        assert driver.poll() is None and time.monotonic() < deadline, "the Ray sweep ended before any job finished"
+        if driver.poll() is not None or time.monotonic() > deadline:
+            pytest.fail(f"the Ray sweep ended before any job finished:\n{log.read_text()[-3000:]}")
         time.sleep(0.2)
     os.killpg(driver.pid, signal.SIGKILL)
     driver.wait()
