@@ -304,7 +304,10 @@ def _parse(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     p.add_argument("--methods", default=",".join(METHODS), help=f"comma list from {','.join(METHODS)}")
     p.add_argument("--sequences", default=None, help="comma list of folder names under --data (default: all)")
     p.add_argument(
-        "--launcher", default="joblib", help="Hydra launcher: joblib, basic, submitit_local, submitit_slurm, ray"
+        "--launcher",
+        default="joblib",
+        help="Hydra launcher: joblib, basic, submitit_local, submitit_slurm, paper_slurm, ray\n"
+        "(a Ray cluster: -- hydra.launcher.ray.init.address=HOST:PORT)",
     )
     p.add_argument("--jobs", type=int, default=2, help="parallel jobs of the joblib launcher and of the peer")
     p.add_argument("--program", default=f"{sys.executable} -m torchtrack.cli", help="the Hydra app to launch")
