@@ -73,7 +73,8 @@ def ray_head(ray: Path):
     temp = Path(tempfile.mkdtemp(prefix="tt-ray-", dir="/tmp"))  # short: Ray's socket paths must fit 107 bytes
     log = (temp / "ray-start.log").open("w")
     cmd = [str(ray), "start", "--head", "--block", "--node-ip-address=127.0.0.1", f"--port={port}", "--num-cpus=2",
-           "--include-dashboard=false", "--disable-usage-stats", f"--temp-dir={temp}"]  # fmt: skip
+           "--object-store-memory=100000000", "--include-dashboard=false", "--disable-usage-stats",
+           f"--temp-dir={temp}"]  # fmt: skip
     proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         deadline = time.monotonic() + 120
