@@ -184,3 +184,19 @@ def test_save_strip_lays_out_snapshots_with_title_and_legend(tmp_path):
     assert (img[overlay.BAND + 106 : overlay.BAND + 206, :80] == 50).all()  # fifth snapshot: second row, first column
     overlay.save_strip(tmp_path / "none.png", [])
     assert not (tmp_path / "none.png").exists()
+
+
+def test_draw_frame_trail_is_drawn_in_the_winner_colour_and_other_sizes_are_left_out():
+    from torchtrack.viz import overlay
+
+    H, W, f = 480, 640, 500.0
+    K = torch.tensor([[f, 0, 319.5], [0, f, 239.5], [0, 0, 1]])
+    rgb = torch.full((3, H, W), 0.5)
+    pixels = torch.tensor([[300.5, 200.5]])
+    points = torch.cat([(pixels - torch.tensor([319.5, 239.5])) / f, torch.ones(1, 1)], -1)
+    trail = [torch.zeros(4, 2), pixels - torch.tensor([60.0, 0.0]), pixels]  # (4, 2): another N, left out
+    tile = overlay.draw_frame(rgb, pixels, torch.tensor([True]), torch.tensor([1]), K, torch.eye(4), points, "f", trail)
+    tracks = tile[overlay.BAND : overlay.BAND + H // 2]
+    x, y = (round(v) for v in ((pixels[0] - torch.tensor([40.0, 0.0]) + 0.5) / 2 - 0.5).tolist())
+    assert tuple(tracks[y, x]) == overlay.SIM_BGR  # on the track, 40 image px (20 panel px) behind the feature
+    assert tuple(tracks[y + 6, x]) != overlay.SIM_BGR

@@ -80,7 +80,7 @@ class Recorder:
                     T_color_obj,
                     res.points_obj[b],
                     f"frame {i}",
-                    trail=torch.stack(self.trail),
+                    trail=self.trail,
                 )  # fmt: skip
             )
         if bool(res.reselected[b]):

@@ -38,14 +38,15 @@ def draw_frame(
     T_color_obj: Tensor,
     points_obj: Tensor,
     label: str,
-    trail: Tensor | None = None,
+    trail: list[Tensor] | None = None,
 ) -> np.ndarray:
     """One snapshot of one sequence as two stacked panels -> BGR uint8 (2 (BAND + h), w, 3), h, w = s (H, W) with
     s = :func:`panel_scale` (W).
 
     rgb (3, H, W) in [0, 1]; pixels (N, 2) tracked pixels; valid (N,); winner (N,) 0 intensity, 1 SIM, -1 new;
     K (3, 3) colour intrinsics; T_color_obj (4, 4) the estimated pose; points_obj (N, 3) model points;
-    trail (T, N, 2) the same features' pixels in the last T frames (oldest first, the last row = pixels) or None.
+    trail: the same features' pixels (N, 2) in the last frames, oldest first, the last = pixels (entries of another
+    N, from padding changed by another sequence of the batch, are left out), or None.
     """
     if pixels.shape[-1] != 2 or points_obj.shape[-1] != 3 or valid.shape != pixels.shape[:1]:
         raise ValueError(f"draw_frame: pixels (N, 2), points_obj (N, 3), valid (N,); got {tuple(pixels.shape)}, "
@@ -56,8 +57,9 @@ def draw_frame(
     win = winner.long()
     at = _to_panel(pixels.float(), scale)
     tracks = base.copy()
-    if trail is not None and len(trail) > 1:
-        lines = _to_panel(trail.float(), scale).permute(1, 0, 2)[ok]  # N_ok,T,2
+    trail = [t for t in trail or [] if t.shape == pixels.shape]
+    if len(trail) > 1:
+        lines = _to_panel(torch.stack(trail).float(), scale).permute(1, 0, 2)[ok]  # N_ok,T,2
         colours = [_colour(int(w)) for w in win[ok].tolist()]
         for line, colour in zip(lines.round().int().numpy(), colours, strict=True):
             cv2.polylines(tracks, [line.reshape(-1, 1, 2)], False, colour, 2, cv2.LINE_AA)
