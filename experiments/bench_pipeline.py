@@ -50,6 +50,7 @@ from pathlib import Path
 import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
+from torch.utils._python_dispatch import TorchDispatchMode
 
 import torchtrack.frontend as frontend_module
 import torchtrack.run as run_module
@@ -92,6 +93,13 @@ class StageTimer:
         self.seconds: dict[str, float] = defaultdict(float)
         self.calls: dict[str, int] = defaultdict(int)
         self._lock = threading.Lock()
+        self._local = threading.local()  # this thread's stages being run, innermost last (for OpCounter)
+
+    @property
+    def running(self) -> list[str]:
+        if not hasattr(self._local, "stages"):
+            self._local.stages = []
+        return self._local.stages
 
     def add(self, name: str, seconds: float) -> None:
         with self._lock:
@@ -102,12 +110,29 @@ class StageTimer:
         @functools.wraps(fn)
         def timed(*args, **kwargs):
             t0 = time.perf_counter()
+            self.running.append(name)
             try:
                 return fn(*args, **kwargs)
             finally:
+                self.running.pop()
                 self.add(name, time.perf_counter() - t0)
 
         return timed
+
+
+class OpCounter(TorchDispatchMode):
+    """Counts the aten operators this thread dispatches, per innermost running stage of a StageTimer (a stage's
+    count includes its sub-stages'; ops outside every stage count as "other")."""
+
+    def __init__(self, timer: StageTimer) -> None:
+        super().__init__()
+        self.timer, self.counts = timer, defaultdict(int)
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        running = self.timer.running
+        for stage in running or ["other"]:
+            self.counts[stage] += 1
+        return func(*args, **(kwargs or {}))
 
 
 class Timed:
@@ -190,13 +215,18 @@ def instrument(tracker, timer: StageTimer) -> contextlib.ExitStack:
     return stack
 
 
-def run(cfg: DictConfig, sequences: list, *, instrumented: bool = False) -> dict:
+def run(cfg: DictConfig, sequences: list, *, instrumented: bool = False, count_ops: bool = False) -> dict:
     """Track ``sequences`` (B in lockstep) with a fresh tracker as the CLI does (``run_tracker``, outputs into a
-    temporary folder, no plots); wall time, frames, features and stage timings."""
+    temporary folder, no plots); wall time, frames, features and stage timings (and with count_ops the aten
+    operators per stage, main thread: slower, so not timed together)."""
     tracker = build_tracker(cfg)
     timer = StageTimer()
+    instrumented |= count_ops
     sequences = [TimedSequence(s, timer) for s in sequences] if instrumented else sequences
     stack = instrument(tracker, timer) if instrumented else contextlib.ExitStack()
+    counter = OpCounter(timer)
+    if count_ops:
+        stack.enter_context(counter)
     steps = 0
     step = tracker.step
 
@@ -222,6 +252,7 @@ def run(cfg: DictConfig, sequences: list, *, instrumented: bool = False) -> dict
         "reselections": sum(r["reselections"] for r in results),
         "stages": dict(timer.seconds),
         "calls": dict(timer.calls),
+        "ops": dict(counter.counts) if count_ops else None,
     }
 
 
@@ -248,32 +279,31 @@ def compose_config(root: Path | None, frames: int, overrides: list[str]) -> Dict
         return compose("config", overrides=data + overrides)
 
 
-def stage_table(runs: list[dict]) -> str:
-    """ms per step of each stage for each run, with its share of the wall time; 'other' closes the sum."""
+def stage_table(runs: list[dict], ops: dict | None = None) -> str:
+    """ms per step of each stage for each run, with its share of the wall time; 'other' closes the sum. ``ops``: a
+    run with count_ops, whose aten operators per step (main thread) make the last column."""
     head = "| stage | " + " | ".join(f"B={r['B']} ms/step | %" for r in runs) + " |"
-    lines = [head, "|---|" + "---:|---:|" * len(runs)]
+    head += f" B={ops['B']} aten ops/step |" if ops else ""
+    lines = [head, "|---|" + "---:|---:|" * len(runs) + ("---:|" if ops else "")]
 
-    def cells(key: str) -> str:
-        out = []
-        for r in runs:
-            s = r["stages"].get(key)
-            out += ["–", "–"] if s is None else [f"{1e3 * s / r['steps']:.1f}", f"{100 * s / r['wall_s']:.0f}"]
-        return " | ".join(out)
+    def row(label: str, key: str | None, times: list[float]) -> str:
+        cells = [f"{1e3 * t / r['steps']:.1f} | {100 * t / r['wall_s']:.0f}" if t is not None else "– | –"
+                 for t, r in zip(times, runs, strict=True)]  # fmt: skip
+        if ops:
+            n = ops["ops"].get(key) if key else None
+            cells.append(f"{n / ops['steps']:.0f}" if n is not None else "–")
+        return f"| {label} | {' | '.join(cells)} |"
 
     for key, (label, indent) in STAGES.items():
-        lines.append(f"| {'&nbsp;&nbsp;' * indent}{label} | {cells(key)} |")
-    other = []
-    for r in runs:
-        rest = r["wall_s"] - sum(r["stages"].get(k, 0.0) for k in TOP_LEVEL)
-        other += [f"{1e3 * rest / r['steps']:.1f}", f"{100 * rest / r['wall_s']:.0f}"]
-    lines.append(f"| other (tracker step glue: state, eq. 16, re-selection) | {' | '.join(other)} |")
-    wall = " | ".join(f"**{r['step_ms']:.1f}** | 100" for r in runs)
-    lines.append(f"| **wall** | {wall} |")
-    decode = []
-    for r in runs:
-        s = r["stages"].get("decode", 0.0)
-        decode += [f"{1e3 * s / r['steps']:.1f}", f"{100 * s / r['wall_s']:.0f}"]
-    lines.append(f"| decode in the loader thread (overlaps the above) | {' | '.join(decode)} |")
+        lines.append(row("&nbsp;&nbsp;" * indent + label, key, [r["stages"].get(key) for r in runs]))
+    rest = [r["wall_s"] - sum(r["stages"].get(k, 0.0) for k in TOP_LEVEL) for r in runs]
+    lines.append(row("other (tracker step glue: state, eq. 16, re-selection)", "other", rest))
+    if ops:
+        ops["ops"]["total"] = sum(ops["ops"].get(k, 0) for k in [*TOP_LEVEL, "other"])
+    lines.append(row("**wall**", "total", [r["wall_s"] for r in runs]))
+    lines.append(
+        row("decode in the loader thread (overlaps the above)", None, [r["stages"].get("decode", 0.0) for r in runs])
+    )
     return "\n".join(lines)
 
 
@@ -377,7 +407,7 @@ def main(argv: list[str] | None = None) -> int:
         plain = median_of(args.repeats, lambda: run(cfg, [seq]))
     if args.only in (None, "b1"):
         timed1 = run(cfg, [seq], instrumented=True)
-        print(f"\n{stage_table([timed1])}\n")
+        print(f"\n{stage_table([timed1], ops=run(cfg, [seq], count_ops=True))}\n")
         lo, hi = plain["fps_range"]
         verdict = "met" if plain["fps"] >= TARGET_FPS else "NOT met"
         print(f"B=1: **{plain['fps']:.1f} fps** (median of {args.repeats} runs, range {lo:.1f}-{hi:.1f}; "
@@ -419,7 +449,8 @@ def batch_report(args, overrides: list[str], cfg: DictConfig, seq, plain: dict) 
           f"{'met' if best >= TARGET_BATCH * plain['fps'] else 'NOT met'}), {best / procs['fps']:.2f}x two B=1 "
           f"processes (target >= 1: {'met' if best >= procs['fps'] else 'NOT met'}); B={b} runs: median of 3")  # fmt: skip
     timed = run(cfg, [seq] * b, instrumented=True)
-    print(f"\nstages at B={b} (1 instrumented run, {torch.get_num_threads()} thread):\n\n{stage_table([timed])}")
+    ops = run(cfg, [seq] * b, count_ops=True)
+    print(f"\nstages at B={b} (1 instrumented run, {torch.get_num_threads()} thread):\n\n{stage_table([timed], ops)}")
 
 
 if __name__ == "__main__":
