@@ -1,27 +1,46 @@
-"""Benchmark the whole torchtrack pipeline (issue 5, "Speed"): fps at B=1, aggregate frames/s at B=4, stages.
+"""Benchmark the whole torchtrack pipeline (issues 5 and 15): fps at B=1 with a per-stage breakdown, batch scaling,
+start-up.
 
-The tracker is built exactly as the CLI builds it (Hydra config composed in-process, the CLI's process settings
-from ``torchtrack.runtime.configure``: glibc allocator tuning and the thread count) and run on a real
-640x480 sequence read by the real loader (``iterate_batched``: PNG/JPEG decoding in a background thread,
-overlapping compute, as in ``torchtrack``), so image decoding is included. Target: >= 20 fps at B=1.
-The stage breakdown wraps the tracker's components from the outside with timing proxies (``tracker.frontend``,
-``.flow``, ``.weighting``, ``.backend``, ``.select``, ``.region``; the front end's and the EKF's inner
-calls); nothing in the package is edited. Open3D's RGB-D odometry (the accuracy peer) runs on the same frames
-in the same process for a ratio.
+Everything runs as the CLI runs it: the Hydra config composed in-process, the CLI's process settings
+(``torchtrack.runtime.configure``: glibc allocator tuning and the thread count), the real loader
+(``iterate_batched``: PNG/JPEG decoding in background threads, overlapping compute) and the CLI's loop
+(``torchtrack.run.run_tracker``: per-frame recording, then trajectory.txt, metrics.json and frames.csv written
+into a temporary folder; no plots). So decoding and writing are included. Reported:
+
+- B=1: median fps of ``--repeats`` runs and the stage breakdown of one instrumented run (timing proxies wrap the
+  tracker's components from the outside; nothing in the package is edited). Target (issue 15): >= 30 fps.
+- B=``--batch`` (default 8) lockstep in one process, with 1 and with 2 torch threads: aggregate frames/s and its
+  ratio to B=1 (target >= 3x), and against the same B sequences run as two parallel B=1 processes of B/2
+  sequences each (what a user would do with joblib; started together, start-up excluded; target: lockstep at
+  least as fast).
+- start-up: seconds from spawning ``python -m torchtrack.cli`` (the default demo: the synthetic sequence, cached
+  after its first render) to the end of its first tracked frame (target <= 2 s); median of 3.
+- Open3D's RGB-D odometry (the accuracy peer) on the same frames, for a ratio (``--no-peer`` skips it).
+
+All timings are wall clock on a shared machine: the header prints the load average; ratios come from runs
+interleaved in one session.
 
     python experiments/bench_pipeline.py                        # ../shared/data/sun3d_fragment1, 50 frames, 1 thread
-    python experiments/bench_pipeline.py --root ../shared/data/visp_rbt_sequence --frames 99 --threads 2
-    python experiments/bench_pipeline.py tracker=icp --no-peer  # Hydra overrides pass through
+    python experiments/bench_pipeline.py --root ../shared/data/visp_rbt_sequence --frames 99 --repeats 5
+    python experiments/bench_pipeline.py --only b1 tracker=icp  # Hydra overrides pass through
 """
 
 from __future__ import annotations
 
+import os
+
+os.environ.setdefault("TQDM_DISABLE", "1")  # before tqdm is imported: no progress bars inside the timed runs
+
 import argparse
 import contextlib
 import functools
+import json
 import logging
 import platform
+import statistics
+import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections import defaultdict
@@ -31,11 +50,12 @@ from pathlib import Path
 import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
+from torch.utils._python_dispatch import TorchDispatchMode
 
 import torchtrack.frontend as frontend_module
+import torchtrack.run as run_module
 import torchtrack.tracker as tracker_module
 from torchtrack.config import CONF_DIR
-from torchtrack.data.batching import iterate_batched
 from torchtrack.factory import build_sequences, build_tracker
 from torchtrack.runtime import configure
 
@@ -43,7 +63,7 @@ REPO = Path(__file__).resolve().parents[1]
 CONF = CONF_DIR
 DATA = REPO.parent / "shared" / "data"
 DEFAULT_ROOT = DATA / "sun3d_fragment1"
-TARGET_FPS = 20.0
+TARGET_FPS, TARGET_BATCH, TARGET_STARTUP_S = 30.0, 3.0, 2.0  # issue 15
 
 # (row label, indent) in print order; the keys are the timer names used below.
 STAGES = {
@@ -55,11 +75,13 @@ STAGES = {
     "flow": ("flow: LK + TIM (eq. 10)", 0),
     "measure": ("depth read at features (eq. 6)", 0),
     "weighting": ("weighting (eqs. 11-14)", 0),
-    "backend": ("backend (total)", 0),
-    "backend/predict": ("EKF predict (eqs. 3-4)", 1),
-    "backend/update": ("EKF update (eqs. 6-7, 15)", 1),
+    "backend": ("backend: EKF (total)", 0),
+    "backend/predict": ("predict (eqs. 3-4)", 1),
+    "backend/linearize": ("linearise h (eqs. 6-7, autograd)", 1),
     "region": ("selection: region", 0),
     "select": ("selection: features (eq. 9)", 0),
+    "record": ("run loop: per-frame recording (run.py)", 0),
+    "write": ("writing outputs (trajectory, metrics, csv)", 0),
 }
 TOP_LEVEL = [k for k, (_, indent) in STAGES.items() if indent == 0]
 
@@ -71,6 +93,13 @@ class StageTimer:
         self.seconds: dict[str, float] = defaultdict(float)
         self.calls: dict[str, int] = defaultdict(int)
         self._lock = threading.Lock()
+        self._local = threading.local()  # this thread's stages being run, innermost last (for OpCounter)
+
+    @property
+    def running(self) -> list[str]:
+        if not hasattr(self._local, "stages"):
+            self._local.stages = []
+        return self._local.stages
 
     def add(self, name: str, seconds: float) -> None:
         with self._lock:
@@ -81,12 +110,29 @@ class StageTimer:
         @functools.wraps(fn)
         def timed(*args, **kwargs):
             t0 = time.perf_counter()
+            self.running.append(name)
             try:
                 return fn(*args, **kwargs)
             finally:
+                self.running.pop()
                 self.add(name, time.perf_counter() - t0)
 
         return timed
+
+
+class OpCounter(TorchDispatchMode):
+    """Counts the aten operators this thread dispatches, per innermost running stage of a StageTimer (a stage's
+    count includes its sub-stages'; ops outside every stage count as "other")."""
+
+    def __init__(self, timer: StageTimer) -> None:
+        super().__init__()
+        self.timer, self.counts = timer, defaultdict(int)
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        running = self.timer.running
+        for stage in running or ["other"]:
+            self.counts[stage] += 1
+        return func(*args, **(kwargs or {}))
 
 
 class Timed:
@@ -137,11 +183,30 @@ def instrument(tracker, timer: StageTimer) -> contextlib.ExitStack:
     backend = tracker.backend
     ekf = getattr(backend, "ekf", None)
     if ekf is not None:  # instance attributes shadow the methods; this tracker is thrown away afterwards
-        ekf.predict = timer.wrap("backend/predict", ekf.predict)
-        ekf.update = timer.wrap("backend/update", ekf.update)
-    for attr in ("frontend", "flow", "weighting", "backend", "region", "select"):
+        ekf.predicted = timer.wrap("backend/predict", ekf.predicted)
+        ekf.linearize_at = timer.wrap("backend/linearize", ekf.linearize_at)
+    backend.step = timer.wrap("backend", backend.step)
+    for attr in ("frontend", "flow", "weighting", "region", "select"):
         setattr(tracker, attr, Timed(getattr(tracker, attr), attr, timer))
     stack = contextlib.ExitStack()
+    for method, stage in (("add", "record"), ("finish", "write")):
+        original = getattr(run_module.Recorder, method)
+        stack.callback(setattr, run_module.Recorder, method, original)
+        setattr(run_module.Recorder, method, timer.wrap(stage, original))
+    iterate = run_module.iterate_batched
+
+    def timed_frames(*args, **kwargs):
+        frames = iterate(*args, **kwargs)
+        while True:
+            t0 = time.perf_counter()
+            frame = next(frames, None)
+            timer.add("data_wait", time.perf_counter() - t0)
+            if frame is None:
+                return
+            yield frame
+
+    stack.callback(setattr, run_module, "iterate_batched", iterate)
+    run_module.iterate_batched = timed_frames
     stack.enter_context(patched(tracker_module, "measure_points", timer, "measure"))
     stack.enter_context(patched(frontend_module, "depth_in_colour", timer, "frontend/depth"))
     for name in ("compute_sim", "shape_index", "sim_image"):  # whichever the front end calls
@@ -150,45 +215,54 @@ def instrument(tracker, timer: StageTimer) -> contextlib.ExitStack:
     return stack
 
 
-def run(cfg: DictConfig, sequences: list, *, instrumented: bool) -> dict:
-    """Track ``sequences`` (B in lockstep) with a fresh tracker; wall time, frames, features, stage timings."""
+def run(cfg: DictConfig, sequences: list, *, instrumented: bool = False, count_ops: bool = False) -> dict:
+    """Track ``sequences`` (B in lockstep) with a fresh tracker as the CLI does (``run_tracker``, outputs into a
+    temporary folder, no plots); wall time, frames, features and stage timings (and with count_ops the aten
+    operators per stage, main thread: slower, so not timed together)."""
     tracker = build_tracker(cfg)
     timer = StageTimer()
+    instrumented |= count_ops
     sequences = [TimedSequence(s, timer) for s in sequences] if instrumented else sequences
     stack = instrument(tracker, timer) if instrumented else contextlib.ExitStack()
-    steps, features, reselections = 0, [], 0
-    with stack, torch.inference_mode():
-        start = time.perf_counter()
-        frames = iterate_batched(sequences)
-        while True:
-            t0 = time.perf_counter()
-            frame = next(frames, None)
-            timer.add("data_wait", time.perf_counter() - t0)
-            if frame is None:
-                break
-            res = tracker.step(frame)
-            steps += 1
-            features.append(res.n_features.float().mean().item())
-            reselections += int(res.reselected.sum()) if steps > 1 else 0
-        wall = time.perf_counter() - start
-    active_frames = sum(len(s) for s in sequences)
+    counter = OpCounter(timer)
+    if count_ops:
+        stack.enter_context(counter)
+    steps = 0
+    step = tracker.step
+
+    def counted(frame):
+        nonlocal steps
+        steps += 1
+        return step(frame)
+
+    tracker.step = counted
+    with stack, tempfile.TemporaryDirectory(prefix="bench_pipeline_") as out:
+        start, cpu = time.perf_counter(), time.process_time()
+        results = run_module.run_tracker(tracker, sequences, Path(out), plots=False)
+        wall, cpu = time.perf_counter() - start, time.process_time() - cpu
+    frames = sum(r["frames"] for r in results)
     return {
         "B": len(sequences),
         "steps": steps,
-        "frames": active_frames,
+        "frames": frames,
         "wall_s": wall,
-        "fps": active_frames / wall,
+        "fps": frames / wall,
+        "cpu_ms": 1e3 * cpu / frames,  # all threads of the process (loader included), per frame: robust to load
         "step_ms": 1e3 * wall / steps,
-        "mean_features": sum(features) / len(features),
-        "reselections": reselections,
+        "mean_features": statistics.fmean(r["mean_features"] for r in results),
+        "reselections": sum(r["reselections"] for r in results),
         "stages": dict(timer.seconds),
         "calls": dict(timer.calls),
+        "ops": dict(counter.counts) if count_ops else None,
     }
 
 
-def best_of(repeats: int, fn) -> dict:
-    """The fastest of ``repeats`` runs (the least disturbed by other load on a shared machine)."""
-    return min((fn() for _ in range(repeats)), key=lambda r: r["wall_s"])
+def median_of(repeats: int, fn) -> dict:
+    """The run of median wall time among ``repeats`` runs, with the spread of their fps."""
+    runs = sorted((fn() for _ in range(repeats)), key=lambda r: r["wall_s"])
+    med = dict(runs[len(runs) // 2])
+    med["fps_range"] = (runs[-1]["fps"], runs[0]["fps"])
+    return med
 
 
 def peer_fps(seq) -> float:
@@ -206,33 +280,105 @@ def compose_config(root: Path | None, frames: int, overrides: list[str]) -> Dict
         return compose("config", overrides=data + overrides)
 
 
-def stage_table(runs: list[dict]) -> str:
-    """ms per step of each stage for each run, with its share of the wall time; 'other' closes the sum."""
+def stage_table(runs: list[dict], ops: dict | None = None) -> str:
+    """ms per step of each stage for each run, with its share of the wall time; 'other' closes the sum. ``ops``: a
+    run with count_ops, whose aten operators per step (main thread) make the last column."""
     head = "| stage | " + " | ".join(f"B={r['B']} ms/step | %" for r in runs) + " |"
-    lines = [head, "|---|" + "---:|---:|" * len(runs)]
+    head += f" B={ops['B']} aten ops/step |" if ops else ""
+    lines = [head, "|---|" + "---:|---:|" * len(runs) + ("---:|" if ops else "")]
 
-    def cells(key: str) -> str:
-        out = []
-        for r in runs:
-            s = r["stages"].get(key)
-            out += ["–", "–"] if s is None else [f"{1e3 * s / r['steps']:.1f}", f"{100 * s / r['wall_s']:.0f}"]
-        return " | ".join(out)
+    def row(label: str, key: str | None, times: list[float]) -> str:
+        cells = [f"{1e3 * t / r['steps']:.1f} | {100 * t / r['wall_s']:.0f}" if t is not None else "– | –"
+                 for t, r in zip(times, runs, strict=True)]  # fmt: skip
+        if ops:
+            n = ops["ops"].get(key) if key else None
+            cells.append(f"{n / ops['steps']:.0f}" if n is not None else "–")
+        return f"| {label} | {' | '.join(cells)} |"
 
     for key, (label, indent) in STAGES.items():
-        lines.append(f"| {'&nbsp;&nbsp;' * indent}{label} | {cells(key)} |")
-    other = []
-    for r in runs:
-        rest = r["wall_s"] - sum(r["stages"].get(k, 0.0) for k in TOP_LEVEL)
-        other += [f"{1e3 * rest / r['steps']:.1f}", f"{100 * rest / r['wall_s']:.0f}"]
-    lines.append(f"| other (step bookkeeping, eq. 16, re-selection glue) | {' | '.join(other)} |")
-    wall = " | ".join(f"**{r['step_ms']:.1f}** | 100" for r in runs)
-    lines.append(f"| **wall** | {wall} |")
-    decode = []
-    for r in runs:
-        s = r["stages"].get("decode", 0.0)
-        decode += [f"{1e3 * s / r['steps']:.1f}", f"{100 * s / r['wall_s']:.0f}"]
-    lines.append(f"| decode in the loader thread (overlaps the above) | {' | '.join(decode)} |")
+        lines.append(row("&nbsp;&nbsp;" * indent + label, key, [r["stages"].get(key) for r in runs]))
+    rest = [r["wall_s"] - sum(r["stages"].get(k, 0.0) for k in TOP_LEVEL) for r in runs]
+    lines.append(row("other (tracker step glue: state, eq. 16, re-selection)", "other", rest))
+    if ops:
+        ops["ops"]["total"] = sum(ops["ops"].get(k, 0) for k in [*TOP_LEVEL, "other"])
+    lines.append(row("**wall**", "total", [r["wall_s"] for r in runs]))
+    lines.append(
+        row("decode in the loader thread (overlaps the above)", None, [r["stages"].get("decode", 0.0) for r in runs])
+    )
     return "\n".join(lines)
+
+
+def worker(args, overrides: list[str]) -> int:
+    """One of the parallel B=1 processes: warm up, say ready, wait for go, track its sequences one after another."""
+    configure(args.threads)
+    cfg = compose_config(args.root if args.root.is_dir() else None, args.frames, overrides)
+    (seq,) = build_sequences(cfg.data)
+    warm = compose_config(args.root if args.root.is_dir() else None, 3, overrides)
+    run(warm, build_sequences(warm.data))
+    print("ready", flush=True)
+    sys.stdin.readline()
+    start, cpu = time.perf_counter(), time.process_time()
+    frames = sum(run(cfg, [seq])["frames"] for _ in range(args.worker))
+    wall, cpu = time.perf_counter() - start, time.process_time() - cpu
+    print(json.dumps({"frames": frames, "wall_s": wall, "cpu_s": cpu}), flush=True)
+    return 0
+
+
+def parallel_processes(args, overrides: list[str], processes: int, per_process: int) -> dict:
+    """``processes`` B=1 processes of ``per_process`` sequences each, started together after their warm-up."""
+    cmd = [sys.executable, __file__, "--worker", str(per_process), "--root", str(args.root), "--frames",
+           str(args.frames), "--threads", str(args.threads), *overrides]  # fmt: skip
+    procs = [subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+             for _ in range(processes)]  # fmt: skip
+    for p in procs:
+        if p.stdout.readline().strip() != "ready":
+            raise RuntimeError("bench_pipeline: a worker failed during its warm-up")
+    start = time.perf_counter()
+    for p in procs:
+        p.stdin.write("go\n")
+        p.stdin.flush()
+    out = [json.loads(p.stdout.readline()) for p in procs]
+    wall = time.perf_counter() - start
+    for p in procs:
+        p.wait()
+    frames = sum(o["frames"] for o in out)
+    return {
+        "frames": frames,
+        "wall_s": wall,
+        "fps": frames / wall,
+        "cpu_ms": 1e3 * sum(o["cpu_s"] for o in out) / frames,
+    }
+
+
+_FIRST_FRAME = """
+import os, sys, time
+import torchtrack.tracker as T
+step = T.Tracker.step
+def first(self, frame):
+    out = step(self, frame)
+    print("FIRST_FRAME", time.time(), file=sys.stderr, flush=True)
+    os._exit(0)
+T.Tracker.step = first
+sys.argv = ["torchtrack", *sys.argv[1:]]
+from torchtrack.cli import main
+main()
+"""
+
+
+def startup_seconds(repeats: int = 3) -> tuple[float, list[float]]:
+    """Seconds from spawning the default demo (``python -m torchtrack.cli``, synthetic data, no plots) to the end of
+    its first tracked frame; median and all runs. The process exits there (the first frame is what is measured)."""
+    times = []
+    for _ in range(repeats):
+        with tempfile.TemporaryDirectory(prefix="bench_startup_") as out:
+            t0 = time.time()
+            p = subprocess.run([sys.executable, "-c", _FIRST_FRAME, f"hydra.run.dir={out}", "plots=false"],
+                               capture_output=True, text=True, env=dict(os.environ, TQDM_DISABLE="1"))  # fmt: skip
+            line = [ln for ln in p.stderr.splitlines() if ln.startswith("FIRST_FRAME")]
+            if not line:
+                raise RuntimeError(f"bench_pipeline: the demo did not reach its first frame:\n{p.stderr[-2000:]}")
+            times.append(float(line[0].split()[1]) - t0)
+    return statistics.median(times), times
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -241,43 +387,76 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--root", type=Path, default=DEFAULT_ROOT, help="a 640x480 sequence (synthetic when absent)")
     ap.add_argument("--frames", type=int, default=50, help="frames per sequence")
-    ap.add_argument("--batch", type=int, default=4, help="B of the batched run (the same sequence B times)")
-    ap.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (1: reproducible on a shared box)")
-    ap.add_argument("--repeats", type=int, default=3, help="uninstrumented runs; the fastest is reported")
+    ap.add_argument("--batch", type=int, default=8, help="B of the lockstep run (the same sequence B times)")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads of the B=1 runs and of the processes")
+    ap.add_argument("--repeats", type=int, default=5, help="uninstrumented runs at B=1; the median is reported")
+    ap.add_argument("--only", choices=("b1", "batch", "startup"), help="one part only")
     ap.add_argument("--no-peer", action="store_true", help="skip Open3D's RGB-D odometry")
+    ap.add_argument("--worker", type=int, default=0, help=argparse.SUPPRESS)  # internal: a parallel B=1 process
     args = ap.parse_args([a for a in argv if a not in overrides])
     logging.basicConfig(level=logging.WARNING)
+    if args.worker:
+        return worker(args, overrides)
     configure(args.threads)  # as the CLI: without the allocator tuning, image-sized temporaries page-fault every frame
 
     root = args.root if args.root.is_dir() else None
     cfg = compose_config(root, args.frames, overrides)
     (seq,) = build_sequences(cfg.data)
     H, W = seq[0].rgb.shape[-2:]
-    print(f"sequence {seq.name} ({'real' if root else 'synthetic'}), {len(seq)} frames of {W}x{H}; overrides: "
-          f"{overrides or 'none'}; torch {torch.__version__}, {torch.get_num_threads()} thread(s), {platform.machine()}")  # fmt: skip
+    print(f"# bench_pipeline: sequence {seq.name} ({'real' if root else 'synthetic'}), {len(seq)} frames of {W}x{H}; "
+          f"overrides: {overrides or 'none'}; torch {torch.__version__}, {args.threads} thread(s), {platform.machine()}, "
+          f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f} at start")  # fmt: skip
 
     warm = compose_config(root, 3, overrides)
-    run(warm, build_sequences(warm.data), instrumented=False)  # first-call costs (allocator, functorch) out of the way
-    plain = best_of(args.repeats, lambda: run(cfg, [seq], instrumented=False))
-    plainB = best_of(args.repeats, lambda: run(cfg, [seq] * args.batch, instrumented=False))
-    timed1 = run(cfg, [seq], instrumented=True)
-    timedB = run(cfg, [seq] * args.batch, instrumented=True)
-    peer = None if args.no_peer else peer_fps(seq)
-
-    print(f"\n{stage_table([timed1, timedB])}\n")
-    print("| run | frames | wall s | fps (frames/s) | mean features | re-selections |")
-    print("|---|---:|---:|---:|---:|---:|")
-    runs = (("B=1", plain), (f"B={args.batch} (aggregate)", plainB), ("B=1 instrumented", timed1))
-    for name, r in runs:
-        row = f"| {name} | {r['frames']} | {r['wall_s']:.2f} | **{r['fps']:.1f}** | {r['mean_features']:.0f} |"
-        print(f"{row} {r['reselections']} |")
-    if peer is not None:
-        print(f"| Open3D RGB-D odometry (peer) | {len(seq)} | {len(seq) / peer:.2f} | {peer:.1f} | – | – |")
-    verdict = "met" if plain["fps"] >= TARGET_FPS else "NOT met"
-    print(f"\nfastest of {args.repeats} runs each. B=1: {plain['fps']:.1f} fps (target >= {TARGET_FPS:.0f} fps: {verdict}); "
-          f"B={args.batch}: {plainB['fps']:.1f} frames/s aggregate ({plainB['fps'] / plain['fps']:.2f}x B=1)"
-          + (f"; ours / peer fps = {plain['fps'] / peer:.1f}x" if peer else ""))  # fmt: skip
+    run(warm, build_sequences(warm.data))  # first-call costs (allocator, functorch) out of the way
+    plain = None
+    if args.only in (None, "b1", "batch"):
+        plain = median_of(args.repeats, lambda: run(cfg, [seq]))
+    if args.only in (None, "b1"):
+        timed1 = run(cfg, [seq], instrumented=True)
+        print(f"\n{stage_table([timed1], ops=run(cfg, [seq], count_ops=True))}\n")
+        lo, hi = plain["fps_range"]
+        verdict = "met" if plain["fps"] >= TARGET_FPS else "NOT met"
+        print(f"B=1: **{plain['fps']:.1f} fps** (median of {args.repeats} runs, range {lo:.1f}-{hi:.1f}; "
+              f"{1e3 / plain['fps']:.1f} ms per frame, CPU {plain['cpu_ms']:.1f} ms per frame in all threads; target >= "
+              f"{TARGET_FPS:.0f} fps: {verdict}); "
+              f"{plain['mean_features']:.0f} features, {plain['reselections']} re-selections")  # fmt: skip
+        if not args.no_peer:
+            peer = peer_fps(seq)
+            print(f"Open3D RGB-D odometry (peer), same frames: {peer:.1f} fps; ours / peer = {plain['fps'] / peer:.2f}")
+    if args.only in (None, "batch"):
+        batch_report(args, overrides, cfg, seq, plain)
+    if args.only in (None, "startup"):
+        med, times = startup_seconds()
+        verdict = "met" if med <= TARGET_STARTUP_S else "NOT met"
+        print(f"\nstart-up, spawn to the end of the default demo's first frame: **{med:.2f} s** (median of "
+              f"{', '.join(f'{t:.2f}' for t in times)}; target <= {TARGET_STARTUP_S:.0f} s: {verdict})")  # fmt: skip
+    print(f"# load average {os.getloadavg()[0]:.1f} at the end")
     return 0
+
+
+def batch_report(args, overrides: list[str], cfg: DictConfig, seq, plain: dict) -> None:
+    """Lockstep B in one process (1 and 2 torch threads) vs B=1 and vs two parallel B=1 processes."""
+    b = args.batch
+    rows = []
+    for threads in (1, 2):
+        torch.set_num_threads(threads)
+        rows.append((f"B={b} lockstep, 1 process, {threads} thread(s)", median_of(3, lambda: run(cfg, [seq] * b))))
+    torch.set_num_threads(args.threads)
+    procs = parallel_processes(args, overrides, 2, b // 2)
+    rows.append((f"{b} sequences as 2 parallel B=1 processes ({b // 2} each, {args.threads} thread each)", procs))
+    print("\n| run | frames | wall s | frames/s (aggregate) | / B=1 | / 2 processes | CPU ms per frame (all threads) |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
+    for name, r in [("B=1, 1 process", plain), *rows]:
+        print(f"| {name} | {r['frames']} | {r['wall_s']:.2f} | **{r['fps']:.1f}** | {r['fps'] / plain['fps']:.2f} | "
+              f"{r['fps'] / procs['fps']:.2f} | {r['cpu_ms']:.1f} |")  # fmt: skip
+    best = max(r["fps"] for _, r in rows[:2])
+    print(f"\nlockstep B={b} (best thread count): {best / plain['fps']:.2f}x B=1 (target >= {TARGET_BATCH:.0f}x: "
+          f"{'met' if best >= TARGET_BATCH * plain['fps'] else 'NOT met'}), {best / procs['fps']:.2f}x two B=1 "
+          f"processes (target >= 1: {'met' if best >= procs['fps'] else 'NOT met'}); B={b} runs: median of 3")  # fmt: skip
+    timed = run(cfg, [seq] * b, instrumented=True)
+    ops = run(cfg, [seq] * b, count_ops=True)
+    print(f"\nstages at B={b} (1 instrumented run, {torch.get_num_threads()} thread):\n\n{stage_table([timed], ops)}")
 
 
 if __name__ == "__main__":

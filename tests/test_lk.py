@@ -251,6 +251,21 @@ def test_flat_entry_point_matches():
     assert (ok == ref.status[0]).all()
 
 
+def test_chunks_track_as_one_call():
+    """Points are tracked in chunks of at most ``chunk`` (cache-sized): each track is independent of the others, so
+    chunks of at most 7 points (four of 6, 6, 6, 4) give exactly the one-call result, outside points included."""
+    i0, i1, pts, _ = warped_pair(np.eye(2), np.array([1.4, -0.7]), n=20)
+    pts = torch.cat([pts[0], torch.tensor([[-3.0, 5.0], [500.0, 2.0]])])  # two points outside the image
+    p0, p1 = build_pyramid(i0, 3), build_pyramid(i1, 3)
+    img = torch.zeros(len(pts), dtype=torch.long)
+    one = lk_track_flat(p0, p1, pts, img, pts + 0.5, chunk=len(pts))
+    chunked = lk_track_flat(p0, p1, pts, img, pts + 0.5, chunk=7)
+    assert one[1].sum() >= 15 and not one[1][-2:].any()
+    assert all(torch.equal(a, b) for a, b in zip(one, chunked, strict=True))
+    with pytest.raises(ValueError, match="chunk"):
+        lk_track_flat(p0, p1, pts, img, pts, chunk=0)
+
+
 # ---------------------------------------------------------------------------------------------- OpenCV on real frames
 @pytest.mark.skipif(not DATA.exists(), reason="needs ../shared/data")
 @pytest.mark.parametrize("seq", ["sun3d_fragment1", "visp_rbt_sequence"])

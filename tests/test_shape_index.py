@@ -235,6 +235,12 @@ def test_batched_equals_looped():
         one = shape_index(d[b : b + 1], Ks[b : b + 1])
         assert torch.equal(one.valid, batched.valid[b : b + 1])
         assert torch.allclose(one.si, batched.si[b : b + 1], atol=1e-6)
+    sim = compute_sim(d, Ks)  # one image at a time (cache-sized temporaries): the same values as the batched map
+    lean = shape_index(d, Ks, curvedness=False)
+    assert torch.equal(sim.si, lean.si) and torch.equal(sim.valid, lean.valid)
+    assert torch.equal(sim.image, sim_image(lean.si))
+    with pytest.raises(ValueError, match="K must be"):
+        compute_sim(d, Ks[:2])
 
 
 def test_module_equals_function():
