@@ -18,7 +18,10 @@ from torchtrack.tracker import Tracker
 
 def build_sequences(data: DictConfig) -> list[TumSequence]:
     """TUM-layout sequences from ``data`` (kind tum: one or several roots; kind synthetic: rendered and cached)."""
-    opts = dict(max_frames=data.max_frames, stride=data.stride)
+    opts = dict(
+        max_frames=data.max_frames, stride=data.stride, on_bad_frame=data.on_bad_frame,
+        min_depth_fraction=data.min_depth_fraction, max_bad_fraction=data.max_bad_fraction,
+    )  # fmt: skip
     if data.kind == "synthetic":
         from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 
