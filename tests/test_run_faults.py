@@ -41,7 +41,9 @@ def copies(rendered, tmp_path):
 
 def outputs(out, name):
     metrics = json.loads((out / name / "metrics.json").read_text())
-    t, T = read_tum_trajectory(out / name / "trajectory.txt") if (out / name / "trajectory.txt").exists() else (None,) * 2
+    t, T = (
+        read_tum_trajectory(out / name / "trajectory.txt") if (out / name / "trajectory.txt").exists() else (None,) * 2
+    )
     return metrics, t, T
 
 
