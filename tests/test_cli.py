@@ -36,6 +36,7 @@ SYNTH_ATE_BOUND_M = 0.005
 # Values the data schema refuses when composing (types) or validating (ranges): exit code 2, one line naming the key.
 BAD_VALUES = {"depth_scale": "abc", "max_frames": -1, "stride": 0, "root": "[]"}
 FRAMES_CSV_COLUMNS = ["frame", "timestamp", "features", "sim_wins", "reprojection_px", "mean_tim_px", "reselected"]
+FRAMES_CSV_COLUMNS += ["lost", "relocalised", "interrupted"]  # the loss check (torchtrack.relocalise)
 
 
 def cli_command() -> list[str]:
@@ -216,9 +217,10 @@ def read_frames_csv(path: Path) -> dict[str, np.ndarray]:
     header, *rows = [line.split(",") for line in path.read_text().splitlines()]
     assert header == FRAMES_CSV_COLUMNS
     cols = {k: [r[i] for r in rows] for i, k in enumerate(header)}
-    assert set(cols["reselected"]) <= {"True", "False"}
-    out = {k: np.array(v, dtype=np.float64) for k, v in cols.items() if k != "reselected"}
-    out["reselected"] = np.array([v == "True" for v in cols["reselected"]])
+    flags = ("reselected", "lost", "relocalised", "interrupted")
+    assert all(set(cols[k]) <= {"True", "False"} for k in flags)
+    out = {k: np.array(v, dtype=np.float64) for k, v in cols.items() if k not in flags}
+    out.update({k: np.array([v == "True" for v in cols[k]]) for k in flags})
     return out
 
 
@@ -257,8 +259,17 @@ def test_metrics_json_every_field(any_run):
         "mean_features": float(f["features"].mean()),
         **trajectory_metrics(ts, T, T_gt[:FRAMES]),
     }
-    assert set(m) == set(expect) | {"fps", "complete", "dropped_frames", "dropped_timestamps"}
+    faults = {
+        "complete",
+        "dropped_frames",
+        "dropped_timestamps",
+        "lost_frames",
+        "relocalisations",
+        "interrupted_frames",
+    }
+    assert set(m) == set(expect) | {"fps"} | faults
     assert m["complete"] is True and m["dropped_frames"] == 0 and m["dropped_timestamps"] == []
+    assert m["lost_frames"] == f["lost"].sum() == 0 and m["relocalisations"] == m["interrupted_frames"] == 0
     assert 0 < m["fps"] < 1e4
     assert m["frames_with_gt"] == FRAMES
     for k, v in expect.items():

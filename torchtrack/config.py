@@ -279,6 +279,25 @@ class PipelineConfig:
     record: bool = False  # compute every frame's per-feature cues (torchtrack-record)
 
 
+@dataclass
+class RelocaliseConfig:
+    """:class:`torchtrack.relocalise.Relocaliser`: the loss check after each frame and relocalisation by ORB matches
+    against recent model frames + PnP RANSAC (the tracker's ``relocaliser``)."""
+
+    _target_: str = "torchtrack.relocalise.Relocaliser"
+    recover: bool = True  # improvement (false = paper: lost frames are only marked and warned about): relocalise
+    min_survival: float = 0.25  # lost: fewer than this fraction of the previous frame's features tracked with depth
+    max_rejected: float = 0.95  # ... or the filter rejected more than this fraction of them
+    max_pos_std: float = 0.01  # m, ... or the posterior position std exceeds this
+    keyframes: int = 8  # recent model frames kept per sequence
+    orb_features: int = 1000
+    ratio: float = 0.8  # Lowe's ratio test
+    reprojection_px: float = 3.0  # RANSAC inlier threshold
+    min_inliers: int = 30  # a relocalisation is accepted with at least this many inliers
+    agree_m: float = 0.02  # a relocalised pose this close to the tracked one confirms it
+    agree_deg: float = 2.0
+
+
 SCHEMAS: dict[str, dict[str, type]] = {
     "data": {"tum": TumDataConfig, "synthetic": SyntheticDataConfig},
     "region": {"region": RegionConfig},
@@ -290,6 +309,7 @@ SCHEMAS: dict[str, dict[str, type]] = {
     "tracker": {"ekf": EKFBackendConfig, "registration": RegistrationBackendConfig},
     "estimator": {"icp": ICPConfig, "cpd": CPDConfig, "horn": HornConfig},
     "pipeline": {"pipeline": PipelineConfig},
+    "relocalise": {"relocalise": RelocaliseConfig},
 }
 
 

@@ -55,4 +55,10 @@ def build_tracker(cfg: DictConfig, *, record: bool = False) -> Tracker:
         weighting=instantiate(cfg.weighting),
         backend=instantiate(cfg.tracker),
         record=record or cfg.pipeline.record,
+        relocaliser=build_relocaliser(cfg),
     )
+
+
+def build_relocaliser(cfg: DictConfig):
+    """The tracker's loss check (:class:`torchtrack.relocalise.Relocaliser`) from ``cfg.relocalise``, if any."""
+    return instantiate(cfg.relocalise) if "relocalise" in cfg else None

@@ -67,6 +67,7 @@ class Recorder:
                 "reprojection_px": float(res.reprojection_error[b]),
                 "mean_tim_px": float(res.d_tim[b][res.valid[b]].mean()) if res.valid[b].any() else 0.0,
                 "reselected": bool(res.reselected[b]),
+                **self._loss(b, i, res.loss),
             }
         )
         if i in self.snapshots:
@@ -83,6 +84,30 @@ class Recorder:
                     f"{self.sequence.name} #{i}",
                 )  # fmt: skip
             )
+
+    def _loss(self, b: int, i: int, loss) -> dict:
+        """frames.csv's loss columns for sequence b at frame i (all False without a relocaliser); a warning when lost."""
+        if loss is None:
+            return {"lost": False, "relocalised": False, "interrupted": False}
+        lost, reloc, interrupted = bool(loss.lost[b]), bool(loss.relocalised[b]), bool(loss.interrupted[b])
+        if lost:
+            h = loss.health
+            why = f"survival {float(h.survival[b]):.2f}, rejected {float(h.rejected[b]):.2f}, pos std {float(h.pos_std[b]):.3g} m"
+            then = (
+                f"relocalised ({int(loss.inliers[b])} inliers)" if reloc
+                else "not relocalised: trajectory interrupted" if interrupted
+                else f"the tracked pose confirmed ({int(loss.inliers[b])} inliers)" if int(loss.inliers[b]) > 0
+                else "no recovery (relocalise.recover=false)"
+            )  # fmt: skip
+            log.warning("%s: frame %d: tracking lost (%s); %s", self.sequence.name, i, why, then)
+        elif reloc:
+            log.warning(
+                "%s: frame %d: relocalised (%d inliers), trajectory resumes",
+                self.sequence.name,
+                i,
+                int(loss.inliers[b]),
+            )
+        return {"lost": lost, "relocalised": reloc, "interrupted": interrupted}
 
     def finish(
         self, elapsed_s: float, plots: bool = True, *, dropped: list[DroppedFrame] = (), failure: str | None = None
@@ -106,17 +131,21 @@ class Recorder:
         from torchtrack.metrics import trajectory_metrics
 
         seq, out, n = self.sequence, self.out_dir, len(self.rows)
-        ts = np.array([r["timestamp"] for r in self.rows])
-        T_est = np.stack(self.poses)
+        trusted = np.array([not r["interrupted"] for r in self.rows])  # interrupted poses are not written
+        ts = np.array([r["timestamp"] for r in self.rows])[trusted]
+        T_est = np.stack(self.poses)[trusted]
         write_tum_trajectory(out / "trajectory.txt", ts, T_est)
         metrics = {
+            "lost_frames": int(sum(r["lost"] for r in self.rows)),
+            "relocalisations": int(sum(r["relocalised"] for r in self.rows)),
+            "interrupted_frames": int((~trusted).sum()),
             "fps": n / max(elapsed_s, 1e-9),
             "reselections": int(sum(r["reselected"] for r in self.rows[1:])),
             "mean_reprojection_px": float(np.mean([r["reprojection_px"] for r in self.rows])),
             "mean_features": float(np.mean([r["features"] for r in self.rows])),
         }
         self._write_csv(out / "frames.csv")
-        idx = np.array([r["frame"] for r in self.rows])  # dropped frames leave gaps
+        idx = np.array([r["frame"] for r in self.rows])[trusted]  # dropped and interrupted frames leave gaps
         gt_valid = np.asarray(seq.gt_valid)[idx]
         if gt_valid.sum() >= 3:
             metrics.update(trajectory_metrics(ts, T_est, np.asarray(seq.groundtruth)[idx], gt_valid))
@@ -132,7 +161,7 @@ class Recorder:
     def _plots(self, T_est: np.ndarray, gt_valid: np.ndarray, idx: np.ndarray) -> None:
         from torchtrack.viz.plots import plot_trajectory
 
-        ts = np.array([r["timestamp"] for r in self.rows])
+        ts = np.array([r["timestamp"] for r in self.rows if not r["interrupted"]])
         gt = np.asarray(self.sequence.groundtruth)[idx] if gt_valid.any() else None
         plot_trajectory(
             self.out_dir / "trajectory.png", T_est, gt, title=self.sequence.name, timestamps=ts, gt_valid=gt_valid
