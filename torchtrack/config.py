@@ -290,6 +290,7 @@ class RelocaliseConfig:
     max_rejected: float = 0.95  # ... or the filter rejected more than this fraction of them
     max_pos_std: float = 0.01  # m, ... or the posterior position std exceeds this
     keyframes: int = 8  # recent model frames kept per sequence
+    store_every: int = 10  # ... plus a tracked frame whenever this many passed since the last one stored
     orb_features: int = 1000
     ratio: float = 0.8  # Lowe's ratio test
     reprojection_px: float = 3.0  # RANSAC inlier threshold

@@ -3,9 +3,10 @@
 After each frame the tracker's result is checked (:func:`frame_health`): the fraction of the previous frame's
 features that LK still tracked with depth, the fraction of those the filter rejected (gate, refit), and the
 posterior position standard deviation. A frame failing a threshold is ``lost``. A lost sequence is relocalised:
-ORB features of the current frame are matched (Hamming, ratio test) against those of its recent model frames, whose
-3D points in the tracker's world were stored when they were taken, and the camera pose follows from PnP with RANSAC
-(OpenCV), refined on the inliers and verified by the inlier count. Where it agrees with the tracked pose nothing
+ORB features of the current frame are matched (Hamming, ratio test) against those of its recent model frames (and
+a tracked frame every ``store_every`` frames), whose 3D points in the tracker's world were stored when they were
+taken, and the camera pose follows from PnP with RANSAC (OpenCV), refined on the inliers and verified by the inlier
+count. Where it agrees with the tracked pose nothing
 changes; where it differs, the sequence takes a new model at the relocalised pose. Where it fails, the frame's pose
 is not trusted (``interrupted``) and every following frame tries again until one relocalises; interrupted frames
 never become model frames of the store.
@@ -118,6 +119,8 @@ class Relocaliser:
         max_rejected: ... or when the filter rejected more than this fraction of them.
         max_pos_std: m, ... or when the posterior position standard deviation exceeds this.
         keyframes: recent model frames kept per sequence for matching.
+        store_every: a tracked frame also enters the store when this many frames passed since the last one stored
+            (a model can last long: the store must stay recent).
         orb_features: ORB keypoints per image.
         ratio: Lowe's ratio test on the two nearest descriptors.
         reprojection_px: RANSAC inlier threshold.
@@ -133,6 +136,7 @@ class Relocaliser:
         max_rejected: float = 0.95,
         max_pos_std: float = 0.01,
         keyframes: int = 8,
+        store_every: int = 10,
         orb_features: int = 1000,
         ratio: float = 0.8,
         reprojection_px: float = 3.0,
@@ -142,11 +146,12 @@ class Relocaliser:
     ) -> None:
         self.recover = recover
         self.min_survival, self.max_rejected, self.max_pos_std = min_survival, max_rejected, max_pos_std
-        self.keyframes, self.n_orb, self.ratio = keyframes, orb_features, ratio
+        self.keyframes, self.store_every, self.n_orb, self.ratio = keyframes, store_every, orb_features, ratio
         self.reprojection_px, self.min_inliers = reprojection_px, min_inliers
         self.agree_m, self.agree_rad = agree_m, float(np.deg2rad(agree_deg))
         self.store: list[deque[Keyframe]] = []
         self.interrupted: Tensor | None = None
+        self.since_stored: Tensor | None = None  # (B,) frames since each sequence's last stored frame
 
     def __call__(self, tracker, n_prev: Tensor | None, frame, result):
         """Check the frame ``result`` (a StepResult) that ``tracker`` just produced from ``frame``; relocalise the
@@ -158,6 +163,7 @@ class Relocaliser:
         if len(self.store) != B:
             self.store = [deque(maxlen=self.keyframes) for _ in range(B)]
             self.interrupted = torch.zeros(B, dtype=torch.bool)
+            self.since_stored = torch.full((B,), self.store_every, dtype=torch.long)
         zeros = torch.zeros(B)
         health = frame_health(n_prev, result) if result.observation is not None else Health(zeros + 1, zeros, zeros)
         lost = frame.active & (
@@ -184,9 +190,12 @@ class Relocaliser:
                 result, T_world_cam=torch.where(m3, s.T_world_cam, result.T_world_cam),
                 T_cam_obj=torch.where(m3, s.T_cam_obj, result.T_cam_obj), reselected=result.reselected | relocalised,
             )  # fmt: skip
-        keep = frame.active & result.reselected & ~self.interrupted & (~lost | relocalised) & self.recover
+        self.since_stored += frame.active.long()
+        due = result.reselected | (self.since_stored >= self.store_every)
+        keep = frame.active & due & ~self.interrupted & (~lost | relocalised) & self.recover
         for b in keep.nonzero()[:, 0].tolist():
             self._store(tracker, frame, b, result.T_world_cam[b])
+            self.since_stored[b] = 0
         check = LossCheck(lost, relocalised, self.interrupted & frame.active, inliers, health)
         return replace(result, loss=check)
 
