@@ -93,8 +93,7 @@ def test_mismatched_image_sizes_raise(tmp_path):
 def test_load_error_surfaces_at_its_step(three_sequences):
     bad = three_sequences[1].rgb_paths[2]
     bad.write_bytes(b"corrupt")
-    three_sequences[1].on_bad_frame = "error"  # strict: the first bad frame fails the sequence
-    it = iterate_batched(three_sequences, prefetch=True)
+    it = iterate_batched(three_sequences, prefetch=True)  # no cursors: strict, the first bad frame raises
     assert [int(next(it).index.max()) for _ in range(2)] == [0, 1]
     with pytest.raises(DataError, match=f"^{bad}.*corrupt colour image"):
         next(it)
@@ -162,7 +161,9 @@ def test_too_many_bad_frames_fail_the_sequence_and_isolate_keeps_the_others(tmp_
     seqs = [TumSequence(write_sequence(tmp_path / f"s{k}", 6, seed=k), max_bad_fraction=0.25) for k in range(2)]
     _break_frames(seqs[0], {1: "zero_depth", 3: "zero_depth"})  # 2 > 0.25 * 6
     with pytest.raises(DataError, match=r"^s0: 2 bad frames, more than max_bad_fraction=0.25 of its 6; the last: "):
-        list(iterate_batched(seqs, prefetch=False))
+        list(iterate_batched(seqs, prefetch=False, cursors=[FrameCursor(s) for s in seqs]))
+    with pytest.raises(DataError, match=f"^{seqs[0].depth_paths[1]}: depth image has no valid pixel"):
+        list(iterate_batched(seqs, prefetch=False))  # no cursors: strict
     cursors = [FrameCursor(s, isolate=True) for s in seqs]
     batches = list(iterate_batched(seqs, cursors=cursors))
     assert [b.active.tolist() for b in batches] == [[True, True], [True, True]] + [[False, True]] * 4

@@ -71,14 +71,14 @@ class FrameCursor:
     image, wrong bit depth or size, too little depth) is dropped with one warning line, as a sensor drops a frame.
 
     The policy comes from the sequence (attributes of :class:`~torchtrack.data.tum.TumSequence`, with these
-    defaults): ``on_bad_frame`` "drop" | "error" (the first bad frame fails the sequence), ``max_bad_fraction``
-    (more bad frames than this fraction of the sequence fail it). A failure raises, or with ``isolate`` is kept in
+    defaults) unless given: ``on_bad_frame`` "drop" | "error" (the first bad frame fails the sequence),
+    ``max_bad_fraction`` (more bad frames than this fraction of the sequence fail it). A failure raises, or with ``isolate`` is kept in
     ``failure`` (one line) and ends the cursor, so that the other sequences of a batch go on.
     """
 
-    def __init__(self, sequence: RGBDSequence, *, isolate: bool = False) -> None:
+    def __init__(self, sequence: RGBDSequence, *, isolate: bool = False, on_bad_frame: str | None = None) -> None:
         self.sequence, self.isolate = sequence, isolate
-        self.on_bad_frame = getattr(sequence, "on_bad_frame", "drop")
+        self.on_bad_frame = on_bad_frame or getattr(sequence, "on_bad_frame", "drop")
         self.max_bad_fraction = float(getattr(sequence, "max_bad_fraction", 1.0))
         self.next, self.dropped, self.failure = 0, [], None
 
@@ -133,8 +133,9 @@ def iterate_batched(
 
     Each step takes every sequence's next usable frame (:class:`FrameCursor`: bad frames are dropped, so a
     sequence's ``index`` can skip). A sequence that has ended (or failed) is inactive (``active`` False) and repeats
-    its last frame (not reloaded). ``cursors`` (one per sequence) lets the caller see drops and failures; by default
-    a failure raises at the step that needs the frame. With ``prefetch`` a thread pool (``num_workers``, default
+    its last frame (not reloaded). ``cursors`` (one per sequence) lets the caller see drops and failures; without
+    them every frame is strict (``on_bad_frame="error"``: indices never skip) and a failure raises at the step
+    that needs the frame. With ``prefetch`` a thread pool (``num_workers``, default
     min(B, cpu count)) decodes and validates step t + 1 while the caller works on step t; OpenCV's decoders release
     the GIL, so decoding overlaps compute.
     """
@@ -143,7 +144,7 @@ def iterate_batched(
     for s in sequences:
         if len(s) == 0:
             raise DataError(f"{s.name}: sequence has no frames")
-    cursors = list(cursors) if cursors is not None else [FrameCursor(s) for s in sequences]
+    cursors = list(cursors) if cursors is not None else [FrameCursor(s, on_bad_frame="error") for s in sequences]
     last: list[RGBDFrame | None] = [None] * len(sequences)
 
     def batch(got: list[RGBDFrame | None]) -> FrameBatch | None:
