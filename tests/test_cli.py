@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -35,6 +36,7 @@ SYNTH_ATE_BOUND_M = 0.005
 # Values the data schema refuses when composing (types) or validating (ranges): exit code 2, one line naming the key.
 BAD_VALUES = {"depth_scale": "abc", "max_frames": -1, "stride": 0, "root": "[]"}
 FRAMES_CSV_COLUMNS = ["frame", "timestamp", "features", "sim_wins", "reprojection_px", "mean_tim_px", "reselected"]
+FRAMES_CSV_COLUMNS += ["lost", "relocalised", "interrupted"]  # the loss check (torchtrack.relocalise)
 
 
 def cli_command() -> list[str]:
@@ -64,6 +66,20 @@ def sequence_dirs(out: Path) -> list[Path]:
     return sorted(p for p in out.iterdir() if p.is_dir() and not p.name.startswith("."))
 
 
+def broken_copies(base: Path) -> tuple[Path, Path]:
+    """Copies of the castle sequence: one with a corrupt colour frame 6, one with a NaN in its ground truth."""
+    broken, nan_gt = base / "castle_broken", base / "castle_nan_gt"
+    for root in (broken, nan_gt):
+        shutil.copytree(CASTLE, root)
+    rgb = [ln.split()[1] for ln in (broken / "rgb.txt").read_text().splitlines() if ln and not ln.startswith("#")]
+    (broken / rgb[6]).write_bytes(b"corrupt")
+    lines = (nan_gt / "groundtruth.txt").read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if ln and not ln.startswith("#"))
+    lines[k + 2] = " ".join(lines[k + 2].split()[:4] + ["nan"] + lines[k + 2].split()[5:])
+    (nan_gt / "groundtruth.txt").write_text("\n".join(lines) + "\n")
+    return broken, nan_gt
+
+
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory) -> Iterator[dict[str, Future]]:
     """All CLI runs of this module, started together (each pays the CLI's start-up; they overlap).
@@ -82,6 +98,10 @@ def runs(tmp_path_factory) -> Iterator[dict[str, Future]]:
     }
     if (CASTLE / "rgb.txt").is_file():
         jobs["castle"] = ["data=tum", f"data.root={CASTLE}", f"data.max_frames={FRAMES}", "plots=false"]
+        broken, nan_gt = broken_copies(base)
+        jobs["broken_batch"] = ["data=tum", f"data.root=[{CASTLE},{broken}]", f"data.max_frames={FRAMES}", "plots=false",
+                                "data.on_bad_frame=error"]  # fmt: skip
+        jobs["nan_gt"] = ["data=tum", f"data.root={nan_gt}", f"data.max_frames={FRAMES}", "plots=false"]
     cache.mkdir()
     (base / "empty").mkdir()
 
@@ -197,9 +217,10 @@ def read_frames_csv(path: Path) -> dict[str, np.ndarray]:
     header, *rows = [line.split(",") for line in path.read_text().splitlines()]
     assert header == FRAMES_CSV_COLUMNS
     cols = {k: [r[i] for r in rows] for i, k in enumerate(header)}
-    assert set(cols["reselected"]) <= {"True", "False"}
-    out = {k: np.array(v, dtype=np.float64) for k, v in cols.items() if k != "reselected"}
-    out["reselected"] = np.array([v == "True" for v in cols["reselected"]])
+    flags = ("reselected", "lost", "relocalised", "interrupted")
+    assert all(set(cols[k]) <= {"True", "False"} for k in flags)
+    out = {k: np.array(v, dtype=np.float64) for k, v in cols.items() if k not in flags}
+    out.update({k: np.array([v == "True" for v in cols[k]]) for k in flags})
     return out
 
 
@@ -238,7 +259,17 @@ def test_metrics_json_every_field(any_run):
         "mean_features": float(f["features"].mean()),
         **trajectory_metrics(ts, T, T_gt[:FRAMES]),
     }
-    assert set(m) == set(expect) | {"fps"}
+    faults = {
+        "complete",
+        "dropped_frames",
+        "dropped_timestamps",
+        "lost_frames",
+        "relocalisations",
+        "interrupted_frames",
+    }
+    assert set(m) == set(expect) | {"fps"} | faults
+    assert m["complete"] is True and m["dropped_frames"] == 0 and m["dropped_timestamps"] == []
+    assert m["lost_frames"] == f["lost"].sum() == 0 and m["relocalisations"] == m["interrupted_frames"] == 0
     assert 0 < m["fps"] < 1e4
     assert m["frames_with_gt"] == FRAMES
     for k, v in expect.items():
@@ -246,3 +277,29 @@ def test_metrics_json_every_field(any_run):
             assert m[k] == pytest.approx(v, rel=1e-4, abs=1e-7), k
         else:
             assert m[k] == v, k
+
+
+def test_batch_with_a_broken_sequence_writes_the_healthy_one_and_exits_non_zero(runs):
+    proc, out, _ = result(runs, "broken_batch")
+    healthy, broken = (
+        json.loads((out / name / "metrics.json").read_text()) for name in ("visp_castle_simu", "castle_broken")
+    )
+    _, alone, _ = result(runs, "castle")
+    assert proc.returncode == 1
+    assert healthy["complete"] and healthy["frames"] == FRAMES
+    assert (out / "visp_castle_simu" / "trajectory.txt").read_text() == (
+        alone / "visp_castle_simu" / "trajectory.txt"
+    ).read_text()
+    assert not broken["complete"] and broken["frames"] == 6 and "corrupt colour image" in broken["error"]
+    assert len(read_tum_strict(out / "castle_broken" / "trajectory.txt")[0]) == 6
+    failed = [ln for ln in (proc.stdout + proc.stderr).splitlines() if "FAILED" in ln]
+    assert len(failed) == 1 and "castle_broken after 6 frames" in failed[0] and "Traceback" not in proc.stderr
+
+
+def test_nan_in_groundtruth_is_a_clear_error_before_tracking(runs):
+    proc, out, _ = result(runs, "nan_gt")
+    text = (proc.stdout + proc.stderr).strip()
+    assert proc.returncode == 2 and "Traceback" not in text, text
+    lines = [line for line in text.splitlines() if line.strip()]
+    assert len(lines) == 1 and "castle_nan_gt/groundtruth.txt:" in lines[0] and "non-finite value" in lines[0], text
+    assert not (out / "castle_nan_gt").exists()

@@ -19,6 +19,7 @@ from torchtrack.config import (
     FlowConfig,
     PaperWeightingConfig,
     PipelineConfig,
+    RelocaliseConfig,
     validate,
 )
 from torchtrack.data.errors import DataError
@@ -111,7 +112,7 @@ def differences(schema: type) -> dict[str, tuple]:
 # Where +experiment=paper puts each schema's node (with the choices that use it).
 PAPER_NODES = {
     PipelineConfig: ("pipeline", ()), FlowConfig: ("flow", ()), EKFBackendConfig: ("tracker", ()),
-    PaperWeightingConfig: ("weighting", ("weighting=paper",)),
+    PaperWeightingConfig: ("weighting", ("weighting=paper",)), RelocaliseConfig: ("relocalise", ()),
 }  # fmt: skip
 
 

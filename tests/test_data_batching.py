@@ -9,7 +9,15 @@ import numpy as np
 import pytest
 import torch
 
-from torchtrack.data import DataError, FrameBatch, SequenceBatch, TumSequence, iterate_batched, write_tum_trajectory
+from torchtrack.data import (
+    DataError,
+    FrameBatch,
+    FrameCursor,
+    SequenceBatch,
+    TumSequence,
+    iterate_batched,
+    write_tum_trajectory,
+)
 from torchtrack.geometry import make_T, so3_exp
 
 
@@ -85,7 +93,7 @@ def test_mismatched_image_sizes_raise(tmp_path):
 def test_load_error_surfaces_at_its_step(three_sequences):
     bad = three_sequences[1].rgb_paths[2]
     bad.write_bytes(b"corrupt")
-    it = iterate_batched(three_sequences, prefetch=True)
+    it = iterate_batched(three_sequences, prefetch=True)  # no cursors: strict, the first bad frame raises
     assert [int(next(it).index.max()) for _ in range(2)] == [0, 1]
     with pytest.raises(DataError, match=f"^{bad}.*corrupt colour image"):
         next(it)
@@ -97,3 +105,77 @@ def test_early_stop_and_bad_input(three_sequences):
     it.close()  # must not hang on the pending prefetch
     with pytest.raises(ValueError, match="at least one sequence"):
         next(iterate_batched([]))
+
+
+def _break_frames(seq: TumSequence, kinds: dict[int, str]) -> None:
+    """Make frame i of ``seq`` bad in the way ``kinds[i]`` says."""
+    H, W = seq[0].rgb.shape[1:]
+    for i, kind in kinds.items():
+        if kind == "corrupt_rgb":
+            seq.rgb_paths[i].write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+        elif kind == "unreadable_depth":
+            seq.depth_paths[i].write_bytes(b"")
+        elif kind == "8bit_depth":
+            cv2.imwrite(str(seq.depth_paths[i]), np.full((H, W), 9, np.uint8))
+        elif kind == "zero_depth":
+            cv2.imwrite(str(seq.depth_paths[i]), np.zeros((H, W), np.uint16))
+        elif kind == "little_depth":
+            d = np.zeros((H, W), np.uint16)
+            d[0, 0] = 1000
+            cv2.imwrite(str(seq.depth_paths[i]), d)
+        elif kind == "rgb_size":
+            cv2.imwrite(str(seq.rgb_paths[i]), np.zeros((H + 1, W, 3), np.uint8))
+
+
+@pytest.mark.parametrize("prefetch", [True, False])
+def test_bad_frames_are_dropped_with_one_warning_each(tmp_path, prefetch, caplog):
+    seq = TumSequence(write_sequence(tmp_path / "s", 9), min_depth_fraction=0.05, max_bad_fraction=0.7)
+    kinds = {
+        1: "corrupt_rgb",
+        2: "unreadable_depth",
+        4: "8bit_depth",
+        5: "zero_depth",
+        6: "little_depth",
+        8: "rgb_size",
+    }
+    good = [seq[i] for i in range(9) if i not in kinds]
+    _break_frames(seq, kinds)
+    cursor = FrameCursor(seq)
+    batches = list(iterate_batched([seq], prefetch=prefetch, cursors=[cursor]))
+    assert [int(b.index[0]) for b in batches] == [0, 3, 7] and all(bool(b.active[0]) for b in batches)
+    for b, f in zip(batches, good, strict=True):
+        assert torch.equal(b.rgb[0], f.rgb) and torch.equal(b.depth[0], f.depth) and b.timestamp[0] == f.timestamp
+    assert [d.index for d in cursor.dropped] == sorted(kinds)
+    assert [d.timestamp for d in cursor.dropped] == [float(seq.timestamps[i]) for i in sorted(kinds)]
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warned) == len(kinds)
+    reasons = ["corrupt colour", "corrupt depth", "16-bit, got 8-bit", "no valid pixel", "of the pixels have depth",
+               "colour image size"]  # fmt: skip
+    paths = [seq.rgb_paths[1], seq.depth_paths[2], seq.depth_paths[4], seq.depth_paths[5], seq.depth_paths[6],
+             seq.rgb_paths[8]]  # fmt: skip
+    for m, reason, path in zip(warned, reasons, paths, strict=True):
+        assert m.startswith("s: frame ") and f"dropped: {path}: " in m and reason in m and "\n" not in m
+
+
+def test_too_many_bad_frames_fail_the_sequence_and_isolate_keeps_the_others(tmp_path):
+    seqs = [TumSequence(write_sequence(tmp_path / f"s{k}", 6, seed=k), max_bad_fraction=0.25) for k in range(2)]
+    _break_frames(seqs[0], {1: "zero_depth", 3: "zero_depth"})  # 2 > 0.25 * 6
+    with pytest.raises(DataError, match=r"^s0: 2 bad frames, more than max_bad_fraction=0.25 of its 6; the last: "):
+        list(iterate_batched(seqs, prefetch=False, cursors=[FrameCursor(s) for s in seqs]))
+    with pytest.raises(DataError, match=f"^{seqs[0].depth_paths[1]}: depth image has no valid pixel"):
+        list(iterate_batched(seqs, prefetch=False))  # no cursors: strict
+    cursors = [FrameCursor(s, isolate=True) for s in seqs]
+    batches = list(iterate_batched(seqs, cursors=cursors))
+    assert [b.active.tolist() for b in batches] == [[True, True], [True, True]] + [[False, True]] * 4
+    assert "more than max_bad_fraction" in cursors[0].failure and cursors[1].failure is None
+    assert [int(b.index[1]) for b in batches] == list(range(6)) and int(batches[-1].index[0]) == 2
+
+
+def test_sequence_failing_before_its_first_frame_is_inactive(tmp_path):
+    seqs = [TumSequence(write_sequence(tmp_path / f"s{k}", 3, seed=k), on_bad_frame="error") for k in range(2)]
+    _break_frames(seqs[1], {0: "corrupt_rgb"})
+    cursors = [FrameCursor(s, isolate=True) for s in seqs]
+    batches = list(iterate_batched(seqs, cursors=cursors))
+    assert [b.active.tolist() for b in batches] == [[True, False]] * 3
+    assert batches[0].index.tolist() == [0, -1] and not batches[0].rgb[1].any() and not batches[0].depth[1].any()
+    assert cursors[1].failure.startswith(f"{seqs[1].rgb_paths[0]}: ") and cursors[1].dropped == []

@@ -148,15 +148,26 @@ def test_camera_presets_published_values():
         get_camera("fr9")
 
 
-def test_intrinsics_priority(tmp_path):
+def test_intrinsics_priority(tmp_path, caplog):
     t = np.arange(2) / 30.0
     root = write_sequence(tmp_path / "s", t, intrinsics="100 101 4 3 1000")
-    seq = TumSequence(root, camera="fr1", intrinsics=(1, 1, 1, 1), depth_scale=7.0)
+    seq = TumSequence(root, camera="fr1")
     assert seq.K.tolist() == [[100, 0, 4], [0, 101, 3], [0, 0, 1]] and seq.depth_scale == 1000.0
-    assert seq.K.dtype == torch.float32 and torch.equal(seq.K_depth, seq.K)
+    assert seq.K.dtype == torch.float32 and torch.equal(seq.K_depth, seq.K) and not caplog.records
+    seq = TumSequence(root, camera="fr1", intrinsics=(1, 2, 1, 1), depth_scale=7.0)  # explicit values win, logged
+    assert seq.K.tolist() == [[1, 0, 1], [0, 2, 1], [0, 0, 1]] and seq.depth_scale == 7.0
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warned) == 2 and all(m.startswith(f"{root / 'intrinsics.txt'}: explicit") for m in warned)
+    assert "[1.0, 2.0, 1.0, 1.0] override the file's [100.0, 101.0, 4.0, 3.0]" in warned[0]
+    assert "depth_scale 7 overrides the file's 1000" in warned[1]
+    caplog.clear()
+    TumSequence(root, intrinsics=(100, 101, 4, 3), depth_scale=1000)  # agreeing values: nothing to say
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]
     (root / "intrinsics.txt").unlink()
-    seq = TumSequence(root, camera="fr1", intrinsics=(1, 1, 1, 1))
+    seq = TumSequence(root, camera="fr1")
     assert torch.allclose(seq.K, CAMERAS["fr1"].K) and seq.depth_scale == 5000.0
+    seq = TumSequence(root, camera="fr1", intrinsics=(1, 1, 1, 1))
+    assert seq.K[0, 0] == 1 and seq.depth_scale == 5000.0
     seq = TumSequence(root, camera="fr1", depth_scale=1000.0)
     assert seq.depth_scale == 1000.0
     seq = TumSequence(root, intrinsics=(200, 201, 4, 3))
@@ -272,8 +283,32 @@ def test_error_depth_not_16_bit_or_empty(tmp_path):
     with _raises_naming(seq.depth_paths[1], "no valid pixel"):
         seq[1]
     cv2.imwrite(str(seq.depth_paths[2]), np.ones((3, 4), np.uint16))
-    with _raises_naming(seq.depth_paths[2], "differs from colour"):
-        seq[2]
+    with _raises_naming(seq.depth_paths[2], r"depth size \(3, 4\) differs from colour \(4, 4\)"):
+        seq[2]  # frames 0 and 1 were bad: the sequence's size is not known yet
+
+
+def test_size_change_blames_the_file_that_changed(tmp_path):
+    seq = TumSequence(write_sequence(tmp_path / "s", np.arange(3) / 30.0, H=4, W=4))
+    seq[0]
+    cv2.imwrite(str(seq.rgb_paths[1]), np.ones((5, 4, 3), np.uint8))  # one colour frame changes size
+    with _raises_naming(seq.rgb_paths[1], r"colour image size \(5, 4\) differs from the sequence's \(4, 4\)"):
+        seq[1]
+    fresh = TumSequence(seq.root)  # size not known yet: both files named
+    cv2.imwrite(str(seq.rgb_paths[0]), np.ones((5, 4, 3), np.uint8))
+    with pytest.raises(DataError, match=r"depth size \(4, 4\) differs from colour \(5, 4\)"):
+        fresh[0]
+
+
+def test_too_little_depth_is_an_error_at_load(tmp_path):
+    seq = TumSequence(write_sequence(tmp_path / "s", np.arange(2) / 30.0, H=10, W=10), min_depth_fraction=0.05)
+    d = np.zeros((10, 10), np.uint16)
+    d[0, :4] = 1000  # 4 % of the pixels
+    cv2.imwrite(str(seq.depth_paths[1]), d)
+    seq[0]
+    with _raises_naming(seq.depth_paths[1], r"only 4.00% of the pixels have depth \(min_depth_fraction=0.05\)"):
+        seq[1]
+    seq.min_depth_fraction = 0.04
+    assert seq[1].depth.count_nonzero() == 4
 
 
 # ----------------------------------------------------------------------------------------------- trajectory IO
@@ -365,3 +400,53 @@ def test_real_sequence_depth_warp_with_groundtruth(name, frames, scale, k, gt_bo
     med = {m: float(np.median([r[m] for r in res])) for m in res[0]}
     assert med["gt"] < gt_bound, med
     assert med["gt"] < 0.5 * min(med["identity"], med["inverted"], med["reversed"]), med
+
+
+# ----------------------------------------------------------------------------------------------- validation at load
+
+
+@pytest.mark.parametrize(
+    "row, match",
+    [
+        ("0.0 nan 2 3 0 0 0 1", "non-finite value in '0.0 nan 2 3 0 0 0 1'"),
+        ("0.0 1 2 inf 0 0 0 1", "non-finite value"),
+        ("0.0 1 2 3 0 0 nan 1", "non-finite value"),
+        ("0.0 1 2 3 0 0 0.5 1", r"quaternion not of unit norm \(1.11803\)"),
+        ("0.0 1 2 3 0 0 0 0", "zero quaternion"),
+    ],
+)
+def test_groundtruth_bad_rows_named_by_file_and_line(tmp_path, row, match):
+    root = write_sequence(tmp_path / "s", np.arange(2) / 30.0)
+    good = "0.5 1 2 3 0 0 0 1"
+    (root / "groundtruth.txt").write_text(f"# header\n{good}\n{row}\n{good.replace('0.5', '0.9')}\n")
+    with _raises_naming(root / "groundtruth.txt", f":3: {match}"):
+        TumSequence(root)
+    (root / "groundtruth.txt").write_text(f"{row}\n")  # a bad first row: an error too, not an all-NaN trajectory
+    with _raises_naming(root / "groundtruth.txt", f":1: {match}"):
+        TumSequence(root)
+
+
+def test_rounded_unit_quaternions_are_accepted(tmp_path):
+    root = write_sequence(tmp_path / "s", np.arange(2) / 30.0)
+    (root / "groundtruth.txt").write_text("0.0 1 2 3 0.1826 0.3651 0.5477 0.7303\n")  # 4 decimals: norm 0.99998
+    assert TumSequence(root).gt_valid.tolist() == [True, False]
+
+
+def test_unsorted_and_duplicate_rows_are_ordered_with_warnings(tmp_path, caplog):
+    t = np.arange(5) / 30.0
+    poses = random_poses(5)
+    root = write_sequence(tmp_path / "s", t, gt=(t, poses))
+    reference = TumSequence(root)
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
+        lines = [ln for ln in (root / name).read_text().splitlines() if ln and not ln.startswith("#")]
+        shuffled = [lines[3], lines[0], lines[4], lines[1], lines[1], lines[2], lines[0]]  # unsorted, repeats
+        (root / name).write_text("\n".join(shuffled) + "\n")
+    caplog.clear()
+    seq = TumSequence(root)
+    assert len(seq) == 5 and np.array_equal(seq.timestamps, reference.timestamps)
+    assert seq.rgb_paths == reference.rgb_paths and seq.depth_paths == reference.depth_paths
+    assert np.array_equal(seq.groundtruth, reference.groundtruth) and seq.gt_valid.all()
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
+        assert any(m.startswith(f"{root / name}:2: not sorted by time") for m in warned)
+        assert any(m.startswith(f"{root / name}:") and "2 repeated timestamp(s)" in m for m in warned)

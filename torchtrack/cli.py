@@ -36,7 +36,7 @@ def app(cfg: DictConfig) -> None:
         tracker = build_tracker(cfg)
         log.info("tracking %d sequence(s) into %s", len(sequences), out)
         results = run_tracker(tracker, sequences, out, plots=cfg.plots)
-    except (DataError, FileNotFoundError) as e:
+    except (DataError, OSError) as e:  # bad input or an unwritable output folder, found before tracking
         if HydraConfig.get().mode == RunMode.MULTIRUN:
             raise  # let the launcher record this job's failure and run the others
         log.error("%s", e)
@@ -44,6 +44,11 @@ def app(cfg: DictConfig) -> None:
     for r in results:
         keys = ("frames", "fps", "ate_rmse_m", "rpe_trans_m", "rpe_rot_deg", "reselections")
         log.info("%s: %s", r["sequence"], "  ".join(f"{k}={r[k]:.4g}" for k in keys if k in r))
+    failed = [r for r in results if not r["complete"]]
+    for r in failed:  # one summary line each; their outputs up to the last good frame are written
+        log.error("FAILED %s after %d frames: %s", r["sequence"], r.get("frames", 0), r["error"])
+    if failed:
+        raise SystemExit(1)
 
 
 def main() -> None:

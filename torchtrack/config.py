@@ -42,16 +42,19 @@ class TumDataConfig:
     camera: str | None = None  # fr1 | fr2 | fr3 | kinect_default when there is no intrinsics.txt
     intrinsics: list[float] | None = None  # colour [fx, fy, cx, cy] when neither intrinsics.txt nor camera
     depth_intrinsics: list[float] | None = None  # the depth camera's [fx, fy, cx, cy]; null = the colour ones
-    depth_scale: float | None = None  # depth units per metre (TUM: 5000); intrinsics.txt wins when present
+    depth_scale: float | None = None  # depth units per metre (TUM: 5000); overrides intrinsics.txt (logged)
     max_dt: float = 0.02  # seconds, maximum timestamp difference when associating rgb/depth/groundtruth
     T_color_depth: list[Any] | None = None  # 4x4 depth-to-colour extrinsic; null = registered
     depth_alignment: Any = "none"  # none | auto | [dx, dy] | [dx, dy, s] (see conf/data/tum.yaml)
     intrinsics_camera: str = "colour"  # whose intrinsics the given ones are when a map applies: colour | depth
     max_frames: int | None = None
     stride: int = 1
+    on_bad_frame: str = "drop"  # drop (a warning, the filter predicts through the gap) | error (stop the sequence)
+    min_depth_fraction: float = 0.01  # a frame with fewer pixels with depth than this fraction is bad
+    max_bad_fraction: float = 0.25  # a sequence with more bad frames than this fraction of its frames fails
 
     def __post_init__(self) -> None:
-        _check_common(self.max_frames, self.stride)
+        _check_common(self)
         if self.root is not None and (not isinstance(self.root, (str, list)) or self.root in ("", [])):
             raise DataError(f"data.root must be a folder or a non-empty list of folders, got {self.root!r}")
         if isinstance(self.root, list) and not all(isinstance(r, str) and r for r in self.root):
@@ -79,21 +82,29 @@ class SyntheticDataConfig:
     cache_dir: str = "${oc.env:TORCHTRACK_CACHE,${oc.env:HOME}/.cache/torchtrack}/synthetic"
     max_frames: int | None = None
     stride: int = 1
+    on_bad_frame: str = "drop"  # as TumDataConfig
+    min_depth_fraction: float = 0.01
+    max_bad_fraction: float = 0.25
     scene: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        _check_common(self.max_frames, self.stride)
+        _check_common(self)
 
 
 def _numbers(rows: list) -> bool:
     return all(isinstance(v, (int, float)) and not isinstance(v, bool) for row in rows for v in row)
 
 
-def _check_common(max_frames: int | None, stride: int) -> None:
-    if max_frames is not None and max_frames < 1:
-        raise DataError(f"data.max_frames must be >= 1 (or null for all), got {max_frames}")
-    if stride < 1:
-        raise DataError(f"data.stride must be >= 1, got {stride}")
+def _check_common(data: TumDataConfig | SyntheticDataConfig) -> None:
+    if data.max_frames is not None and data.max_frames < 1:
+        raise DataError(f"data.max_frames must be >= 1 (or null for all), got {data.max_frames}")
+    if data.stride < 1:
+        raise DataError(f"data.stride must be >= 1, got {data.stride}")
+    if data.on_bad_frame not in ("drop", "error"):
+        raise DataError(f"data.on_bad_frame must be drop or error, got {data.on_bad_frame!r}")
+    for key in ("min_depth_fraction", "max_bad_fraction"):
+        if not 0.0 <= getattr(data, key) <= 1.0:
+            raise DataError(f"data.{key} must be in [0, 1], got {getattr(data, key)}")
 
 
 # --- front end --------------------------------------------------------------------------------------------------
@@ -268,6 +279,26 @@ class PipelineConfig:
     record: bool = False  # compute every frame's per-feature cues (torchtrack-record)
 
 
+@dataclass
+class RelocaliseConfig:
+    """:class:`torchtrack.relocalise.Relocaliser`: the loss check after each frame and relocalisation by ORB matches
+    against recent model frames + PnP RANSAC (the tracker's ``relocaliser``)."""
+
+    _target_: str = "torchtrack.relocalise.Relocaliser"
+    recover: bool = True  # improvement (false = paper: lost frames are only marked and warned about): relocalise
+    min_survival: float = 0.25  # lost: fewer than this fraction of the previous frame's features tracked with depth
+    max_rejected: float = 0.95  # ... or the filter rejected more than this fraction of them
+    max_pos_std: float = 0.01  # m, ... or the posterior position std exceeds this
+    keyframes: int = 8  # recent model frames kept per sequence
+    store_every: int = 10  # ... plus a tracked frame whenever this many passed since the last one stored
+    orb_features: int = 1000
+    ratio: float = 0.8  # Lowe's ratio test
+    reprojection_px: float = 3.0  # RANSAC inlier threshold
+    min_inliers: int = 30  # a relocalisation is accepted with at least this many inliers
+    agree_m: float = 0.02  # a relocalised pose this close to the tracked one confirms it
+    agree_deg: float = 2.0
+
+
 SCHEMAS: dict[str, dict[str, type]] = {
     "data": {"tum": TumDataConfig, "synthetic": SyntheticDataConfig},
     "region": {"region": RegionConfig},
@@ -279,6 +310,7 @@ SCHEMAS: dict[str, dict[str, type]] = {
     "tracker": {"ekf": EKFBackendConfig, "registration": RegistrationBackendConfig},
     "estimator": {"icp": ICPConfig, "cpd": CPDConfig, "horn": HornConfig},
     "pipeline": {"pipeline": PipelineConfig},
+    "relocalise": {"relocalise": RelocaliseConfig},
 }
 
 

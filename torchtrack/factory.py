@@ -18,7 +18,10 @@ from torchtrack.tracker import Tracker
 
 def build_sequences(data: DictConfig) -> list[TumSequence]:
     """TUM-layout sequences from ``data`` (kind tum: one or several roots; kind synthetic: rendered and cached)."""
-    opts = dict(max_frames=data.max_frames, stride=data.stride)
+    opts = dict(
+        max_frames=data.max_frames, stride=data.stride, on_bad_frame=data.on_bad_frame,
+        min_depth_fraction=data.min_depth_fraction, max_bad_fraction=data.max_bad_fraction,
+    )  # fmt: skip
     if data.kind == "synthetic":
         from torchtrack.data.synthetic import SyntheticConfig, display_name, ensure_sequence
 
@@ -53,4 +56,10 @@ def build_tracker(cfg: DictConfig, *, record: bool = False) -> Tracker:
         weighting=instantiate(cfg.weighting),
         backend=instantiate(cfg.tracker),
         record=record or cfg.pipeline.record,
+        relocaliser=build_relocaliser(cfg),
     )
+
+
+def build_relocaliser(cfg: DictConfig):
+    """The tracker's loss check (:class:`torchtrack.relocalise.Relocaliser`) from ``cfg.relocalise``, if any."""
+    return instantiate(cfg.relocalise) if "relocalise" in cfg else None

@@ -4,6 +4,11 @@ Per sequence, in ``out_dir/<name>/``: ``trajectory.txt`` (TUM, camera-to-world),
 ``frames.csv`` (per-frame diagnostics), ``trajectory.png`` and ``features.png`` (the paper's Figs.
 6/7 as an image strip). Every file is written atomically (:func:`torchtrack.io.write_atomic`), so a
 sequence that finished is never lost when a later one fails.
+
+Faults cost only what failed: output folders are checked for writability before tracking; bad frames are dropped
+(:class:`torchtrack.data.batching.FrameCursor`; ``metrics.json`` lists them); a sequence that fails mid-way becomes
+inactive in the lockstep batch and writes its outputs up to its last good frame with ``"complete": false`` and the
+reason, while the others go on.
 """
 
 from __future__ import annotations
@@ -18,10 +23,10 @@ import torch
 from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from torchtrack.data.batching import iterate_batched
+from torchtrack.data.batching import DroppedFrame, FrameCursor, iterate_batched
 from torchtrack.data.tum import TumSequence
 from torchtrack.data.tum_io import write_tum_trajectory
-from torchtrack.io import write_json, write_text
+from torchtrack.io import check_writable, write_json, write_text
 from torchtrack.tracker import StepResult, Tracker
 from torchtrack.viz.overlay import TRAIL, draw_frame, save_strip, snapshot_indices
 
@@ -64,6 +69,7 @@ class Recorder:
                 "reprojection_px": float(res.reprojection_error[b]),
                 "mean_tim_px": float(res.d_tim[b][res.valid[b]].mean()) if res.valid[b].any() else 0.0,
                 "reselected": bool(res.reselected[b]),
+                **self._loss(b, i, res.loss),
             }
         )
         if self.snapshots:
@@ -86,30 +92,71 @@ class Recorder:
         if bool(res.reselected[b]):
             self.trail = []  # the next frame tracks the new model's features
 
-    def finish(self, elapsed_s: float, plots: bool = True) -> dict:
-        from torchtrack.metrics import trajectory_metrics
+    def _loss(self, b: int, i: int, loss) -> dict:
+        """frames.csv's loss columns for sequence b at frame i (all False without a relocaliser); a warning when lost."""
+        if loss is None:
+            return {"lost": False, "relocalised": False, "interrupted": False}
+        lost, reloc, interrupted = bool(loss.lost[b]), bool(loss.relocalised[b]), bool(loss.interrupted[b])
+        if lost:
+            h = loss.health
+            why = f"survival {float(h.survival[b]):.2f}, rejected {float(h.rejected[b]):.2f}, pos std {float(h.pos_std[b]):.3g} m"
+            then = (
+                f"relocalised ({int(loss.inliers[b])} inliers)" if reloc
+                else "not relocalised: trajectory interrupted" if interrupted
+                else f"the tracked pose confirmed ({int(loss.inliers[b])} inliers)" if int(loss.inliers[b]) > 0
+                else "no recovery (relocalise.recover=false)"
+            )  # fmt: skip
+            log.warning("%s: frame %d: tracking lost (%s); %s", self.sequence.name, i, why, then)
+        elif reloc:
+            log.warning(
+                "%s: frame %d: relocalised (%d inliers), trajectory resumes",
+                self.sequence.name,
+                i,
+                int(loss.inliers[b]),
+            )
+        return {"lost": lost, "relocalised": reloc, "interrupted": interrupted}
 
+    def finish(
+        self, elapsed_s: float, plots: bool = True, *, dropped: list[DroppedFrame] = (), failure: str | None = None
+    ) -> dict:
+        """Write the outputs of the frames recorded so far; ``failure`` (one line) marks them incomplete."""
         seq, out = self.sequence, self.out_dir
         out.mkdir(parents=True, exist_ok=True)
-        ts = np.array([r["timestamp"] for r in self.rows])
-        T_est = np.stack(self.poses)
-        write_tum_trajectory(out / "trajectory.txt", ts, T_est)
         n = len(self.rows)
+        metrics = {"sequence": seq.name, "complete": failure is None, "frames": n}
+        if failure is not None:
+            metrics["error"] = failure
+        metrics.update(dropped_frames=len(dropped), dropped_timestamps=[d.timestamp for d in dropped])
+        if n > 0:
+            metrics.update(self._write_tracked(elapsed_s, plots))
+        write_json(out / "metrics.json", metrics)  # last: a sweep counts a job with metrics.json as finished
+        return metrics
+
+    def _write_tracked(self, elapsed_s: float, plots: bool) -> dict:
+        """trajectory.txt, frames.csv and the plots of the recorded frames; returns their metrics."""
+        from torchtrack.metrics import trajectory_metrics
+
+        seq, out, n = self.sequence, self.out_dir, len(self.rows)
+        trusted = np.array([not r["interrupted"] for r in self.rows])  # interrupted poses are not written
+        ts = np.array([r["timestamp"] for r in self.rows])[trusted]
+        T_est = np.stack(self.poses)[trusted]
+        write_tum_trajectory(out / "trajectory.txt", ts, T_est)
         metrics = {
-            "sequence": seq.name,
-            "frames": n,
+            "lost_frames": int(sum(r["lost"] for r in self.rows)),
+            "relocalisations": int(sum(r["relocalised"] for r in self.rows)),
+            "interrupted_frames": int((~trusted).sum()),
             "fps": n / max(elapsed_s, 1e-9),
             "reselections": int(sum(r["reselected"] for r in self.rows[1:])),
             "mean_reprojection_px": float(np.mean([r["reprojection_px"] for r in self.rows])),
             "mean_features": float(np.mean([r["features"] for r in self.rows])),
         }
-        gt_valid = np.asarray(seq.gt_valid[:n])
-        if gt_valid.sum() >= 3:
-            metrics.update(trajectory_metrics(ts, T_est, np.asarray(seq.groundtruth[:n]), gt_valid))
         self._write_csv(out / "frames.csv")
+        idx = np.array([r["frame"] for r in self.rows])[trusted]  # dropped and interrupted frames leave gaps
+        gt_valid = np.asarray(seq.gt_valid)[idx]
+        if gt_valid.sum() >= 3:
+            metrics.update(trajectory_metrics(ts, T_est, np.asarray(seq.groundtruth)[idx], gt_valid))
         if plots:
-            self._plots(T_est, gt_valid)
-        write_json(out / "metrics.json", metrics)  # last: a sweep counts a job with metrics.json as finished
+            self._plots(T_est, gt_valid, idx)
         return metrics
 
     def _write_csv(self, path: Path) -> None:
@@ -117,11 +164,11 @@ class Recorder:
         lines = [",".join(keys)] + [",".join(str(r[k]) for k in keys) for r in self.rows]
         write_text(path, "\n".join(lines) + "\n")
 
-    def _plots(self, T_est: np.ndarray, gt_valid: np.ndarray) -> None:
+    def _plots(self, T_est: np.ndarray, gt_valid: np.ndarray, idx: np.ndarray) -> None:
         from torchtrack.viz.plots import plot_trajectory
 
-        ts = np.array([r["timestamp"] for r in self.rows])
-        gt = np.asarray(self.sequence.groundtruth[: len(T_est)]) if gt_valid.any() else None
+        ts = np.array([r["timestamp"] for r in self.rows if not r["interrupted"]])
+        gt = np.asarray(self.sequence.groundtruth)[idx] if gt_valid.any() else None
         plot_trajectory(
             self.out_dir / "trajectory.png", T_est, gt, title=self.sequence.name, timestamps=ts, gt_valid=gt_valid
         )
@@ -138,22 +185,51 @@ def unique_names(sequences: list[TumSequence]) -> list[str]:
 
 
 def run_tracker(tracker: Tracker, sequences: list[TumSequence], out_dir: Path, *, plots: bool = True) -> list[dict]:
-    """Track B sequences in lockstep; write each one's outputs when it ends. Returns their metrics."""
+    """Track B sequences in lockstep; write each one's outputs when it ends. Returns their metrics, one per sequence
+    in order; a failed sequence's say ``"complete": False`` and ``"error"``. Raises OSError (one line) before
+    tracking when an output folder is not writable."""
     out_dir = Path(out_dir)
     recs = [
         Recorder(s, out_dir / name, snapshot_indices(len(s)) if plots else set())
         for s, name in zip(sequences, unique_names(sequences), strict=True)
     ]
+    for r in recs:
+        check_writable(r.out_dir)
+    cursors = [FrameCursor(s, isolate=True) for s in sequences]
     lengths = [len(s) for s in sequences]
     results: list[dict | None] = [None] * len(sequences)
     start = time.perf_counter()
+
+    def finish(b: int, failure: str | None = None) -> None:
+        failure = failure or cursors[b].failure
+        if failure is not None:
+            log.error("%s: failed: %s", sequences[b].name, failure)
+        try:
+            results[b] = recs[b].finish(time.perf_counter() - start, plots, dropped=cursors[b].dropped, failure=failure)
+        except Exception as e:  # writing or evaluating this sequence failed: the others still finish
+            log.exception("%s: writing the outputs failed", sequences[b].name)
+            results[b] = {"sequence": sequences[b].name, "complete": False, "error": f"{type(e).__name__}: {e}"}
+
     with torch.inference_mode(), logging_redirect_tqdm():  # log lines above the bar, not glued onto it
-        for frame in tqdm(iterate_batched(sequences), total=max(lengths), desc="tracking", unit="frame"):
-            res = tracker.step(frame)
+        for t, frame in enumerate(
+            tqdm(iterate_batched(sequences, cursors=cursors), total=max(lengths), desc="tracking", unit="frame")
+        ):
+            try:
+                res = tracker.step(frame)
+            except Exception as e:  # the batch's step failed: no sequence can go on, but what was tracked is kept
+                log.exception("tracking failed at step %d", t)
+                for b in range(len(sequences)):
+                    if results[b] is None:
+                        finish(b, f"tracking failed at step {t}: {type(e).__name__}: {e}")
+                break
             for b in range(len(sequences)):
-                if not bool(frame.active[b]):
+                if results[b] is not None:
                     continue
-                recs[b].add(b, frame, res)
-                if int(frame.index[b]) == lengths[b] - 1:
-                    results[b] = recs[b].finish(time.perf_counter() - start, plots)
-    return [r for r in results if r is not None]
+                if bool(frame.active[b]):
+                    recs[b].add(b, frame, res)
+                if not bool(frame.active[b]) or int(frame.index[b]) == lengths[b] - 1:
+                    finish(b)
+    for b in range(len(sequences)):
+        if results[b] is None:
+            finish(b)
+    return results

@@ -18,12 +18,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import Any
 
 import torch
 from torch import Tensor
 
 from torchtrack.data.frame import FrameBatch
-from torchtrack.estimators.backends import Observation, PoseBackend
+from torchtrack.estimators.backends import BackendResult, Observation, PoseBackend
 from torchtrack.estimators.base import masked_mean
 from torchtrack.filter.models import measure_points
 from torchtrack.filter.weighting import Variances, WeightingInputs
@@ -54,6 +55,8 @@ class StepResult:
             zeros where not valid; only when the weighting needs them or the tracker records (else None).
         model_T_cam_obj: (B, 4, 4) float64, where ``reselected``: the pose the back end was reset to when the new
             model was taken at the end of this frame (other rows: the current pose); None when no re-selection.
+        estimate: the back end's result for this frame (None on the first frame): the loss check reads it.
+        loss: the loss check's :class:`torchtrack.relocalise.LossCheck` (None without a relocaliser).
     """
 
     T_cam_obj: Tensor
@@ -70,6 +73,8 @@ class StepResult:
     variances: Variances | None = None
     cues: Tensor | None = None
     model_T_cam_obj: Tensor | None = None
+    estimate: BackendResult | None = None
+    loss: Any = None
 
 
 @dataclass
@@ -146,6 +151,8 @@ class Tracker:
         record: compute the per-feature cues (:mod:`torchtrack.learn.cues`) of every frame into
             ``StepResult.cues`` even when the weighting does not need them (for the observation cache). Poses are
             the same with and without; a weighting with ``needs_cues = True`` gets them in any case.
+        relocaliser: improvement (None = paper): after each frame, the loss check and relocalisation
+            (:class:`torchtrack.relocalise.Relocaliser`; it calls :meth:`relocalise`).
 
     The tracker's model and last estimate live in one :class:`TrackerState`, ``self.state``.
     """
@@ -166,6 +173,7 @@ class Tracker:
         keep_survivors: bool = False,
         min_separation_px: float = 8.0,
         record: bool = False,
+        relocaliser: Callable | None = None,
     ) -> None:
         if not 0.0 <= reselect_fraction < 1.0:
             raise ValueError(f"reselect_fraction must be in [0, 1), got {reselect_fraction}")
@@ -175,6 +183,7 @@ class Tracker:
         self.edge_step, self.max_residual_px = edge_step, max_residual_px
         self.keep_survivors, self.min_separation_px = keep_survivors, min_separation_px
         self.record = record
+        self.relocaliser = relocaliser
         self.state = TrackerState()
 
     @property
@@ -183,6 +192,12 @@ class Tracker:
         return self.record or bool(getattr(self.weighting, "needs_cues", False))
 
     def step(self, frame: FrameBatch) -> StepResult:
+        """One frame of every sequence (:meth:`track`), then the relocaliser's loss check where there is one."""
+        n_prev = self.state.valid.sum(1) if self.state.valid is not None else None
+        res = self.track(frame)
+        return res if self.relocaliser is None else self.relocaliser(self, n_prev, frame, res)
+
+    def track(self, frame: FrameBatch) -> StepResult:
         """One frame of every sequence (paper §III)."""
         cur = self.frontend(frame)  # depth in the colour camera, SIM (eq. 8), LK pyramids
         if not self.state.started:
@@ -200,7 +215,7 @@ class Tracker:
         self.state = self._advanced(frame, cur, track.points, valid, est.T_cam_obj.double())  # and the residual drop
         tracked, reselect = self.state, self._needs_model(frame.active)
         model_T_cam_obj = self._new_model(frame, cur, reselect) if reselect.any() else None  # §III re-selection
-        extra = dict(observation=obs, variances=var, cues=cues, model_T_cam_obj=model_T_cam_obj)
+        extra = dict(observation=obs, variances=var, cues=cues, model_T_cam_obj=model_T_cam_obj, estimate=est)
         return self._result(tracked, track.winner, track.d_tim, reselect, **extra)  # the frame as tracked
 
     # ---------------------------------------------------------------------------------------------- per frame
@@ -314,6 +329,15 @@ class Tracker:
             torch.where(ok3, pixels, 0.0), torch.where(ok3, points, 0.0), ok, torch.where(ok, age, 0),
             torch.where(ok3, cornerness, 0.0),
         )  # fmt: skip
+
+    def relocalise(self, frame: FrameBatch, T_world_cam: Tensor, mask: Tensor) -> None:
+        """After a tracking loss: the sequences in ``mask`` (B,) take the current frame as a new model at the camera
+        pose ``T_world_cam`` (B, 4, 4, the tracker's world) found by relocalisation; their features are dropped
+        first (they followed the wrong motion), so no survivor carries over."""
+        s = self.state
+        T_world_obj = torch.where(mask[:, None, None], T_world_cam.double() @ s.T_cam_obj, s.T_world_obj)
+        self.state = replace(s, valid=s.valid & ~mask[:, None], T_world_obj=T_world_obj)
+        self._new_model(frame, s.prev, mask)
 
     # ---------------------------------------------------------------------------------------------- outputs
     @staticmethod

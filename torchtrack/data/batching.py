@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
 from typing import Protocol
 
 import torch
@@ -13,6 +15,8 @@ from torch import Tensor
 from torchtrack.data.errors import DataError
 from torchtrack.data.frame import FrameBatch
 from torchtrack.data.tum import RGBDFrame
+
+log = logging.getLogger(__name__)
 
 
 class RGBDSequence(Protocol):
@@ -53,43 +57,122 @@ def _stack(frames: Sequence[RGBDFrame], seqs: Sequence[RGBDSequence], active: li
     )
 
 
-def iterate_batched(
-    sequences: Sequence[RGBDSequence], *, prefetch: bool = True, num_workers: int | None = None
-) -> Iterator[FrameBatch]:
-    """Yield one FrameBatch per step t = 0 .. max length - 1, the B sequences in lockstep.
+@dataclass
+class DroppedFrame:
+    """A frame skipped because it could not be used: its index, timestamp (nan if unknown) and the reason."""
 
-    A sequence that has ended is inactive (``active`` False) and repeats its last frame (not reloaded). With
-    ``prefetch`` a thread pool (``num_workers``, default min(B, cpu count)) decodes step t + 1 while the caller
-    works on step t; OpenCV's decoders release the GIL, so decoding overlaps compute. Errors raised while
-    loading surface at the step that needs the frame.
+    index: int
+    timestamp: float
+    reason: str
+
+
+class FrameCursor:
+    """One sequence's usable frames in order: a frame whose loading raises :class:`DataError` (unreadable or corrupt
+    image, wrong bit depth or size, too little depth) is dropped with one warning line, as a sensor drops a frame.
+
+    The policy comes from the sequence (attributes of :class:`~torchtrack.data.tum.TumSequence`, with these
+    defaults) unless given: ``on_bad_frame`` "drop" | "error" (the first bad frame fails the sequence),
+    ``max_bad_fraction`` (more bad frames than this fraction of the sequence fail it). A failure raises, or with ``isolate`` is kept in
+    ``failure`` (one line) and ends the cursor, so that the other sequences of a batch go on.
+    """
+
+    def __init__(self, sequence: RGBDSequence, *, isolate: bool = False, on_bad_frame: str | None = None) -> None:
+        self.sequence, self.isolate = sequence, isolate
+        self.on_bad_frame = on_bad_frame or getattr(sequence, "on_bad_frame", "drop")
+        self.max_bad_fraction = float(getattr(sequence, "max_bad_fraction", 1.0))
+        self.next, self.dropped, self.failure = 0, [], None
+
+    @property
+    def done(self) -> bool:
+        return self.failure is not None or self.next >= len(self.sequence)
+
+    def read(self) -> RGBDFrame | None:
+        """The next usable frame, or None when the sequence has ended or failed (runs in the loader thread)."""
+        try:
+            return self._read()
+        except Exception as e:
+            if not self.isolate:
+                raise
+            self.failure = f"{type(e).__name__}: {e}" if not isinstance(e, DataError) else str(e)
+            return None
+
+    def _read(self) -> RGBDFrame | None:
+        seq = self.sequence
+        while self.failure is None and self.next < len(seq):
+            i, self.next = self.next, self.next + 1
+            try:
+                return seq[i]
+            except DataError as e:
+                if self.on_bad_frame == "error":
+                    raise
+                t = float(seq.timestamps[i]) if hasattr(seq, "timestamps") else float("nan")
+                self.dropped.append(DroppedFrame(i, t, str(e)))
+                log.warning("%s: frame %d dropped: %s", seq.name, i, e)
+                if len(self.dropped) > self.max_bad_fraction * len(seq):
+                    raise DataError(
+                        f"{seq.name}: {len(self.dropped)} bad frames, more than max_bad_fraction="
+                        f"{self.max_bad_fraction:g} of its {len(seq)}; the last: {e}"
+                    ) from None
+        return None
+
+
+def _placeholder(like: RGBDFrame) -> RGBDFrame:
+    """A blank frame of ``like``'s size for a sequence that failed before its first usable frame (inactive)."""
+    return RGBDFrame(torch.zeros_like(like.rgb), torch.zeros_like(like.depth), 0.0, torch.eye(4, dtype=torch.float64),
+                     False, -1)  # fmt: skip
+
+
+def iterate_batched(
+    sequences: Sequence[RGBDSequence],
+    *,
+    prefetch: bool = True,
+    num_workers: int | None = None,
+    cursors: Sequence[FrameCursor] | None = None,
+) -> Iterator[FrameBatch]:
+    """Yield one FrameBatch per step, the B sequences in lockstep, until every sequence has ended.
+
+    Each step takes every sequence's next usable frame (:class:`FrameCursor`: bad frames are dropped, so a
+    sequence's ``index`` can skip). A sequence that has ended (or failed) is inactive (``active`` False) and repeats
+    its last frame (not reloaded). ``cursors`` (one per sequence) lets the caller see drops and failures; without
+    them every frame is strict (``on_bad_frame="error"``: indices never skip) and a failure raises at the step
+    that needs the frame. With ``prefetch`` a thread pool (``num_workers``, default
+    min(B, cpu count)) decodes and validates step t + 1 while the caller works on step t; OpenCV's decoders release
+    the GIL, so decoding overlaps compute.
     """
     if len(sequences) == 0:
         raise ValueError("iterate_batched: need at least one sequence")
     for s in sequences:
         if len(s) == 0:
             raise DataError(f"{s.name}: sequence has no frames")
-    T = max(len(s) for s in sequences)
+    cursors = list(cursors) if cursors is not None else [FrameCursor(s, on_bad_frame="error") for s in sequences]
+    last: list[RGBDFrame | None] = [None] * len(sequences)
+
+    def batch(got: list[RGBDFrame | None]) -> FrameBatch | None:
+        active = [g is not None for g in got]
+        if not any(active):
+            return None
+        last[:] = [g if g is not None else f for g, f in zip(got, last, strict=True)]
+        like = next(f for f in last if f is not None)
+        return _stack([f if f is not None else _placeholder(like) for f in last], sequences, active)
+
     if not prefetch:
-        last: list[RGBDFrame | None] = [None] * len(sequences)
-        for t in range(T):
-            last = [s[t] if t < len(s) else f for s, f in zip(sequences, last, strict=True)]
-            yield _stack(last, sequences, [t < len(s) for s in sequences])
+        while (b := batch([c.read() if not c.done else None for c in cursors])) is not None:
+            yield b
         return
     workers = num_workers or min(len(sequences), os.cpu_count() or 1)
     with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="torchtrack-load") as pool:
 
-        def submit(t: int) -> list[Future | None]:
-            return [pool.submit(s.__getitem__, t) if t < len(s) else None for s in sequences]
+        def submit() -> list[Future | None]:
+            return [pool.submit(c.read) if not c.done else None for c in cursors]
 
-        pending = submit(0)
-        last = [None] * len(sequences)
+        pending = submit()
         try:
-            for t in range(T):
-                done = [f.result() if f is not None else None for f in pending]
-                last = [d if d is not None else f for d, f in zip(done, last, strict=True)]
-                if t + 1 < T:
-                    pending = submit(t + 1)  # decode the next step while the caller consumes this one
-                yield _stack(last, sequences, [t < len(s) for s in sequences])
+            while True:
+                b = batch([f.result() if f is not None else None for f in pending])
+                if b is None:
+                    return
+                pending = submit()  # decode the next step while the caller consumes this one
+                yield b
         finally:
             for f in pending:
                 if f is not None:

@@ -4,7 +4,7 @@ Layout (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats)::
 
     rgb.txt / depth.txt   "timestamp filename" per image (comment lines start with '#')
     groundtruth.txt       "timestamp tx ty tz qx qy qz qw", camera-to-world (optional)
-    intrinsics.txt        "fx fy cx cy depth_scale" (optional; else a camera preset or explicit intrinsics)
+    intrinsics.txt        "fx fy cx cy depth_scale" (optional; explicit intrinsics override it, else a camera preset)
     rgb/, depth/          PNG or JPEG colour; 16-bit PNG depth, metres = value / depth_scale, 0 = no measurement
 
 Colour and depth are associated one-to-one by timestamp (greedy nearest, as TUM's associate.py) with a maximum
@@ -66,21 +66,26 @@ class RGBDFrame:
 
 
 def _resolve_intrinsics(root: Path, camera, intrinsics, depth_scale) -> tuple[tuple, float, str]:
-    """((fx, fy, cx, cy), depth_scale, source). intrinsics.txt > camera preset > explicit intrinsics."""
+    """((fx, fy, cx, cy), depth_scale, source). Explicit values > intrinsics.txt > camera preset; an explicit value
+    that disagrees with intrinsics.txt overrides it, with a warning (never silently ignored)."""
     file = root / "intrinsics.txt"
     preset = get_camera(camera) if camera is not None else None
     file_k, file_scale = read_intrinsics_file(file) if file.is_file() else (None, None)
-    if file_k is not None:
-        k, source = file_k, str(file)
-    elif preset is not None:
-        k, source = (preset.fx, preset.fy, preset.cx, preset.cy), f"camera preset {camera!r}"
-    elif intrinsics is not None:
+    if intrinsics is not None:
         if len(intrinsics) != 4:
             raise DataError(f"{root}: intrinsics must be (fx, fy, cx, cy), got {intrinsics!r}")
         k, source = tuple(float(x) for x in intrinsics), "explicit intrinsics"
+        if file_k is not None and tuple(file_k) != k:
+            log.warning("%s: explicit intrinsics %s override the file's %s", file, list(k), [float(x) for x in file_k])
+    elif file_k is not None:
+        k, source = file_k, str(file)
+    elif preset is not None:
+        k, source = (preset.fx, preset.fy, preset.cx, preset.cy), f"camera preset {camera!r}"
     else:
         raise DataError(f"{root}: no intrinsics.txt, and neither a camera preset nor intrinsics were given")
-    scale = file_scale or depth_scale or (preset.depth_scale if preset else TUM_DEPTH_SCALE)
+    if depth_scale is not None and file_scale is not None and float(depth_scale) != file_scale:
+        log.warning("%s: explicit depth_scale %g overrides the file's %g", file, depth_scale, file_scale)
+    scale = depth_scale or file_scale or (preset.depth_scale if preset else TUM_DEPTH_SCALE)
     if scale <= 0:
         raise DataError(f"{root}: depth_scale must be positive, got {scale}")
     return k, float(scale), source
@@ -92,8 +97,9 @@ class TumSequence:
     Args:
         root: the sequence folder (holding rgb.txt, depth.txt, optional groundtruth.txt and intrinsics.txt).
         camera: camera preset name (cameras.CAMERAS), used when there is no intrinsics.txt.
-        intrinsics: (fx, fy, cx, cy), used when there is neither intrinsics.txt nor a preset.
-        depth_scale: stored depth value per metre; intrinsics.txt > this > preset (TUM: 5000).
+        intrinsics: (fx, fy, cx, cy); overrides intrinsics.txt (with a warning when they differ) and the preset.
+        depth_scale: stored depth value per metre; this > intrinsics.txt (a warning when they differ) > preset
+            (TUM: 5000).
         max_dt: maximum colour-depth and colour-ground-truth timestamp difference in seconds.
         T_color_depth: (4, 4) depth-to-colour extrinsic; identity (registered depth) when None.
         intrinsics_depth: (fx, fy, cx, cy) of the depth camera; equal to the colour ones when None.
@@ -108,6 +114,10 @@ class TumSequence:
             alignment is applied: "colour" (TUM convention; K_depth is derived) or "depth" (K_depth keeps them and
             the colour K is derived, :func:`torchtrack.data.alignment.colour_intrinsics`; metric for 7-Scenes,
             whose nominal 585 px are the depth camera's). Only the metric back-projection differs, not the map.
+        min_depth_fraction: loading a frame with fewer pixels with depth than this fraction raises DataError.
+        on_bad_frame, max_bad_fraction: what lockstep iteration does with a frame that fails to load
+            (:class:`torchtrack.data.batching.FrameCursor`): "drop" it (unless more than ``max_bad_fraction`` of
+            the frames are bad) or "error".
 
     Attributes: name, timestamps (F,) float64, groundtruth (F, 4, 4) float64 (identity where absent),
     gt_valid (F,) bool, K and K_depth (3, 3) float32, T_color_depth (4, 4) float32, depth_scale,
@@ -129,12 +139,22 @@ class TumSequence:
         stride: int = 1,
         depth_alignment: str | tuple[float, ...] = "none",
         intrinsics_camera: str = "colour",
+        min_depth_fraction: float = 0.0,
+        on_bad_frame: str = "drop",
+        max_bad_fraction: float = 0.25,
     ) -> None:
         self.root = Path(root)
         if not self.root.is_dir():
             raise DataError(f"{self.root}: sequence folder not found")
         if stride < 1 or (max_frames is not None and max_frames < 1) or max_dt <= 0:
             raise ValueError(f"{self.root}: need stride >= 1, max_frames >= 1, max_dt > 0")
+        if on_bad_frame not in ("drop", "error"):
+            raise ValueError(f"{self.root}: on_bad_frame must be 'drop' or 'error', got {on_bad_frame!r}")
+        self.min_depth_fraction, self.on_bad_frame, self.max_bad_fraction = (
+            min_depth_fraction,
+            on_bad_frame,
+            max_bad_fraction,
+        )
         self.name = self.root.resolve().name
         self._associate_images(max_dt, stride, max_frames)
         self._attach_groundtruth(max_dt)
@@ -222,24 +242,32 @@ class TumSequence:
         return RGBDFrame(rgb, depth, float(self.timestamps[i]), T, bool(self.gt_valid[i]), i)
 
     def _load(self, i: int) -> tuple[Tensor, Tensor, Tensor]:
-        """(rgb (3, H, W), depth (1, H, W), T_world_cam_gt (4, 4)) of frame i in [0, len)."""
+        """(rgb (3, H, W), depth (1, H, W), T_world_cam_gt (4, 4)) of frame i in [0, len); DataError when unusable."""
         rgb = load_rgb(self.rgb_paths[i])
         depth = load_depth(self.depth_paths[i], self.depth_scale)
         self._check_size(i, rgb, depth)
+        if self.min_depth_fraction > 0:
+            fraction = float(torch.count_nonzero(depth)) / depth.numel()
+            if fraction < self.min_depth_fraction:
+                raise DataError(
+                    f"{self.depth_paths[i]}: only {fraction:.2%} of the pixels have depth "
+                    f"(min_depth_fraction={self.min_depth_fraction:g})"
+                )
         return rgb, depth, torch.from_numpy(self.groundtruth[i].copy())
 
     def _check_size(self, i: int, rgb: Tensor, depth: Tensor) -> None:
-        if rgb.shape[1:] != depth.shape[1:]:
-            raise DataError(
-                f"{self.depth_paths[i]}: depth size {tuple(depth.shape[1:])} differs from colour "
-                f"{tuple(rgb.shape[1:])} ({self.rgb_paths[i].name})"
-            )
+        """Each image against the sequence's size (H, W) (the first frame's whose two images agree): the error names
+        the file that differs, or both when they disagree before the size is known."""
+        hw_rgb, hw_depth = tuple(rgb.shape[1:]), tuple(depth.shape[1:])
+        if self._hw is None and hw_rgb == hw_depth:
+            self._hw = hw_rgb
         if self._hw is None:
-            self._hw = tuple(rgb.shape[1:])
-        elif tuple(rgb.shape[1:]) != self._hw:
             raise DataError(
-                f"{self.rgb_paths[i]}: image size {tuple(rgb.shape[1:])} differs from the sequence's {self._hw}"
+                f"{self.depth_paths[i]}: depth size {hw_depth} differs from colour {hw_rgb} ({self.rgb_paths[i].name})"
             )
+        for path, hw, what in ((self.rgb_paths[i], hw_rgb, "colour"), (self.depth_paths[i], hw_depth, "depth")):
+            if hw != self._hw:
+                raise DataError(f"{path}: {what} image size {hw} differs from the sequence's {self._hw}")
 
     def __repr__(self) -> str:
         return f"TumSequence({str(self.root)!r}, frames={len(self)}, gt={int(self.gt_valid.sum())})"

@@ -6,6 +6,7 @@ The sequence built from these files is :class:`torchtrack.data.tum.TumSequence`.
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 from typing import NamedTuple
@@ -18,6 +19,8 @@ from torch import Tensor
 from torchtrack.data.errors import DataError
 from torchtrack.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from torchtrack.io import write_text
+
+log = logging.getLogger(__name__)
 
 PathLike = str | os.PathLike
 
@@ -32,12 +35,14 @@ class Trajectory(NamedTuple):
 # ----------------------------------------------------------------------------------------------- text files
 
 
-def _read_rows(path: Path, n_fields: int) -> list[list[str]]:
-    """Whitespace-split rows of a text file, skipping blank and '#' lines; each row has >= n_fields fields."""
+def _read_rows(path: Path, n_fields: int) -> tuple[list[list[str]], list[int]]:
+    """Whitespace-split rows of a text file, skipping blank and '#' lines; each row has >= n_fields fields.
+
+    Returns (rows, their 1-based line numbers)."""
     if not path.is_file():
         raise DataError(f"{path}: file not found")
-    rows = []
-    with open(path) as f:
+    rows, linenos = [], []
+    with open(path, errors="replace") as f:
         for lineno, line in enumerate(f, 1):
             line = line.strip()
             if not line or line.startswith("#"):
@@ -46,32 +51,68 @@ def _read_rows(path: Path, n_fields: int) -> list[list[str]]:
             if len(fields) < n_fields:
                 raise DataError(f"{path}:{lineno}: expected {n_fields} fields, got {len(fields)}: {line!r}")
             rows.append(fields)
+            linenos.append(lineno)
     if not rows:
         raise DataError(f"{path}: no entries (empty or only comments)")
-    return rows
+    return rows, linenos
 
 
-def _floats(path: Path, rows: list[list[str]], cols: slice) -> np.ndarray:
+def _floats(path: Path, rows: list[list[str]], cols: slice, linenos: list[int]) -> np.ndarray:
+    """The numeric columns ``cols`` of ``rows`` (F, C) float64; a non-numeric or non-finite value is an error."""
     try:
-        return np.array([[float(v) for v in r[cols]] for r in rows], dtype=np.float64)
+        v = np.array([[float(x) for x in r[cols]] for r in rows], dtype=np.float64)
     except ValueError as e:
         raise DataError(f"{path}: non-numeric value ({e})") from None
+    bad = ~np.isfinite(v).all(axis=1)
+    if bad.any():
+        k = int(bad.nonzero()[0][0])
+        raise DataError(f"{path}:{linenos[k]}: non-finite value in {' '.join(rows[k][cols])!r}")
+    return v
+
+
+def _in_time_order(path: Path, t: np.ndarray, linenos: list[int]) -> np.ndarray:
+    """Indices that put rows in time order (stable) without repeated timestamps (the first one is kept), with one
+    warning line each when the file was not sorted or repeated a timestamp (TUM files are ordered by time)."""
+    order = np.argsort(t, kind="stable")
+    if (np.diff(t) < 0).any():
+        k = int((np.diff(t) < 0).nonzero()[0][0])
+        log.warning("%s:%d: not sorted by time (%.6f after %.6f); sorted", path, linenos[k + 1], t[k + 1], t[k])
+    ts = t[order]
+    dup = np.concatenate([[False], ts[1:] == ts[:-1]])
+    if dup.any():
+        first = linenos[int(order[int(dup.nonzero()[0][0])])]
+        log.warning("%s:%d: %d repeated timestamp(s) (first %.6f); the later rows are dropped",
+                    path, first, int(dup.sum()), ts[dup][0])  # fmt: skip
+    return order[~dup]
 
 
 def read_list_file(path: PathLike) -> tuple[np.ndarray, list[str]]:
-    """TUM image list "timestamp filename" -> (timestamps (F,) float64, filenames relative to the file's folder)."""
+    """TUM image list "timestamp filename" -> (timestamps (F,) float64 increasing, filenames relative to the file's
+    folder). Unsorted rows are sorted and repeated timestamps dropped, with a warning (:func:`_in_time_order`)."""
     path = Path(path)
-    rows = _read_rows(path, 2)
-    return _floats(path, rows, slice(0, 1))[:, 0], [r[1] for r in rows]
+    rows, linenos = _read_rows(path, 2)
+    t = _floats(path, rows, slice(0, 1), linenos)[:, 0]
+    keep = _in_time_order(path, t, linenos)
+    return t[keep], [rows[i][1] for i in keep]
 
 
-def read_tum_trajectory(path: PathLike) -> Trajectory:
-    """TUM trajectory "timestamp tx ty tz qx qy qz qw" -> Trajectory(timestamps (F,), T_world_cam (F, 4, 4))."""
+def read_tum_trajectory(path: PathLike, unit_tol: float = 1e-2) -> Trajectory:
+    """TUM trajectory "timestamp tx ty tz qx qy qz qw" -> Trajectory(timestamps (F,), T_world_cam (F, 4, 4)).
+
+    Rows come out in time order without repeated timestamps (:func:`_in_time_order`). A non-finite value, or a
+    quaternion whose norm is off 1 by more than ``unit_tol`` (rounded files are within 1e-3), is an error naming
+    the file and line."""
     path = Path(path)
-    v = _floats(path, _read_rows(path, 8), slice(0, 8))
+    rows, linenos = _read_rows(path, 8)
+    v = _floats(path, rows, slice(0, 8), linenos)
+    norm = np.linalg.norm(v[:, 4:8], axis=1)
+    bad = np.abs(norm - 1.0) > unit_tol
+    if bad.any():
+        k = int(bad.nonzero()[0][0])
+        what = "zero quaternion" if norm[k] < 1e-6 else f"quaternion not of unit norm ({norm[k]:.6g})"
+        raise DataError(f"{path}:{linenos[k]}: {what}")
+    v = v[_in_time_order(path, v[:, 0], linenos)]
     q = torch.from_numpy(v[:, 4:8])  # xyzw, converted here and only here
-    if (q.norm(dim=-1) < 1e-6).any():
-        raise DataError(f"{path}: zero quaternion at row {int((q.norm(dim=-1) < 1e-6).nonzero()[0, 0]) + 1}")
     T = np.tile(np.eye(4), (len(v), 1, 1))
     T[:, :3, :3] = quat_xyzw_to_matrix(q).numpy()
     T[:, :3, 3] = v[:, 1:4]
@@ -100,7 +141,8 @@ def write_tum_trajectory(path: PathLike, timestamps, T_world_cam) -> Path:
 def read_intrinsics_file(path: PathLike) -> tuple[tuple[float, float, float, float], float | None]:
     """intrinsics.txt "fx fy cx cy [depth_scale]" -> ((fx, fy, cx, cy), depth_scale or None)."""
     path = Path(path)
-    v = _floats(path, _read_rows(path, 4)[:1], slice(0, 5))[0]
+    rows, linenos = _read_rows(path, 4)
+    v = _floats(path, rows[:1], slice(0, 5), linenos)[0]
     if not (v[0] > 0 and v[1] > 0) or (len(v) == 5 and v[4] <= 0):
         raise DataError(f"{path}: focal lengths and depth_scale must be positive, got {v.tolist()}")
     return (v[0], v[1], v[2], v[3]), (float(v[4]) if len(v) == 5 else None)

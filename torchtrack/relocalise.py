@@ -1,0 +1,246 @@
+"""Tracking loss: a per-frame health signal, and relocalisation against recent model frames.
+
+After each frame the tracker's result is checked (:func:`frame_health`): the fraction of the previous frame's
+features that LK still tracked with depth, the fraction of those the filter rejected (gate, refit), and the
+posterior position standard deviation. A frame failing a threshold is ``lost``. A lost sequence is relocalised:
+ORB features of the current frame are matched (Hamming, ratio test) against those of its recent model frames (and
+a tracked frame every ``store_every`` frames), whose 3D points in the tracker's world were stored when they were
+taken, and the camera pose follows from PnP with RANSAC (OpenCV), refined on the inliers and verified by the inlier
+count. Where it agrees with the tracked pose nothing
+changes; where it differs, the sequence takes a new model at the relocalised pose. Where it fails, the frame's pose
+is not trusted (``interrupted``) and every following frame tries again until one relocalises; interrupted frames
+never become model frames of the store.
+
+References:
+    E. Rublee et al., "ORB: an efficient alternative to SIFT or SURF", ICCV 2011.
+    V. Lepetit, F. Moreno-Noguer, P. Fua, "EPnP: an accurate O(n) solution to the PnP problem", IJCV 2009.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchtrack.filter.models import measure_points
+from torchtrack.geometry import T_inv, rotation_angle
+
+
+class Health(NamedTuple):
+    """Per-frame health of B sequences, each (B,).
+
+    Attributes:
+        survival: features LK tracked with depth / the previous frame's features (0 when it had none).
+        rejected: fraction of the tracked features the back end did not use (chi-square gate and refit).
+        pos_std: m, posterior position standard deviation (sqrt of the covariance's translation trace).
+    """
+
+    survival: Tensor
+    rejected: Tensor
+    pos_std: Tensor
+
+
+class LossCheck(NamedTuple):
+    """What the loss check did this frame, each (B,): ``lost`` (the health check failed), ``relocalised`` (the
+    pose was replaced by a relocalisation), ``interrupted`` (the pose is not trusted: lost and not relocalised, now
+    or since an earlier frame), ``inliers`` (PnP inliers of the relocalisation tried, 0 if none); ``health``."""
+
+    lost: Tensor
+    relocalised: Tensor
+    interrupted: Tensor
+    inliers: Tensor
+    health: Health
+
+
+class Keyframe(NamedTuple):
+    """A model frame's ORB descriptors (M, 32) uint8 and their 3D points (M, 3) float64 in the tracker's world."""
+
+    descriptors: np.ndarray
+    points_world: np.ndarray
+
+
+def frame_health(n_prev: Tensor, result) -> Health:
+    """Health of a tracked frame from ``n_prev`` (B,) the previous frame's feature count and its
+    :class:`~torchtrack.tracker.StepResult` (with ``observation`` and ``estimate``)."""
+    tracked = result.observation.valid.sum(1)
+    survival = torch.where(n_prev > 0, tracked / n_prev.clamp_min(1), torch.zeros_like(tracked, dtype=torch.float32))
+    used = getattr(result.estimate, "used_xyz", None)
+    used_n = used.sum(1) if used is not None else tracked
+    rejected = torch.where(tracked > 0, 1.0 - used_n / tracked.clamp_min(1), torch.ones_like(survival))
+    cov = getattr(result.estimate, "cov", None)
+    pos_std = (
+        cov[:, 3:6, 3:6].diagonal(dim1=-2, dim2=-1).sum(-1).sqrt() if cov is not None else torch.zeros_like(survival)
+    )
+    return Health(survival.float(), rejected.float(), pos_std.float())
+
+
+def orb_features(gray: Tensor, n: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """ORB keypoints of ``gray`` (H, W) in [0, 1]: (pixels (M, 2) float32, descriptors (M, 32) uint8 or None)."""
+    img = (gray.detach().cpu().numpy() * 255.0).round().clip(0, 255).astype(np.uint8)
+    kps, desc = cv2.ORB_create(nfeatures=n).detectAndCompute(img, None)
+    return np.array([k.pt for k in kps], dtype=np.float32).reshape(-1, 2), desc
+
+
+def pnp_pose(
+    points_world: np.ndarray, pixels: np.ndarray, K: np.ndarray, reprojection_px: float
+) -> tuple[np.ndarray | None, int]:
+    """Camera pose from 2D-3D matches by EPnP in RANSAC, refined (Levenberg-Marquardt) on the inliers.
+
+    Args: points_world (M, 3), pixels (M, 2), K (3, 3). Returns (T_cam_world (4, 4) or None, inlier count)."""
+    if len(pixels) < 6:
+        return None, 0
+    obj, img = points_world.astype(np.float64), pixels.astype(np.float64)
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(
+        obj, img, K, None, iterationsCount=300, reprojectionError=reprojection_px, confidence=0.999,
+        flags=cv2.SOLVEPNP_EPNP,
+    )  # fmt: skip
+    if not ok or inl is None or len(inl) < 6:
+        return None, 0
+    inl = inl[:, 0]
+    rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, None, rvec, tvec)
+    proj, _ = cv2.projectPoints(obj, rvec, tvec, K, None)
+    n = int((np.linalg.norm(proj[:, 0] - img, axis=1) < reprojection_px).sum())
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = cv2.Rodrigues(rvec)[0], tvec[:, 0]
+    return T, n
+
+
+class Relocaliser:
+    """The loss check and relocalisation of :mod:`torchtrack.relocalise`, called by the tracker after each frame.
+
+    Args:
+        recover: False (the paper): the loss check only marks lost frames (and warns); no relocalisation, the
+            pose goes on as tracked.
+        min_survival: lost when fewer than this fraction of the previous frame's features were tracked with depth.
+        max_rejected: ... or when the filter rejected more than this fraction of them.
+        max_pos_std: m, ... or when the posterior position standard deviation exceeds this.
+        keyframes: recent model frames kept per sequence for matching.
+        store_every: a tracked frame also enters the store when this many frames passed since the last one stored
+            (a model can last long: the store must stay recent).
+        orb_features: ORB keypoints per image.
+        ratio: Lowe's ratio test on the two nearest descriptors.
+        reprojection_px: RANSAC inlier threshold.
+        min_inliers: a relocalisation is accepted with at least this many inliers.
+        agree_m, agree_deg: a relocalised pose this close to the tracked one confirms it (nothing changes).
+    """
+
+    def __init__(
+        self,
+        *,
+        recover: bool = False,
+        min_survival: float = 0.25,
+        max_rejected: float = 0.95,
+        max_pos_std: float = 0.01,
+        keyframes: int = 8,
+        store_every: int = 10,
+        orb_features: int = 1000,
+        ratio: float = 0.8,
+        reprojection_px: float = 3.0,
+        min_inliers: int = 30,
+        agree_m: float = 0.02,
+        agree_deg: float = 2.0,
+    ) -> None:
+        self.recover = recover
+        self.min_survival, self.max_rejected, self.max_pos_std = min_survival, max_rejected, max_pos_std
+        self.keyframes, self.store_every, self.n_orb, self.ratio = keyframes, store_every, orb_features, ratio
+        self.reprojection_px, self.min_inliers = reprojection_px, min_inliers
+        self.agree_m, self.agree_rad = agree_m, float(np.deg2rad(agree_deg))
+        self.store: list[deque[Keyframe]] = []
+        self.interrupted: Tensor | None = None
+        self.since_stored: Tensor | None = None  # (B,) frames since each sequence's last stored frame
+
+    def __call__(self, tracker, n_prev: Tensor | None, frame, result):
+        """Check the frame ``result`` (a StepResult) that ``tracker`` just produced from ``frame``; relocalise the
+        lost sequences (through ``tracker.relocalise``); store new model frames. Returns the result with ``loss``
+        set and, where relocalised, the new pose."""
+        from dataclasses import replace
+
+        B = frame.rgb.shape[0]
+        if len(self.store) != B:
+            self.store = [deque(maxlen=self.keyframes) for _ in range(B)]
+            self.interrupted = torch.zeros(B, dtype=torch.bool)
+            self.since_stored = torch.full((B,), self.store_every, dtype=torch.long)
+        zeros = torch.zeros(B)
+        health = frame_health(n_prev, result) if result.observation is not None else Health(zeros + 1, zeros, zeros)
+        lost = frame.active & (
+            (health.survival < self.min_survival)
+            | (health.rejected > self.max_rejected)
+            | (health.pos_std > self.max_pos_std)
+        )
+        retry = (lost | (self.interrupted & frame.active)) & self.recover
+        relocalised, inliers = torch.zeros(B, dtype=torch.bool), torch.zeros(B, dtype=torch.long)
+        T_new = result.T_world_cam.clone()
+        for b in retry.nonzero()[:, 0].tolist():
+            T, inliers[b] = self._relocalise(tracker, frame, b)
+            if T is None:
+                continue
+            self.interrupted[b] = False
+            if not self._agrees(T, result.T_world_cam[b]):
+                T_new[b], relocalised[b] = T, True
+        self.interrupted |= retry & (inliers < self.min_inliers)
+        if relocalised.any():
+            tracker.relocalise(frame, T_new, relocalised)
+            s = tracker.state
+            m3 = relocalised[:, None, None]
+            result = replace(
+                result, T_world_cam=torch.where(m3, s.T_world_cam, result.T_world_cam),
+                T_cam_obj=torch.where(m3, s.T_cam_obj, result.T_cam_obj), reselected=result.reselected | relocalised,
+            )  # fmt: skip
+        self.since_stored += frame.active.long()
+        due = result.reselected | (self.since_stored >= self.store_every)
+        keep = frame.active & due & ~self.interrupted & (~lost | relocalised) & self.recover
+        for b in keep.nonzero()[:, 0].tolist():
+            self._store(tracker, frame, b, result.T_world_cam[b])
+            self.since_stored[b] = 0
+        check = LossCheck(lost, relocalised, self.interrupted & frame.active, inliers, health)
+        return replace(result, loss=check)
+
+    # ---------------------------------------------------------------------------------------------- internals
+    def _agrees(self, T_a: Tensor, T_b: Tensor) -> bool:
+        E = T_inv(T_a.double()) @ T_b.double()
+        return bool(E[:3, 3].norm() <= self.agree_m) and bool(rotation_angle(E[:3, :3]) <= self.agree_rad)
+
+    def _points(self, tracker, frame, b: int, pixels: np.ndarray) -> tuple[Tensor, Tensor]:
+        """3D points (M, 3) in sequence b's depth camera at colour ``pixels`` (M, 2), and has-depth (M,)."""
+        px = torch.from_numpy(pixels)[None]
+        p, ok = measure_points(
+            tracker.state.prev.depth[b : b + 1], frame.K[b : b + 1], frame.T_color_depth[b : b + 1], px
+        )
+        return p[0].double(), ok[0]
+
+    def _store(self, tracker, frame, b: int, T_world_cam: Tensor) -> None:
+        """Sequence b's current frame (a model frame with a trusted pose) into its store."""
+        pixels, desc = orb_features(tracker.state.prev.gray[b, 0], self.n_orb)
+        if desc is None:
+            return
+        points, ok = self._points(tracker, frame, b, pixels)
+        world = (points @ T_world_cam[:3, :3].T.double() + T_world_cam[:3, 3].double())[ok].numpy()
+        if len(world) >= self.min_inliers:
+            self.store[b].append(Keyframe(desc[ok.numpy()], world))
+
+    def _relocalise(self, tracker, frame, b: int) -> tuple[Tensor | None, int]:
+        """Sequence b's camera pose T_world_cam (4, 4) from its current frame against its stored model frames, newest
+        first; (None, best inlier count) when none verifies."""
+        pixels, desc = orb_features(tracker.state.prev.gray[b, 0], self.n_orb)
+        if desc is None or not self.store[b]:
+            return None, 0
+        K = frame.K[b].double().numpy()
+        T_depth_color = T_inv(frame.T_color_depth[b].double())
+        best = 0
+        matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+        for kf in reversed(self.store[b]):
+            pairs = [m for m in matcher.knnMatch(desc, kf.descriptors, k=2) if len(m) == 2]
+            good = [m[0] for m in pairs if m[0].distance < self.ratio * m[1].distance]
+            if len(good) < self.min_inliers:
+                continue
+            cur, ref = np.array([m.queryIdx for m in good]), np.array([m.trainIdx for m in good])
+            T_color_world, n = pnp_pose(kf.points_world[ref], pixels[cur], K, self.reprojection_px)
+            best = max(best, n)
+            if T_color_world is not None and n >= self.min_inliers:
+                T_cam_world = T_depth_color @ torch.from_numpy(T_color_world)
+                return T_inv(T_cam_world).to(frame.T_world_cam_gt.dtype), n
+        return None, best
