@@ -268,6 +268,29 @@ class PipelineConfig:
     record: bool = False  # compute every frame's per-feature cues (torchtrack-record)
 
 
+# --- mapping ----------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class MappingConfig:
+    """:class:`torchtrack.mapping.PanoramaMapper` (paper §IV): coloured voxel-grid map per sequence; off unless
+    ``enabled`` (``mapping=panorama`` or ``mapping=tsdf``; read by :func:`torchtrack.factory.build_mapper`)."""
+
+    _target_: str = "torchtrack.mapping.PanoramaMapper"
+    enabled: bool = False
+    voxel_size: float = 0.01  # m, one point per voxel
+    every: int | None = None  # also fuse every k-th frame; null: the first and the model (key) frames only
+    pixel_stride: int = 2  # back-project every n-th pixel in x and y
+    min_depth: float = 0.1  # m
+    max_depth: float = 4.0  # m
+    edge_step: float | None = 0.05  # drop pixels at depth steps above this fraction (flying pixels); null: off
+    tsdf: bool = False  # also fuse the same frames into Open3D's ScalableTSDFVolume -> mesh.ply
+    tsdf_voxel_size: float = 0.01  # m
+    tsdf_trunc: float = 0.04  # m
+    views: bool = True  # map.png: perspective view from the first camera and top-down view
+    view_size: list[int] = field(default_factory=lambda: [480, 640])  # [H, W] of each view
+
+
 SCHEMAS: dict[str, dict[str, type]] = {
     "data": {"tum": TumDataConfig, "synthetic": SyntheticDataConfig},
     "region": {"region": RegionConfig},
@@ -279,6 +302,7 @@ SCHEMAS: dict[str, dict[str, type]] = {
     "tracker": {"ekf": EKFBackendConfig, "registration": RegistrationBackendConfig},
     "estimator": {"icp": ICPConfig, "cpd": CPDConfig, "horn": HornConfig},
     "pipeline": {"pipeline": PipelineConfig},
+    "mapping": {"mapping": MappingConfig},
 }
 
 

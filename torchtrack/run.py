@@ -131,8 +131,11 @@ def unique_names(sequences: list[TumSequence]) -> list[str]:
     return names
 
 
-def run_tracker(tracker: Tracker, sequences: list[TumSequence], out_dir: Path, *, plots: bool = True) -> list[dict]:
-    """Track B sequences in lockstep; write each one's outputs when it ends. Returns their metrics."""
+def run_tracker(
+    tracker: Tracker, sequences: list[TumSequence], out_dir: Path, *, plots: bool = True, mapper=None
+) -> list[dict]:
+    """Track B sequences in lockstep; write each one's outputs when it ends. Returns their metrics.
+    ``mapper`` (a :class:`torchtrack.mapping.PanoramaMapper` or None) is fed every frame and writes each map."""
     out_dir = Path(out_dir)
     recs = [
         Recorder(s, out_dir / name, snapshot_indices(len(s)) if plots else set())
@@ -144,10 +147,14 @@ def run_tracker(tracker: Tracker, sequences: list[TumSequence], out_dir: Path, *
     with torch.inference_mode():
         for frame in tqdm(iterate_batched(sequences), total=max(lengths), desc="tracking", unit="frame"):
             res = tracker.step(frame)
+            if mapper is not None:
+                mapper.add(frame, res)
             for b in range(len(sequences)):
                 if not bool(frame.active[b]):
                     continue
                 recs[b].add(b, frame, res)
                 if int(frame.index[b]) == lengths[b] - 1:
                     results[b] = recs[b].finish(time.perf_counter() - start, plots)
+                    if mapper is not None:
+                        mapper.finish(b, recs[b].out_dir)
     return [r for r in results if r is not None]
