@@ -22,7 +22,7 @@ from torch import Tensor
 
 from torchtrack.data.frame import FrameBatch
 from torchtrack.frontend import depth_in_colour, smooth_depth_mask
-from torchtrack.geometry import T_inv, backproject, pixel_grid, transform_points
+from torchtrack.geometry import T_inv, transform_points
 from torchtrack.io import write_atomic, write_json
 from torchtrack.mapping.render import perspective_view, top_down_view
 from torchtrack.mapping.tsdf import TsdfFusion
@@ -46,27 +46,31 @@ def frame_points(
     frame: FrameBatch, T_world_color: Tensor, select: Tensor, *, pixel_stride: int = 1, min_depth: float = 0.1,
     max_depth: float = 4.0, edge_step: float | None = None,
 ) -> FramePoints:  # fmt: skip
-    """The coloured points of every ``pixel_stride``-th colour pixel with depth in (min_depth, max_depth) of the
-    sequences where ``select`` (B,) bool, placed with T_world_color (B, 4, 4) (colour camera to world). ``edge_step``:
-    drop pixels whose 3x3 window has a hole or a relative depth step above it (flying pixels at occlusions)."""
+    """The coloured points of every ``pixel_stride``-th colour pixel (in x and y) with depth in (min_depth,
+    max_depth) of the sequences where ``select`` (B,) bool, placed with T_world_color (B, 4, 4) (colour camera to
+    world). ``edge_step``: drop pixels whose 3x3 window of the subsampled grid has a hole or a depth step above
+    ``edge_step`` times their depth (flying pixels at occlusion boundaries)."""
     if T_world_color.shape != (len(select), 4, 4) or frame.rgb.shape[0] != len(select):
         raise ValueError(f"frame_points: need T_world_color (B, 4, 4) and select (B,) for B = {frame.rgb.shape[0]}, "
                          f"got {tuple(T_world_color.shape)}, {tuple(select.shape)}")  # fmt: skip
-    sel = select.nonzero()[:, 0]
-    depth = depth_in_colour(frame)[sel]
-    ok = (depth > min_depth) & (depth < max_depth)
+    sel, s = select.nonzero()[:, 0], pixel_stride
+    depth = depth_in_colour(frame)[sel]  # n,1,H,W
+    z = depth[:, :, ::s, ::s]  # n,1,h,w
+    ok = (z > min_depth) & (z < max_depth)
     if edge_step is not None:
-        ok &= smooth_depth_mask(depth, edge_step, radius=1)
-    s = pixel_stride
-    z, ok, rgb = depth[:, 0, ::s, ::s], ok[:, 0, ::s, ::s], frame.rgb[sel][:, :, ::s, ::s]  # n,h,w
-    H, W = frame.rgb.shape[-2:]
-    grid = pixel_grid(H, W)[::s, ::s].reshape(1, -1, 2)
-    p_color = backproject(frame.K[sel], grid, z.reshape(len(sel), -1)).double()  # n,hw,3
-    xyz = transform_points(T_world_color[sel].double(), p_color)
-    m = ok.reshape(len(sel), -1)
-    colours = rgb.permute(0, 2, 3, 1).reshape(len(sel), -1, 3)
-    batch = sel[:, None].expand_as(m)
-    return FramePoints(xyz[m], colours[m], batch[m], depth, sel)
+        ok &= smooth_depth_mask(z, edge_step, radius=1)
+    n, _, h, w = z.shape
+    ok = ok.reshape(n, h * w)
+    i, pix = ok.nonzero(as_tuple=True)  # P: sequence row, pixel of the subsampled grid (ordered by row)
+    zp = z.reshape(n, h * w)[i, pix].double()
+    K = frame.K[sel].double()
+    fx, fy, cx, cy = (K[:, r, c][i] for r, c in ((0, 0), (1, 1), (0, 2), (1, 2)))  # P each
+    u, v = (pix % w * s).double(), (pix // w * s).double()
+    p_color = torch.stack([(u - cx) / fx * zp, (v - cy) / fy * zp, zp], -1)  # pinhole back-projection
+    T = T_world_color[sel].double()
+    xyz = torch.cat([transform_points(T[k], c) for k, c in enumerate(p_color.split(ok.sum(1).tolist()))])
+    rgb = frame.rgb[:, :, ::s, ::s][sel].permute(0, 2, 3, 1).reshape(n, h * w, 3)[i, pix]
+    return FramePoints(xyz, rgb, sel[i], depth, sel)
 
 
 class PanoramaMapper:

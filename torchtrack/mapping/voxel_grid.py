@@ -6,8 +6,8 @@ point is the mean (position and colour). Memory is bounded by the occupied volum
 Voxels are keyed by one int64 per (sequence, voxel): ``b << 54 | (ix + 2^17) << 36 | (iy + 2^17) << 18 | (iz + 2^17)``
 with ``i = floor(p / voxel_size)`` per axis, so one sorted key array serves all B maps (each map is a contiguous run
 of it) and points outside +-2^17 voxels of the world origin (+-1.3 km at 1 cm) are dropped and counted. Insertion
-merges the new sorted keys into the old ones in O(M + K log M) (no re-sort of the map); the per-voxel sums live in
-append-only buffers that grow by doubling.
+merges the new sorted keys into the old ones in O(M + K log M) (no re-sort of the map); the per-voxel sums
+(x, y, z, r, g, b, count: 7 float64) live in one append-only buffer that grows by doubling.
 """
 
 from __future__ import annotations
@@ -60,10 +60,8 @@ class VoxelPointMap:
         self.dropped = 0  # points outside the representable range
         self._sorted = torch.empty(0, dtype=torch.int64)  # (M,) keys, ascending
         self._slot = torch.empty(0, dtype=torch.int64)  # (M,) buffer row of each sorted key
-        self._n = 0  # rows used in the buffers
-        self._xyz = torch.empty(0, 3, dtype=torch.float64)  # sums, by row
-        self._rgb = torch.empty(0, 3, dtype=torch.float32)
-        self._count = torch.empty(0, dtype=torch.int64)
+        self._n = 0  # rows used in the buffer
+        self._sums = torch.empty(0, 7, dtype=torch.float64)  # by row: sum of x, y, z, r, g, b; count
 
     def __len__(self) -> int:
         """Occupied voxels over all B maps."""
@@ -72,7 +70,7 @@ class VoxelPointMap:
     @property
     def nbytes(self) -> int:
         """Bytes held by the map's buffers (capacity, not only the rows in use)."""
-        return sum(t.numel() * t.element_size() for t in (self._sorted, self._slot, self._xyz, self._rgb, self._count))
+        return sum(t.numel() * t.element_size() for t in (self._sorted, self._slot, self._sums))
 
     def add(self, points: Tensor, rgb: Tensor, batch: Tensor) -> None:
         """Fuse points (P, 3) float64 world metres with colours rgb (P, 3) into the maps of ``batch`` (P,) int64."""
@@ -92,27 +90,23 @@ class VoxelPointMap:
         if len(keys) == 0:
             return
         uk, inv = torch.unique(keys, sorted=True, return_inverse=True)
-        xyz_sum = torch.zeros(len(uk), 3, dtype=torch.float64).index_add_(0, inv, points.double())
-        rgb_sum = torch.zeros(len(uk), 3, dtype=torch.float32).index_add_(0, inv, rgb.float())
-        count = torch.bincount(inv, minlength=len(uk))
+        values = torch.cat([points.double(), rgb.double(), torch.ones(len(keys), 1, dtype=torch.float64)], 1)
+        sums = torch.zeros(len(uk), 7, dtype=torch.float64).index_add_(0, inv, values)
         pos = torch.searchsorted(self._sorted, uk)
         found = pos < len(self._sorted)
         found[found.clone()] = self._sorted[pos[found]] == uk[found]
-        rows = self._slot[pos[found]]
-        self._xyz.index_add_(0, rows, xyz_sum[found])
-        self._rgb.index_add_(0, rows, rgb_sum[found])
-        self._count.index_add_(0, rows, count[found])
+        self._sums.index_add_(0, self._slot[pos[found]], sums[found])
         new = ~found
-        self._insert(uk[new], pos[new], xyz_sum[new], rgb_sum[new], count[new])
+        self._insert(uk[new], pos[new], sums[new])
 
-    def _insert(self, keys: Tensor, pos: Tensor, xyz: Tensor, rgb: Tensor, count: Tensor) -> None:
+    def _insert(self, keys: Tensor, pos: Tensor, sums: Tensor) -> None:
         """Append rows for new sorted ``keys`` whose insertion points in the sorted keys are ``pos``; merge."""
         k = len(keys)
         if k == 0:
             return
         self._reserve(self._n + k)
         rows = torch.arange(self._n, self._n + k)
-        self._xyz[rows], self._rgb[rows], self._count[rows] = xyz, rgb, count
+        self._sums[self._n : self._n + k] = sums
         self._n += k
         m = len(self._sorted)
         dest = pos + torch.arange(k)  # where the new keys land in the merged array
@@ -124,15 +118,12 @@ class VoxelPointMap:
         self._sorted, self._slot = merged, slot
 
     def _reserve(self, rows: int) -> None:
-        cap = len(self._count)
+        cap = len(self._sums)
         if rows <= cap:
             return
-        cap = max(rows, 2 * cap, 1024)
-        for name in ("_xyz", "_rgb", "_count"):
-            old = getattr(self, name)
-            new = old.new_zeros((cap, *old.shape[1:]))
-            new[: self._n] = old[: self._n]
-            setattr(self, name, new)
+        new = self._sums.new_zeros(max(rows, 2 * cap, 1024), 7)
+        new[: self._n] = self._sums[: self._n]
+        self._sums = new
 
     def _range(self, b: int) -> tuple[int, int]:
         """The run [lo, hi) of sequence b's keys in the sorted keys."""
@@ -145,9 +136,9 @@ class VoxelPointMap:
     def points(self, b: int = 0) -> MapPoints:
         """Sequence b's map: one point per voxel, the mean position and colour of its points."""
         lo, hi = self._range(b)
-        rows = self._slot[lo:hi]
-        n = self._count[rows]
-        return MapPoints(self._xyz[rows] / n[:, None], self._rgb[rows] / n[:, None].float(), n)
+        sums = self._sums[self._slot[lo:hi]]
+        n = sums[:, 6:]
+        return MapPoints(sums[:, :3] / n, (sums[:, 3:6] / n).float(), n[:, 0].long())
 
     def size(self, b: int) -> int:
         """Occupied voxels of sequence b."""
@@ -163,8 +154,7 @@ class VoxelPointMap:
         self._sorted = torch.cat([self._sorted[:lo], self._sorted[hi:]])
         order = torch.argsort(keep)  # keep the rows' arrival order
         rows = keep[order]
-        self._xyz, self._rgb, self._count = self._xyz[rows], self._rgb[rows], self._count[rows]
-        self._n = len(rows)
+        self._sums, self._n = self._sums[rows], len(rows)
         slot = torch.empty_like(keep)
         slot[order] = torch.arange(len(rows))
         self._slot = slot
