@@ -381,3 +381,9 @@ def test_runner_writes_the_map_and_leaves_the_trajectory_unchanged(tmp_path):
     assert stats["map_frames"] >= 2 and not (outs["off"] / "map.ply").exists()  # frames 0 and 4 at least
     assert len(o3d.io.read_point_cloud(str(outs["on"] / "map.ply")).points) == stats["map_points"] > 10000
     assert cv2.imread(str(outs["on"] / "map.png")).shape == (480, 1280, 3)
+
+
+def test_an_empty_map_writes_its_statistics_and_no_ply(tmp_path):
+    stats = PanoramaMapper(views=False).finish(0, tmp_path)
+    assert stats["map_points"] == 0 and stats["map_frames"] == 0 and not (tmp_path / "map.ply").exists()
+    assert (tmp_path / "map.json").is_file()

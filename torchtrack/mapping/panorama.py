@@ -159,13 +159,16 @@ class PanoramaMapper:
         its memory. Returns the statistics written to ``map.json``."""
         out_dir = Path(out_dir)
         pts = self.points(b)
-        write_point_cloud(out_dir / "map.ply", pts)
         stats = {
             "map_points": len(pts.count),
             "map_frames": int(self.fused[b]) if self.fused is not None else 0,
             "voxel_size_m": self.voxel_size,
-            "map_ply_mb": (out_dir / "map.ply").stat().st_size / 1e6,
+            "map_ply_mb": 0.0,
         }
+        if len(pts.count):  # PLY writers refuse an empty cloud (no depth in any fused frame)
+            stats["map_ply_mb"] = write_point_cloud(out_dir / "map.ply", pts).stat().st_size / 1e6
+        else:
+            log.warning("map of %s is empty (no depth in the fused frames): no map.ply", out_dir.name)
         if self.tsdf is not None:
             stats["mesh_triangles"] = self.tsdf.write(b, out_dir / "mesh.ply")
         if self.views and self.first is not None:
