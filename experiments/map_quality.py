@@ -38,6 +38,7 @@ import torch
 from eval_weighting import replace_section  # experiments/eval_weighting.py
 from evaluate import compose_config, find_sequences, git_describe, run_peer, split_argv  # experiments/evaluate.py
 from scipy.spatial import cKDTree
+from tqdm import tqdm
 
 from torchtrack.data.batching import iterate_batched
 from torchtrack.data.frame import FrameBatch
@@ -87,7 +88,7 @@ def fuse_three(cfg, seq, frames: list[int], poses: dict[str, np.ndarray]):
     mapper = build_mapper(cfg)
     T = torch.as_tensor(np.stack([poses[k] for k in POSES], 1), dtype=torch.float64)  # F,3,4,4
     with torch.inference_mode():
-        for frame in iterate_batched([Subsequence(seq, frames)]):
+        for frame in tqdm(iterate_batched([Subsequence(seq, frames)]), total=len(frames), desc=f"maps {seq.name}"):
             fb = FrameBatch(**{k: v.expand(len(POSES), *v.shape[1:]) for k, v in vars(frame).items()})
             mapper.fuse(fb, T[int(frame.index[0])], torch.ones(len(POSES), dtype=torch.bool))
     return [mapper.points(b) for b in range(len(POSES))]
