@@ -28,7 +28,15 @@ from torchtrack.data.synthetic.render import render_frame
 from torchtrack.data.synthetic.scene import Primitive, frame_pose, make_scene, pose, random_texture
 from torchtrack.factory import build_mapper, build_tracker
 from torchtrack.geometry import T_inv, make_T, so3_exp
-from torchtrack.mapping import PanoramaMapper, VoxelPointMap, frame_points, splat, voxel_keys
+from torchtrack.mapping import (
+    PanoramaMapper,
+    VoxelPointMap,
+    frame_points,
+    perspective_view,
+    splat,
+    top_down_view,
+    voxel_keys,
+)
 from torchtrack.run import run_tracker
 
 VOXEL = 0.02
@@ -387,3 +395,21 @@ def test_an_empty_map_writes_its_statistics_and_no_ply(tmp_path):
     stats = PanoramaMapper(views=False).finish(0, tmp_path)
     assert stats["map_points"] == 0 and stats["map_frames"] == 0 and not (tmp_path / "map.ply").exists()
     assert (tmp_path / "map.json").is_file()
+
+
+def test_views_put_points_where_the_cameras_see_them():
+    """Perspective: a point on the optical axis lands at the view's centre, one 0.5 m to the right at
+    centre + zoom * f * 0.5 / z. Top-down: of two points on one vertical line the upper one (smaller camera y) shows."""
+    K = torch.tensor([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    T = look_at((0.0, -2.0, 1.0), (0.0, 0.0, 1.0))  # looking along +y, level: camera y = world -z
+    xyz = torch.tensor([[0.0, 0.0, 1.0], [0.5, 0.0, 1.0]], dtype=torch.float64)
+    rgb = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    img = perspective_view(xyz, rgb, T, K, (120, 160), voxel_size=0.001, zoom=0.5)
+    assert img[:, 60, 80].tolist() == [1.0, 0.0, 0.0]
+    assert img[:, 60, 80 + round(0.5 * 500 * 0.5 / 2.0)].tolist() == [0.0, 0.0, 1.0]
+    above = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 0.2], [1.0, 1.0, 0.0], [-1.0, -1.0, 0.0]], dtype=torch.float64)
+    colours = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    top = top_down_view(above, colours, T, (100, 100), voxel_size=0.001, margin=0.0)
+    red = (top == torch.tensor([1.0, 0.0, 0.0])[:, None, None]).all(0)
+    green = (top == torch.tensor([0.0, 1.0, 0.0])[:, None, None]).all(0)
+    assert int(red.sum()) == 1 and int(green.sum()) == 0  # the upper point hides the lower one

@@ -90,4 +90,4 @@ def top_down_view(
     centre = (lo + hi) / 2
     uv = torch.stack([(a - centre[0]) * scale + W / 2, -(f - centre[1]) * scale + H / 2], -1)
     radius = min(3, round(scale * voxel_size / 2))
-    return splat(uv, -d, rgb, size, radius)[0]  # -d: the highest point is nearest
+    return splat(uv, d, rgb, size, radius)[0]  # d along "down": the highest point is the nearest
