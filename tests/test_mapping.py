@@ -140,14 +140,15 @@ def numpy_voxels(p: np.ndarray, c: np.ndarray, b: np.ndarray, voxel: float, seq:
 
 def test_voxel_map_equals_a_direct_numpy_computation():
     gen = torch.Generator().manual_seed(0)
-    chunks = []
-    for _ in range(4):  # clustered points, so that most voxels get several, spread over 3 maps and 4 insertions
-        centres = torch.rand(300, 3, generator=gen, dtype=torch.float64) * 2 - 1
-        p = centres.repeat_interleave(20, 0) + 0.01 * torch.randn(6000, 3, generator=gen, dtype=torch.float64)
-        chunks.append((p, torch.rand(6000, 3, generator=gen), torch.randint(0, 3, (6000,), generator=gen)))
+    chunks, runs = [], []
     m = VoxelPointMap(voxel_size=0.03, batch_size=3)
-    for p, c, b in chunks:
-        m.add(p, c, b)
+    for n in (300, 40, 30, 8, 20, 300, 5):  # clustered points (most voxels get several), 3 maps, 7 insertions of
+        centres = torch.rand(n, 3, generator=gen, dtype=torch.float64) * 2 - 1  # sizes that leave several runs
+        p = centres.repeat_interleave(20, 0) + 0.01 * torch.randn(20 * n, 3, generator=gen, dtype=torch.float64)
+        chunks.append((p, torch.rand(20 * n, 3, generator=gen), torch.randint(0, 3, (20 * n,), generator=gen)))
+        m.add(*chunks[-1])
+        runs.append(len(m._runs))
+    assert max(runs) >= 3  # the merges of the index were exercised
     P, C, Bt = (torch.cat(x).numpy() for x in zip(*chunks, strict=True))
     assert len(m) == sum(m.size(s) for s in range(3))
     for s in range(3):

@@ -5,9 +5,12 @@ point is the mean (position and colour). Memory is bounded by the occupied volum
 
 Voxels are keyed by one int64 per (sequence, voxel): ``b << 54 | (ix + 2^17) << 36 | (iy + 2^17) << 18 | (iz + 2^17)``
 with ``i = floor(p / voxel_size)`` per axis, so one sorted key array serves all B maps (each map is a contiguous run
-of it) and points outside +-2^17 voxels of the world origin (+-1.3 km at 1 cm) are dropped and counted. Insertion
-merges the new sorted keys into the old ones in O(M + K log M) (no re-sort of the map); the per-voxel sums
-(x, y, z, r, g, b, count: 7 float64) live in one append-only buffer that grows by doubling.
+of it) and points outside +-2^17 voxels of the world origin (+-1.3 km at 1 cm) are dropped and counted.
+
+The index is a few sorted runs of keys (a log-structured merge: a new frame's new voxels form a run; runs of
+similar size are merged, so there are O(log M) runs and a key is re-sorted O(log M) times over the map's life):
+a frame of K voxels costs O(K log^2 M) amortised, never O(M). The per-voxel sums (x, y, z, r, g, b, count:
+7 float64) live in one append-only buffer that grows by doubling; a run holds each key's row in it.
 """
 
 from __future__ import annotations
@@ -58,19 +61,18 @@ class VoxelPointMap:
         self.voxel_size = float(voxel_size)
         self.batch_size = batch_size
         self.dropped = 0  # points outside the representable range
-        self._sorted = torch.empty(0, dtype=torch.int64)  # (M,) keys, ascending
-        self._slot = torch.empty(0, dtype=torch.int64)  # (M,) buffer row of each sorted key
+        self._runs: list[tuple[Tensor, Tensor]] = []  # (keys ascending, their rows), largest first; disjoint
         self._n = 0  # rows used in the buffer
         self._sums = torch.empty(0, 7, dtype=torch.float64)  # by row: sum of x, y, z, r, g, b; count
 
     def __len__(self) -> int:
         """Occupied voxels over all B maps."""
-        return len(self._sorted)
+        return sum(len(k) for k, _ in self._runs)
 
     @property
     def nbytes(self) -> int:
         """Bytes held by the map's buffers (capacity, not only the rows in use)."""
-        return sum(t.numel() * t.element_size() for t in (self._sorted, self._slot, self._sums))
+        return self._sums.numel() * 8 + sum(k.numel() * 16 for k, _ in self._runs)
 
     def add(self, points: Tensor, rgb: Tensor, batch: Tensor) -> None:
         """Fuse points (P, 3) float64 world metres with colours rgb (P, 3) into the maps of ``batch`` (P,) int64."""
@@ -92,69 +94,72 @@ class VoxelPointMap:
         uk, inv = torch.unique(keys, sorted=True, return_inverse=True)
         values = torch.cat([points.double(), rgb.double(), torch.ones(len(keys), 1, dtype=torch.float64)], 1)
         sums = torch.zeros(len(uk), 7, dtype=torch.float64).index_add_(0, inv, values)
-        pos = torch.searchsorted(self._sorted, uk)
-        found = pos < len(self._sorted)
-        found[found.clone()] = self._sorted[pos[found]] == uk[found]
-        self._sums.index_add_(0, self._slot[pos[found]], sums[found])
-        new = ~found
-        self._insert(uk[new], pos[new], sums[new])
+        new = torch.ones(len(uk), dtype=torch.bool)
+        for run_keys, run_rows in self._runs:
+            pos = torch.searchsorted(run_keys, uk).clamp_(max=len(run_keys) - 1)
+            hit = run_keys[pos] == uk
+            self._sums.index_add_(0, run_rows[pos[hit]], sums[hit])
+            new &= ~hit
+        self._append(uk[new], sums[new])
 
-    def _insert(self, keys: Tensor, pos: Tensor, sums: Tensor) -> None:
-        """Append rows for new sorted ``keys`` whose insertion points in the sorted keys are ``pos``; merge."""
+    def _append(self, keys: Tensor, sums: Tensor) -> None:
+        """New voxels: rows for their sums, a run for their sorted keys; merge runs of similar size."""
         k = len(keys)
         if k == 0:
             return
         self._reserve(self._n + k)
-        rows = torch.arange(self._n, self._n + k)
         self._sums[self._n : self._n + k] = sums
+        self._runs.append((keys, torch.arange(self._n, self._n + k)))
         self._n += k
-        m = len(self._sorted)
-        dest = pos + torch.arange(k)  # where the new keys land in the merged array
-        old = torch.ones(m + k, dtype=torch.bool)
-        old[dest] = False
-        merged, slot = torch.empty(m + k, dtype=torch.int64), torch.empty(m + k, dtype=torch.int64)
-        merged[dest], slot[dest] = keys, rows
-        merged[old], slot[old] = self._sorted, self._slot
-        self._sorted, self._slot = merged, slot
+        while len(self._runs) > 1 and len(self._runs[-2][0]) <= 2 * len(self._runs[-1][0]):
+            (ka, ra), (kb, rb) = self._runs.pop(), self._runs.pop()
+            merged, order = torch.sort(torch.cat([kb, ka]))
+            self._runs.append((merged, torch.cat([rb, ra])[order]))
 
     def _reserve(self, rows: int) -> None:
         cap = len(self._sums)
         if rows <= cap:
             return
-        new = self._sums.new_zeros(max(rows, 2 * cap, 1024), 7)
+        new = torch.empty(max(rows, 2 * cap, 1024), 7, dtype=torch.float64)  # rows past _n are never read
         new[: self._n] = self._sums[: self._n]
         self._sums = new
 
-    def _range(self, b: int) -> tuple[int, int]:
-        """The run [lo, hi) of sequence b's keys in the sorted keys."""
-        bounds = torch.tensor([b << (3 * AXIS_BITS), (b + 1) << (3 * AXIS_BITS)], dtype=torch.int64)
-        if b + 1 == MAX_BATCH:
-            bounds[1] = torch.iinfo(torch.int64).max
-        lo, hi = torch.searchsorted(self._sorted, bounds).tolist()
-        return lo, hi
+    def _rows(self, b: int) -> Tensor:
+        """(M_b,) buffer rows of sequence b's voxels, in key order."""
+        lo, hi = b << (3 * AXIS_BITS), (b + 1) << (3 * AXIS_BITS) if b + 1 < MAX_BATCH else torch.iinfo(torch.int64).max
+        bounds = torch.tensor([lo, hi], dtype=torch.int64)
+        keys, rows = [], []
+        for run_keys, run_rows in self._runs:
+            i, j = torch.searchsorted(run_keys, bounds).tolist()
+            keys.append(run_keys[i:j])
+            rows.append(run_rows[i:j])
+        if not keys:
+            return torch.empty(0, dtype=torch.int64)
+        order = torch.argsort(torch.cat(keys))
+        return torch.cat(rows)[order]
 
     def points(self, b: int = 0) -> MapPoints:
         """Sequence b's map: one point per voxel, the mean position and colour of its points."""
-        lo, hi = self._range(b)
-        sums = self._sums[self._slot[lo:hi]]
+        sums = self._sums[self._rows(b)]
         n = sums[:, 6:]
         return MapPoints(sums[:, :3] / n, (sums[:, 3:6] / n).float(), n[:, 0].long())
 
     def size(self, b: int) -> int:
         """Occupied voxels of sequence b."""
-        lo, hi = self._range(b)
-        return hi - lo
+        return len(self._rows(b))
 
     def clear(self, b: int) -> None:
-        """Forget sequence b's map and compact the buffers (a finished sequence's memory is released)."""
-        lo, hi = self._range(b)
-        if hi == lo:
+        """Forget sequence b's map and compact the buffer (a finished sequence's memory is released)."""
+        drop = torch.zeros(self._n, dtype=torch.bool)
+        drop[self._rows(b)] = True
+        if not bool(drop.any()):
             return
-        keep = torch.cat([self._slot[:lo], self._slot[hi:]])
-        self._sorted = torch.cat([self._sorted[:lo], self._sorted[hi:]])
-        order = torch.argsort(keep)  # keep the rows' arrival order
-        rows = keep[order]
-        self._sums, self._n = self._sums[rows], len(rows)
-        slot = torch.empty_like(keep)
-        slot[order] = torch.arange(len(rows))
-        self._slot = slot
+        new_row = torch.cumsum(~drop, 0) - 1  # old row -> compacted row (where kept)
+        self._sums = self._sums[: self._n][~drop]
+        self._n = len(self._sums)
+        runs = []
+        for run_keys, run_rows in self._runs:
+            keep = ~drop[run_rows]
+            if bool(keep.any()):
+                runs.append((run_keys[keep], new_row[run_rows[keep]]))
+        self._runs = sorted(runs, key=lambda r: -len(r[0]))
