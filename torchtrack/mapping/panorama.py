@@ -59,17 +59,22 @@ def frame_points(
     ok = (z > min_depth) & (z < max_depth)
     if edge_step is not None:
         ok &= smooth_depth_mask(z, edge_step, radius=1)
-    n, _, h, w = z.shape
-    ok = ok.reshape(n, h * w)
-    i, pix = ok.nonzero(as_tuple=True)  # P: sequence row, pixel of the subsampled grid (ordered by row)
-    zp = z.reshape(n, h * w)[i, pix].double()
+    n = len(sel)
+    ok = ok[:, 0]
+    i, row, col = ok.nonzero(as_tuple=True)  # P: sequence, row and column in the subsampled grid (by sequence)
+    zp = z[:, 0][i, row, col].double()
     K = frame.K[sel].double()
     fx, fy, cx, cy = (K[:, r, c][i] for r, c in ((0, 0), (1, 1), (0, 2), (1, 2)))  # P each
-    u, v = (pix % w * s).double(), (pix // w * s).double()
+    u, v = (col * s).double(), (row * s).double()
     p_color = torch.stack([(u - cx) / fx * zp, (v - cy) / fy * zp, zp], -1)  # pinhole back-projection
     T = T_world_color[sel].double()
-    xyz = torch.cat([transform_points(T[k], c) for k, c in enumerate(p_color.split(ok.sum(1).tolist()))])
-    rgb = frame.rgb[:, :, ::s, ::s][sel].permute(0, 2, 3, 1).reshape(n, h * w, 3)[i, pix]
+    parts = p_color.split(ok.reshape(n, -1).sum(1).tolist())
+    xyz = (
+        torch.cat([transform_points(T[k], c) for k, c in enumerate(parts)])
+        if n > 1
+        else transform_points(T[0], p_color)
+    )
+    rgb = frame.rgb[:, :, ::s, ::s][sel].permute(0, 2, 3, 1)[i, row, col]
     return FramePoints(xyz, rgb, sel[i], depth, sel)
 
 

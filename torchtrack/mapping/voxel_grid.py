@@ -38,9 +38,8 @@ class MapPoints(NamedTuple):
 def voxel_keys(points: Tensor, batch: Tensor, voxel_size: float) -> tuple[Tensor, Tensor]:
     """Keys (P,) int64 of points (P, 3) float64 world metres in sequences ``batch`` (P,) int64; inside (P,) bool
     where the voxel is representable (keys of the others are meaningless)."""
-    idx = torch.floor(points / voxel_size)
-    inside = ((idx >= -HALF) & (idx < HALF)).all(-1)
-    ijk = (idx.clamp(-HALF, HALF - 1) + HALF).long()  # 0 .. 2^18 - 1
+    ijk = torch.floor(points / voxel_size).long() + HALF  # 0 .. 2^18 - 1 inside
+    inside = ((ijk >= 0) & (ijk < 2 * HALF)).all(-1)  # the keys of the others mix bits: dropped by the caller
     keys = (batch << (3 * AXIS_BITS)) | (ijk[:, 0] << (2 * AXIS_BITS)) | (ijk[:, 1] << AXIS_BITS) | ijk[:, 2]
     return keys, inside
 
