@@ -365,6 +365,19 @@ def compose(*overrides: str):
         return compose_config("config", overrides=list(overrides))
 
 
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [("mapping.voxel_size=0", "mapping.voxel_size must be > 0"), ("mapping.every=0", "must be >= 1"),
+     ("mapping.min_depth=5", "min_depth < max_depth")],
+)  # fmt: skip
+def test_mapping_ranges_are_checked_by_validate(override, message):
+    from torchtrack.config import validate
+    from torchtrack.data.errors import DataError
+
+    with pytest.raises(DataError, match=message):
+        validate(compose("mapping=panorama", override))
+
+
 def test_mapping_is_off_by_default_and_one_switch_turns_it_on():
     assert build_mapper(compose()) is None
     panorama = build_mapper(compose("mapping=panorama", "mapping.voxel_size=0.02"))

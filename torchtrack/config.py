@@ -290,6 +290,18 @@ class MappingConfig:
     views: bool = True  # map.png: perspective view from the first camera and top-down view
     view_size: list[int] = field(default_factory=lambda: [480, 640])  # [H, W] of each view
 
+    def __post_init__(self) -> None:
+        for key in ("voxel_size", "tsdf_voxel_size", "tsdf_trunc", "max_depth"):
+            if getattr(self, key) <= 0:
+                raise DataError(f"mapping.{key} must be > 0, got {getattr(self, key)}")
+        if self.pixel_stride < 1 or (self.every is not None and self.every < 1):
+            raise DataError(
+                f"mapping.pixel_stride and mapping.every must be >= 1, got {self.pixel_stride}, {self.every}"
+            )
+        if not 0 <= self.min_depth < self.max_depth or len(self.view_size) != 2 or min(self.view_size) < 16:
+            raise DataError(f"mapping: need 0 <= min_depth < max_depth and view_size [H, W] >= 16, got "
+                            f"{self.min_depth}, {self.max_depth}, {self.view_size}")  # fmt: skip
+
 
 SCHEMAS: dict[str, dict[str, type]] = {
     "data": {"tum": TumDataConfig, "synthetic": SyntheticDataConfig},
@@ -332,11 +344,13 @@ def load_option(group: str, name: str) -> DictConfig:
 
 
 def validate(cfg: DictConfig) -> None:
-    """Range checks that types cannot express: build the data node's dataclass (its ``__post_init__``).
+    """Range checks that types cannot express: build the data and mapping nodes' dataclasses (``__post_init__``).
 
     Raises :class:`~torchtrack.data.errors.DataError` with a one-line message.
     """
     OmegaConf.to_object(cfg.data)
+    if "mapping" in cfg:
+        OmegaConf.to_object(cfg.mapping)
 
 
 def check_overrides(config_name: str, argv: list[str]) -> str | None:

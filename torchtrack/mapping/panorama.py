@@ -98,6 +98,8 @@ class PanoramaMapper:
         max_depth: float = 4.0, edge_step: float | None = 0.05, tsdf: bool = False, tsdf_voxel_size: float = 0.01,
         tsdf_trunc: float = 0.04, views: bool = True, view_size: tuple[int, int] = (480, 640),
     ) -> None:  # fmt: skip
+        if voxel_size <= 0:
+            raise ValueError(f"PanoramaMapper: voxel_size must be > 0, got {voxel_size}")
         if every is not None and every < 1:
             raise ValueError(f"PanoramaMapper: every must be >= 1 or None, got {every}")
         if pixel_stride < 1 or not 0 <= min_depth < max_depth:
