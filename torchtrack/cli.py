@@ -4,6 +4,7 @@ torchtrack                                   # synthetic sequence (rendered once
 torchtrack data=tum data.root=DIR            # a TUM-layout folder
 torchtrack data=tum 'data.root=[DIR1,DIR2]'  # B sequences tracked together
 torchtrack tracker=icp hydra.run.dir=OUT     # another estimator, chosen output folder
+torchtrack data=tum data.root=DIR mapping=panorama  # + map.ply, map.png (mapping=tsdf: + mesh.ply)
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from omegaconf import DictConfig
 
 from torchtrack.config import CONF_DIR, exit_on_bad_overrides, validate
 from torchtrack.data.errors import DataError
-from torchtrack.factory import build_sequences, build_tracker
+from torchtrack.factory import build_mapper, build_sequences, build_tracker
 from torchtrack.run import run_tracker
 from torchtrack.runtime import configure
 
@@ -35,7 +36,7 @@ def app(cfg: DictConfig) -> None:
         sequences = build_sequences(cfg.data)
         tracker = build_tracker(cfg)
         log.info("tracking %d sequence(s) into %s", len(sequences), out)
-        results = run_tracker(tracker, sequences, out, plots=cfg.plots)
+        results = run_tracker(tracker, sequences, out, plots=cfg.plots, mapper=build_mapper(cfg))
     except (DataError, OSError) as e:  # bad input or an unwritable output folder, found before tracking
         if HydraConfig.get().mode == RunMode.MULTIRUN:
             raise  # let the launcher record this job's failure and run the others

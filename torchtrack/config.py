@@ -299,6 +299,41 @@ class RelocaliseConfig:
     agree_deg: float = 2.0
 
 
+# --- mapping ----------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class MappingConfig:
+    """:class:`torchtrack.mapping.PanoramaMapper` (paper §IV): coloured voxel-grid map per sequence; off unless
+    ``enabled`` (``mapping=panorama`` or ``mapping=tsdf``; read by :func:`torchtrack.factory.build_mapper`)."""
+
+    _target_: str = "torchtrack.mapping.PanoramaMapper"
+    enabled: bool = False
+    voxel_size: float = 0.01  # m, one point per voxel
+    every: int | None = None  # also fuse every k-th frame; null: the first and the model (key) frames only
+    pixel_stride: int = 2  # back-project every n-th pixel in x and y
+    min_depth: float = 0.1  # m
+    max_depth: float = 4.0  # m
+    edge_step: float | None = 0.05  # drop pixels at depth steps above this fraction (flying pixels); null: off
+    tsdf: bool = False  # also fuse the same frames with Open3D's TSDF (tensor VoxelBlockGrid) -> mesh.ply
+    tsdf_voxel_size: float = 0.01  # m
+    tsdf_trunc: float = 0.04  # m
+    views: bool = True  # map.png: perspective view from the first camera and top-down view
+    view_size: list[int] = field(default_factory=lambda: [480, 640])  # [H, W] of each view
+
+    def __post_init__(self) -> None:
+        for key in ("voxel_size", "tsdf_voxel_size", "tsdf_trunc", "max_depth"):
+            if getattr(self, key) <= 0:
+                raise DataError(f"mapping.{key} must be > 0, got {getattr(self, key)}")
+        if self.pixel_stride < 1 or (self.every is not None and self.every < 1):
+            raise DataError(
+                f"mapping.pixel_stride and mapping.every must be >= 1, got {self.pixel_stride}, {self.every}"
+            )
+        if not 0 <= self.min_depth < self.max_depth or len(self.view_size) != 2 or min(self.view_size) < 16:
+            raise DataError(f"mapping: need 0 <= min_depth < max_depth and view_size [H, W] >= 16, got "
+                            f"{self.min_depth}, {self.max_depth}, {self.view_size}")  # fmt: skip
+
+
 SCHEMAS: dict[str, dict[str, type]] = {
     "data": {"tum": TumDataConfig, "synthetic": SyntheticDataConfig},
     "region": {"region": RegionConfig},
@@ -311,6 +346,7 @@ SCHEMAS: dict[str, dict[str, type]] = {
     "estimator": {"icp": ICPConfig, "cpd": CPDConfig, "horn": HornConfig},
     "pipeline": {"pipeline": PipelineConfig},
     "relocalise": {"relocalise": RelocaliseConfig},
+    "mapping": {"mapping": MappingConfig},
 }
 
 
@@ -340,11 +376,13 @@ def load_option(group: str, name: str) -> DictConfig:
 
 
 def validate(cfg: DictConfig) -> None:
-    """Range checks that types cannot express: build the data node's dataclass (its ``__post_init__``).
+    """Range checks that types cannot express: build the data and mapping nodes' dataclasses (``__post_init__``).
 
     Raises :class:`~torchtrack.data.errors.DataError` with a one-line message.
     """
     OmegaConf.to_object(cfg.data)
+    if "mapping" in cfg:
+        OmegaConf.to_object(cfg.mapping)
 
 
 def check_overrides(config_name: str, argv: list[str]) -> str | None:

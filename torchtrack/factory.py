@@ -63,3 +63,14 @@ def build_tracker(cfg: DictConfig, *, record: bool = False) -> Tracker:
 def build_relocaliser(cfg: DictConfig):
     """The tracker's loss check (:class:`torchtrack.relocalise.Relocaliser`) from ``cfg.relocalise``, if any."""
     return instantiate(cfg.relocalise) if "relocalise" in cfg else None
+
+
+def build_mapper(cfg: DictConfig):
+    """The ``mapping`` node's :class:`torchtrack.mapping.PanoramaMapper`, or None when mapping is off."""
+    node = cfg.get("mapping")
+    if node is None or not node.enabled:
+        return None
+    kwargs = OmegaConf.to_container(node, resolve=True)
+    kwargs.pop("enabled")
+    kwargs["view_size"] = tuple(kwargs["view_size"])
+    return instantiate(kwargs)

@@ -184,10 +184,13 @@ def unique_names(sequences: list[TumSequence]) -> list[str]:
     return names
 
 
-def run_tracker(tracker: Tracker, sequences: list[TumSequence], out_dir: Path, *, plots: bool = True) -> list[dict]:
+def run_tracker(
+    tracker: Tracker, sequences: list[TumSequence], out_dir: Path, *, plots: bool = True, mapper=None
+) -> list[dict]:
     """Track B sequences in lockstep; write each one's outputs when it ends. Returns their metrics, one per sequence
     in order; a failed sequence's say ``"complete": False`` and ``"error"``. Raises OSError (one line) before
-    tracking when an output folder is not writable."""
+    tracking when an output folder is not writable. ``mapper`` (a :class:`torchtrack.mapping.PanoramaMapper` or
+    None) is fed every frame and writes each sequence's map when it ends."""
     out_dir = Path(out_dir)
     recs = [
         Recorder(s, out_dir / name, snapshot_indices(len(s)) if plots else set())
@@ -206,6 +209,8 @@ def run_tracker(tracker: Tracker, sequences: list[TumSequence], out_dir: Path, *
             log.error("%s: failed: %s", sequences[b].name, failure)
         try:
             results[b] = recs[b].finish(time.perf_counter() - start, plots, dropped=cursors[b].dropped, failure=failure)
+            if mapper is not None:
+                mapper.finish(b, recs[b].out_dir)
         except Exception as e:  # writing or evaluating this sequence failed: the others still finish
             log.exception("%s: writing the outputs failed", sequences[b].name)
             results[b] = {"sequence": sequences[b].name, "complete": False, "error": f"{type(e).__name__}: {e}"}
@@ -222,6 +227,8 @@ def run_tracker(tracker: Tracker, sequences: list[TumSequence], out_dir: Path, *
                     if results[b] is None:
                         finish(b, f"tracking failed at step {t}: {type(e).__name__}: {e}")
                 break
+            if mapper is not None:
+                mapper.add(frame, res)
             for b in range(len(sequences)):
                 if results[b] is not None:
                     continue

@@ -1,0 +1,164 @@
+"""A streaming voxel-grid point map, batched over B sequences: one coloured point per occupied voxel.
+
+Every voxel keeps the sums of the positions and colours of the points that fell in it and their count; the map's
+point is the mean (position and colour). Memory is bounded by the occupied volume, not by the number of frames.
+
+Voxels are keyed by one int64 per (sequence, voxel): ``b << 54 | (ix + 2^17) << 36 | (iy + 2^17) << 18 | (iz + 2^17)``
+with ``i = floor(p / voxel_size)`` per axis, so one sorted key array serves all B maps (each map is a contiguous run
+of it) and points outside +-2^17 voxels of the world origin (+-1.3 km at 1 cm) are dropped and counted.
+
+The index is a few sorted runs of keys (a log-structured merge: a new frame's new voxels form a run; runs of
+similar size are merged, so there are O(log M) runs and a key is re-sorted O(log M) times over the map's life):
+a frame of K voxels costs O(K log^2 M) amortised, never O(M). The per-voxel sums (x, y, z, r, g, b, count:
+7 float64) live in one append-only buffer that grows by doubling; a run holds each key's row in it.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+AXIS_BITS = 18
+BATCH_BITS = 63 - 3 * AXIS_BITS  # 9: up to 512 sequences
+HALF = 1 << (AXIS_BITS - 1)
+MAX_BATCH = 1 << BATCH_BITS
+
+
+class MapPoints(NamedTuple):
+    """One sequence's map: xyz (M, 3) float64 world metres, rgb (M, 3) float32 in [0, 1], count (M,) int64 points
+    averaged per voxel; sorted by voxel key."""
+
+    xyz: Tensor
+    rgb: Tensor
+    count: Tensor
+
+
+def voxel_keys(points: Tensor, batch: Tensor, voxel_size: float) -> tuple[Tensor, Tensor]:
+    """Keys (P,) int64 of points (P, 3) float64 world metres in sequences ``batch`` (P,) int64; inside (P,) bool
+    where the voxel is representable (keys of the others are meaningless)."""
+    ijk = torch.floor(points / voxel_size).long() + HALF  # 0 .. 2^18 - 1 inside
+    inside = ((ijk >= 0) & (ijk < 2 * HALF)).all(-1)  # the keys of the others mix bits: dropped by the caller
+    keys = (batch << (3 * AXIS_BITS)) | (ijk[:, 0] << (2 * AXIS_BITS)) | (ijk[:, 1] << AXIS_BITS) | ijk[:, 2]
+    return keys, inside
+
+
+class VoxelPointMap:
+    """B voxel-grid point maps fused point by point.
+
+    Args:
+        voxel_size: edge of a voxel, metres.
+        batch_size: B, the number of maps (<= 512).
+    """
+
+    def __init__(self, *, voxel_size: float = 0.01, batch_size: int = 1) -> None:
+        if voxel_size <= 0:
+            raise ValueError(f"VoxelPointMap: voxel_size must be > 0, got {voxel_size}")
+        if not 1 <= batch_size <= MAX_BATCH:
+            raise ValueError(f"VoxelPointMap: batch_size must be in [1, {MAX_BATCH}], got {batch_size}")
+        self.voxel_size = float(voxel_size)
+        self.batch_size = batch_size
+        self.dropped = 0  # points outside the representable range
+        self._runs: list[tuple[Tensor, Tensor]] = []  # (keys ascending, their rows), largest first; disjoint
+        self._n = 0  # rows used in the buffer
+        self._sums = torch.empty(0, 7, dtype=torch.float64)  # by row: sum of x, y, z, r, g, b; count
+
+    def __len__(self) -> int:
+        """Occupied voxels over all B maps."""
+        return sum(len(k) for k, _ in self._runs)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the map's buffers (capacity, not only the rows in use)."""
+        return self._sums.numel() * 8 + sum(k.numel() * 16 for k, _ in self._runs)
+
+    def add(self, points: Tensor, rgb: Tensor, batch: Tensor) -> None:
+        """Fuse points (P, 3) float64 world metres with colours rgb (P, 3) into the maps of ``batch`` (P,) int64."""
+        if points.dim() != 2 or points.shape[-1] != 3 or rgb.shape != points.shape or batch.shape != points.shape[:1]:
+            raise ValueError(
+                f"VoxelPointMap.add: need points (P, 3), rgb (P, 3), batch (P,); got {tuple(points.shape)}, "
+                f"{tuple(rgb.shape)}, {tuple(batch.shape)}"
+            )
+        if len(batch) and (int(batch.min()) < 0 or int(batch.max()) >= self.batch_size):
+            raise ValueError(
+                f"VoxelPointMap.add: batch indices must be in [0, {self.batch_size}), got {batch.unique()}"
+            )
+        keys, inside = voxel_keys(points.double(), batch.long(), self.voxel_size)
+        if not bool(inside.all()):
+            self.dropped += int((~inside).sum())
+            keys, points, rgb = keys[inside], points[inside], rgb[inside]
+        if len(keys) == 0:
+            return
+        uk, inv = torch.unique(keys, sorted=True, return_inverse=True)
+        values = torch.cat([points.double(), rgb.double(), torch.ones(len(keys), 1, dtype=torch.float64)], 1)
+        sums = torch.zeros(len(uk), 7, dtype=torch.float64).index_add_(0, inv, values)
+        new = torch.ones(len(uk), dtype=torch.bool)
+        for run_keys, run_rows in self._runs:
+            pos = torch.searchsorted(run_keys, uk).clamp_(max=len(run_keys) - 1)
+            hit = run_keys[pos] == uk
+            self._sums.index_add_(0, run_rows[pos[hit]], sums[hit])
+            new &= ~hit
+        self._append(uk[new], sums[new])
+
+    def _append(self, keys: Tensor, sums: Tensor) -> None:
+        """New voxels: rows for their sums, a run for their sorted keys; merge runs of similar size."""
+        k = len(keys)
+        if k == 0:
+            return
+        self._reserve(self._n + k)
+        self._sums[self._n : self._n + k] = sums
+        self._runs.append((keys, torch.arange(self._n, self._n + k)))
+        self._n += k
+        while len(self._runs) > 1 and len(self._runs[-2][0]) <= 2 * len(self._runs[-1][0]):
+            (ka, ra), (kb, rb) = self._runs.pop(), self._runs.pop()
+            merged, order = torch.sort(torch.cat([kb, ka]))
+            self._runs.append((merged, torch.cat([rb, ra])[order]))
+
+    def _reserve(self, rows: int) -> None:
+        cap = len(self._sums)
+        if rows <= cap:
+            return
+        new = torch.empty(max(rows, 2 * cap, 1024), 7, dtype=torch.float64)  # rows past _n are never read
+        new[: self._n] = self._sums[: self._n]
+        self._sums = new
+
+    def _rows(self, b: int) -> Tensor:
+        """(M_b,) buffer rows of sequence b's voxels, in key order."""
+        lo, hi = b << (3 * AXIS_BITS), (b + 1) << (3 * AXIS_BITS) if b + 1 < MAX_BATCH else torch.iinfo(torch.int64).max
+        bounds = torch.tensor([lo, hi], dtype=torch.int64)
+        keys, rows = [], []
+        for run_keys, run_rows in self._runs:
+            i, j = torch.searchsorted(run_keys, bounds).tolist()
+            keys.append(run_keys[i:j])
+            rows.append(run_rows[i:j])
+        if not keys:
+            return torch.empty(0, dtype=torch.int64)
+        order = torch.argsort(torch.cat(keys))
+        return torch.cat(rows)[order]
+
+    def points(self, b: int = 0) -> MapPoints:
+        """Sequence b's map: one point per voxel, the mean position and colour of its points."""
+        sums = self._sums[self._rows(b)]
+        n = sums[:, 6:]
+        return MapPoints(sums[:, :3] / n, (sums[:, 3:6] / n).float(), n[:, 0].long())
+
+    def size(self, b: int) -> int:
+        """Occupied voxels of sequence b."""
+        return len(self._rows(b))
+
+    def clear(self, b: int) -> None:
+        """Forget sequence b's map and compact the buffer (a finished sequence's memory is released)."""
+        drop = torch.zeros(self._n, dtype=torch.bool)
+        drop[self._rows(b)] = True
+        if not bool(drop.any()):
+            return
+        new_row = torch.cumsum(~drop, 0) - 1  # old row -> compacted row (where kept)
+        self._sums = self._sums[: self._n][~drop]
+        self._n = len(self._sums)
+        runs = []
+        for run_keys, run_rows in self._runs:
+            keep = ~drop[run_rows]
+            if bool(keep.any()):
+                runs.append((run_keys[keep], new_row[run_rows[keep]]))
+        self._runs = sorted(runs, key=lambda r: -len(r[0]))
