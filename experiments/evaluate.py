@@ -349,7 +349,7 @@ def evaluate_one(src: Path, root: Path, kind: str, args, overrides: list[str]) -
 
 def sources(src: Path, args) -> list[tuple[str, Path]]:
     """(kind, folder): the sequence itself, then its variants (built deterministically from ``args.seed``)."""
-    out = [("real", src)]
+    out = [] if args.no_real else [("real", src)]
     for kind in args.variants:
         out.append((kind, make_variant(src, kind, args.cache, seed=args.seed, first=args.variant_frames)))
     return out
@@ -372,6 +372,7 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     ap.add_argument("--no-peer", action="store_true", help="no peers (same as --peers '')")
     ap.add_argument("--variants", nargs="?", const=",".join(VARIANTS), default="", help="perturbed variants")
     ap.add_argument("--variant-frames", type=int, default=300, help="variants are built from this many frames")
+    ap.add_argument("--no-real", action="store_true", help="only the variants (e.g. a second process)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the variants")
     ap.add_argument("--cache", type=Path, default=default_cache(), help="folder of the built variants")
     ap.add_argument("--results", type=Path, default=None, help="replace this script's section of this markdown file")
