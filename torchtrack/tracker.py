@@ -25,6 +25,7 @@ from torch import Tensor
 from torchtrack.data.frame import FrameBatch
 from torchtrack.estimators.backends import Observation, PoseBackend
 from torchtrack.estimators.base import masked_mean
+from torchtrack.estimators.ransac import ransac_rigid
 from torchtrack.filter.models import measure_points
 from torchtrack.filter.weighting import Variances, WeightingInputs
 from torchtrack.frontend import FrontEnd, PreparedFrame, smooth_depth_mask
@@ -150,6 +151,12 @@ class Tracker:
         predict_init: improvement (False = paper): each feature's LK starts where the model point projects under the
             constant-velocity prediction of the pose (``TrackerState.velocity``), not at its previous pixel: under
             fast motion the displacement left to LK is the prediction's error, not the whole motion.
+        ransac_threshold_m: improvement (None = off): before the update, keep only the features consistent with
+            the best rigid motion of a RANSAC over the 3D-3D pairs (model point, measured point), Horn's closed form
+            as the minimal solver (:func:`torchtrack.estimators.ransac.ransac_rigid`); a pair is an inlier within
+            this distance times max(1, z^2) (depth noise grows with z^2). LK slips under fast motion are gross
+            outliers that pull a Gaussian update before its gate can see them.
+        ransac_min_motion_px: ... only in frames whose median tracked displacement exceeds this (large motion).
         record: compute the per-feature cues (:mod:`torchtrack.learn.cues`) of every frame into
             ``StepResult.cues`` even when the weighting does not need them (for the observation cache). Poses are
             the same with and without; a weighting with ``needs_cues = True`` gets them in any case.
@@ -173,6 +180,8 @@ class Tracker:
         keep_survivors: bool = False,
         min_separation_px: float = 8.0,
         predict_init: bool = False,
+        ransac_threshold_m: float | None = None,
+        ransac_min_motion_px: float = 0.0,
         record: bool = False,
     ) -> None:
         if not 0.0 <= reselect_fraction < 1.0:
@@ -183,6 +192,7 @@ class Tracker:
         self.edge_step, self.max_residual_px = edge_step, max_residual_px
         self.keep_survivors, self.min_separation_px = keep_survivors, min_separation_px
         self.predict_init = predict_init
+        self.ransac_threshold_m, self.ransac_min_motion_px = ransac_threshold_m, ransac_min_motion_px
         self.record = record
         self.state = TrackerState()
 
@@ -202,6 +212,8 @@ class Tracker:
         track = self.flow(s.prev.flow, cur.flow, s.pixels, s.valid, **self._flow_args(with_cues, init))  # eq. (10)
         points_d, has_depth = measure_points(cur.depth, frame.K, frame.T_color_depth, track.points)  # X_d, eq. (6)
         valid = track.valid & has_depth & frame.active[:, None]
+        if self.ransac_threshold_m is not None:
+            valid = self._consensus(points_d, valid, track.points - s.pixels)
         cues = self._cues(frame, cur, track, points_d, valid) if with_cues else None
         inputs = WeightingInputs(track.d_tim, points_d[..., 2], points_d, valid, frame.K_depth[:, 0, 0], cues=cues)
         var = self.weighting(inputs)  # eqs. (11)-(14)
@@ -220,6 +232,17 @@ class Tracker:
     def _flow_args(with_cues: bool, init: Tensor | None) -> dict:
         args = dict(with_residual=True) if with_cues else {}  # the LK residual is a cue
         return args if init is None else {**args, "init": init}
+
+    def _consensus(self, points_d: Tensor, valid: Tensor, motion_px: Tensor) -> Tensor:
+        """(B, N) ``valid`` without the RANSAC outliers of the (model point, measured point) pairs, in the sequences
+        whose median tracked displacement ``motion_px`` (B, N, 2) exceeds ``ransac_min_motion_px``."""
+        s = self.state
+        z = points_d[..., 2].double()
+        thr = self.ransac_threshold_m * z.square().clamp_min(1.0)
+        fit = ransac_rigid(s.points_obj.double(), points_d.double(), valid, thr)
+        shift = torch.linalg.vector_norm(motion_px, dim=-1).masked_fill(~valid, float("nan")).nanmedian(1).values
+        use = fit.valid & (shift > self.ransac_min_motion_px)
+        return torch.where(use[:, None], fit.inliers, valid)
 
     def _predicted_pixels(self, frame: FrameBatch, dt: Tensor) -> Tensor:
         """(B, N, 2) colour pixels of the model points under the constant-velocity pose prediction over ``dt`` (B,)
