@@ -218,19 +218,37 @@ def ms(m: dict | None) -> str:
     return "–" if not fps else f"{1e3 / fps:.0f}"
 
 
-def table(rows: list[dict], peers: list[str]) -> str:
-    """One line per (sequence, variant): ours, each peer (ATE mm / RPE mm / ms per frame), the best and the ratios."""
-    head = ["sequence", "variant", "frames", "ours ATE / RPE / ms", "re-sel."] + [f"{p}" for p in peers]
+def table(rows: list[dict], peers: list[str], compare: dict[str, dict] | None = None) -> str:
+    """One line per (sequence, variant): ours, each peer (ATE mm / RPE mm / ms per frame), the best and the ratios;
+    ``compare`` {label: {(sequence, variant): ours}} adds ours from other runs (ablations) as columns."""
+    compare = compare or {}
+    head = ["sequence", "variant", "frames", "ours ATE / RPE / ms", "re-sel."]
+    head += [f"{c} ATE / RPE / ms, re-sel." for c in compare] + list(peers)
     head += ["best (ATE)", "ATE ours/best", "RPE ours/best RPE", "target"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         o, q = r.get("ours") or {}, r.get("ratio", {})
         cells = [r["sequence"], r["variant"], str(r.get("frames", "–")), triple(o), str(o.get("reselections", "–"))]
+        for runs in compare.values():
+            c = runs.get((r["sequence"], r["variant"]))
+            cells.append(f"{triple(c)}, {c.get('reselections', '–')}" if c else "–")
         cells += [triple(r.get("peers", {}).get(p)) for p in peers]
         cells += [r.get("best") or "–", fmt(q.get("ate_rmse_m")), fmt(q.get("rpe_trans_m"))]
         cells.append(r["verdict"] if "error" not in r else f"error: {r['error']}")
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def load_compare(specs: list[str]) -> dict[str, dict]:
+    """``LABEL=OUT/evaluation.json`` -> {LABEL: {(sequence, variant): ours metrics}}: ablation columns."""
+    out = {}
+    for spec in specs:
+        label, sep, path = spec.partition("=")
+        if not sep or not Path(path).is_file():
+            raise SystemExit(f"evaluate: --compare wants LABEL=PATH/evaluation.json, got {spec!r}")
+        rows = json.loads(Path(path).read_text())["rows"]
+        out[label] = {(r["sequence"], r["variant"]): r["ours"] for r in rows if r.get("ours")}
+    return out
 
 
 def triple(m: dict | None) -> str:
@@ -376,6 +394,13 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     ap.add_argument("--seed", type=int, default=0, help="seed of the variants")
     ap.add_argument("--cache", type=Path, default=default_cache(), help="folder of the built variants")
     ap.add_argument("--results", type=Path, default=None, help="replace this script's section of this markdown file")
+    ap.add_argument(
+        "--compare",
+        action="append",
+        default=[],
+        metavar="LABEL=JSON",
+        help="ours of another run as columns; write --compare=LABEL=JSON",
+    )
     ap.add_argument("--no-plots", action="store_true", help="no trajectory/feature pictures per run")
     ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: the config's)")
     ap.add_argument("-v", "--verbose", action="store_true")
@@ -391,23 +416,24 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     args, overrides = parse_args(argv)
+    compare = load_compare(args.compare)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(name)s: %(message)s")
     log.setLevel(logging.INFO)
     args.out.mkdir(parents=True, exist_ok=True)
     start, rows = time.perf_counter(), []
-    print("\n".join(table([], args.peers).splitlines()[:2]), flush=True)
+    print("\n".join(table([], args.peers, compare).splitlines()[:2]), flush=True)
     for src in find_sequences(args.roots):
         for kind, root in sources(src, args):
             log.info("== %s (%s)", src.name, kind)
             rows.append(evaluate_one(src, root, kind, args, overrides))
-            print(table(rows[-1:], args.peers).splitlines()[-1], flush=True)
+            print(table(rows[-1:], args.peers, compare).splitlines()[-1], flush=True)
     total = time.perf_counter() - start
     command = "python experiments/evaluate.py " + " ".join(argv)
     header = (
         f"`{command.strip()}`  \ncommit {git_describe()}, torch {torch.__version__}, {torch.get_num_threads()} "
         f"thread(s), {platform.machine()}, overrides: {overrides or 'none (default config)'}, total {total:.0f} s\n"
     )
-    body = f"{header}\n{table(rows, args.peers)}\n\n{footnotes(rows, args.peers, args)}\n"
+    body = f"{header}\n{table(rows, args.peers, compare)}\n\n{footnotes(rows, args.peers, args)}\n"
     floors = floor_table(rows)
     if floors:
         body += f"\nWhat ours and the best peer have in common (real sequences):\n\n{floors}\n\n{FLOOR_NOTE}\n"
