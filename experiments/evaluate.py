@@ -306,6 +306,10 @@ def footnotes(rows: list[dict], peers: list[str], args) -> str:
             "frames of its sequence (only 7scenes_redkitchen is longer); skipK keeps every K-th frame (K x faster "
             "motion)."
         )
+    cut = [f"{r['sequence']} (first {r['frames']} of {n_listed(Path(r['root']))})" for r in rows
+           if r["variant"] == "real" and r.get("frames") and Path(r["root"]).is_dir() and r["frames"] < n_listed(Path(r["root"]))]  # fmt: skip
+    if cut:
+        notes.append("Real rows on a prefix (--max-frames): " + ", ".join(cut) + ".")
     notes += [f"{n}: ATE only ({why})." for n, why in ATE_ONLY.items() if any(r["sequence"] == n for r in rows)]
     s = summary(rows)
     if s:
@@ -401,6 +405,14 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
         metavar="LABEL=JSON",
         help="ours of another run as columns; write --compare=LABEL=JSON",
     )
+    ap.add_argument(
+        "--render",
+        type=Path,
+        nargs="+",
+        default=None,
+        metavar="JSON",
+        help="run nothing: the tables of these evaluation.json files, one after the other",
+    )
     ap.add_argument("--no-plots", action="store_true", help="no trajectory/feature pictures per run")
     ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: the config's)")
     ap.add_argument("-v", "--verbose", action="store_true")
@@ -413,10 +425,40 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     return args, overrides
 
 
+def render(args, compare: dict) -> str:
+    """The section's body from finished runs (``--render``): their commands, then one table of all their rows."""
+    runs = [json.loads(p.read_text()) for p in args.render]
+    rows = [r for run in runs for r in run["rows"]]
+    peers = list(dict.fromkeys(p for r in rows for p in r.get("peers", {})))
+    commands = "\n".join(
+        f"`{run['meta']['command']}` (commit {run['meta']['commit']}, {run['meta']['total_s']:.0f} s)  " for run in runs
+    )
+    body = f"{commands}\n\n{table(rows, peers, compare)}\n\n{footnotes(rows, peers, args)}\n"
+    floors = floor_table(rows)
+    return body + (
+        f"\nWhat ours and the best peer have in common (real sequences):\n\n{floors}\n\n{FLOOR_NOTE}\n"
+        if floors
+        else ""
+    )
+
+
+def write_results(path: Path, body: str) -> None:
+    from eval_weighting import replace_section  # experiments/eval_weighting.py
+
+    text = path.read_text() if path.is_file() else ""
+    write_text(path, replace_section(text, HEADING, body))
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     args, overrides = parse_args(argv)
     compare = load_compare(args.compare)
+    if args.render:
+        body = render(args, compare)
+        if args.results:
+            write_results(args.results, body)
+        print(body)
+        return 0
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(name)s: %(message)s")
     log.setLevel(logging.INFO)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -441,10 +483,7 @@ def main(argv: list[str] | None = None) -> int:
     meta = {"command": command, "overrides": overrides, "total_s": total, "commit": git_describe()}
     write_json(args.out / "evaluation.json", {"meta": meta, "rows": rows})
     if args.results:
-        from eval_weighting import replace_section  # experiments/eval_weighting.py
-
-        text = args.results.read_text() if args.results.is_file() else ""
-        write_text(args.results, replace_section(text, HEADING, body))
+        write_results(args.results, body)
     print("\n" + body)
     print(f"wrote {args.out / 'evaluation.md'} and evaluation.json ({total:.0f} s)")
     return 1 if any("error" in r for r in rows) else 0

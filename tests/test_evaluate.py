@@ -86,6 +86,10 @@ def test_variants_ablation_column_and_results_section(seq, tmp_path):
     assert "keep me" in text and text.count(evaluate.HEADING) == 1 and "before ATE" in text
     ate = json.loads((first / "evaluation.json").read_text())["rows"][1]["ours"]["ate_rmse_m"]
     assert f"{ate * 1e3:.1f} / " in text.split("| skip2 |", 1)[1].splitlines()[0]
+    rendered = tmp_path / "R.md"
+    runs = [str(d / "evaluation.json") for d in (first, tmp_path / "second")]
+    assert evaluate.main(["--render", *runs, "--results", str(rendered)]) == 0
+    assert rendered.read_text().count("| skip2 |") == 2 and "--variants skip2" in rendered.read_text()
 
 
 def test_unknown_peer_or_variant_is_refused():
