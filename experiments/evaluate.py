@@ -425,13 +425,17 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     return args, overrides
 
 
+PARTIAL = "; stopped before its end: the rows it finished"
+
+
 def render(args, compare: dict) -> str:
     """The section's body from finished runs (``--render``): their commands, then one table of all their rows."""
     runs = [json.loads(p.read_text()) for p in args.render]
     rows = [r for run in runs for r in run["rows"]]
     peers = list(dict.fromkeys(p for r in rows for p in r.get("peers", {})))
     commands = "\n".join(
-        f"`{run['meta']['command']}` (commit {run['meta']['commit']}, {run['meta']['total_s']:.0f} s)  " for run in runs
+        f"`{run['meta']['command']}` (commit {run['meta']['commit']}, {run['meta']['total_s']:.0f} s{PARTIAL if run['meta'].get('partial') else ''})  "
+        for run in runs
     )
     body = f"{commands}\n\n{table(rows, peers, compare)}\n\n{footnotes(rows, peers, args)}\n"
     floors = floor_table(rows)
@@ -463,14 +467,18 @@ def main(argv: list[str] | None = None) -> int:
     log.setLevel(logging.INFO)
     args.out.mkdir(parents=True, exist_ok=True)
     start, rows = time.perf_counter(), []
+    command, commit = "python experiments/evaluate.py " + " ".join(argv), git_describe()
     print("\n".join(table([], args.peers, compare).splitlines()[:2]), flush=True)
     for src in find_sequences(args.roots):
         for kind, root in sources(src, args):
             log.info("== %s (%s)", src.name, kind)
             rows.append(evaluate_one(src, root, kind, args, overrides))
             print(table(rows[-1:], args.peers, compare).splitlines()[-1], flush=True)
+            meta = {"command": command, "overrides": overrides, "total_s": time.perf_counter() - start}
+            write_json(
+                args.out / "evaluation.json", {"meta": {**meta, "commit": commit, "partial": True}, "rows": rows}
+            )
     total = time.perf_counter() - start
-    command = "python experiments/evaluate.py " + " ".join(argv)
     header = (
         f"`{command.strip()}`  \ncommit {git_describe()}, torch {torch.__version__}, {torch.get_num_threads()} "
         f"thread(s), {platform.machine()}, overrides: {overrides or 'none (default config)'}, total {total:.0f} s\n"
@@ -480,7 +488,7 @@ def main(argv: list[str] | None = None) -> int:
     if floors:
         body += f"\nWhat ours and the best peer have in common (real sequences):\n\n{floors}\n\n{FLOOR_NOTE}\n"
     write_text(args.out / "evaluation.md", f"# torchtrack vs the peers\n\n{body}")
-    meta = {"command": command, "overrides": overrides, "total_s": total, "commit": git_describe()}
+    meta = {"command": command, "overrides": overrides, "total_s": total, "commit": commit}
     write_json(args.out / "evaluation.json", {"meta": meta, "rows": rows})
     if args.results:
         write_results(args.results, body)
