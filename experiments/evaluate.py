@@ -240,14 +240,15 @@ def table(rows: list[dict], peers: list[str], compare: dict[str, dict] | None = 
 
 
 def load_compare(specs: list[str]) -> dict[str, dict]:
-    """``LABEL=OUT/evaluation.json`` -> {LABEL: {(sequence, variant): ours metrics}}: ablation columns."""
+    """``LABEL=OUT/evaluation.json`` -> {LABEL: {(sequence, variant): ours metrics}}: ablation columns (a label given
+    twice merges its runs)."""
     out = {}
     for spec in specs:
         label, sep, path = spec.partition("=")
         if not sep or not Path(path).is_file():
             raise SystemExit(f"evaluate: --compare wants LABEL=PATH/evaluation.json, got {spec!r}")
         rows = json.loads(Path(path).read_text())["rows"]
-        out[label] = {(r["sequence"], r["variant"]): r["ours"] for r in rows if r.get("ours")}
+        out.setdefault(label, {}).update({(r["sequence"], r["variant"]): r["ours"] for r in rows if r.get("ours")})
     return out
 
 
