@@ -344,37 +344,3 @@ def test_table2_combined_tracker_takes_the_smaller_tim_per_feature():
     assert table2._stats(np.array([1.0, 3.0, np.inf, np.inf])) == {
         "mean_px": 2.0, "median_px": 2.0, "lost_fraction": 0.5, "features": 4
     }  # fmt: skip
-
-
-# ----------------------------------------------------------------------------------------------- evaluate.py
-
-
-def test_evaluate_end_to_end_on_a_synthetic_sequence(tmp_path):
-    """Ours and the Open3D peer on one rendered sequence: the table's ratios are the two metrics.json's, the
-    peer is cached, and the shared-error table is there."""
-    pytest.importorskip("open3d")
-    from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
-
-    evaluate = _load("evaluate")
-    seq = ensure_sequence(SyntheticConfig(width=320, height=240, frames=6, seed=3, noise="none"), tmp_path / "data")
-    out = tmp_path / "eval"
-    assert evaluate.main(["--roots", str(seq), "--out", str(out), "--no-plots"]) == 0
-    result = json.loads((out / "evaluation.json").read_text())
-    (row,) = result["rows"]
-    ours = json.loads((out / "ours" / seq.name / "metrics.json").read_text())
-    peer = json.loads((out / "peer" / seq.name / "metrics.json").read_text())
-    assert row["ratio"]["ate_rmse_m"] == pytest.approx(ours["ate_rmse_m"] / peer["ate_rmse_m"])
-    from torchtrack.data.tum import TumSequence
-    from torchtrack.data.tum_io import read_tum_trajectory
-    from torchtrack.metrics import shared_error
-
-    trajectories = [
-        read_tum_trajectory(out / who / seq.name / "trajectory.txt").T_world_cam for who in ("ours", "peer")
-    ]
-    expected = shared_error(*map(torch.as_tensor, trajectories), torch.as_tensor(TumSequence(seq).groundtruth))
-    assert row["shared"]["rpe_trans_m"] == pytest.approx(expected.rpe_trans_m, rel=1e-12)
-    assert row["shared"]["ate_m"] == pytest.approx(expected.ate_m, rel=1e-12)
-    text = (out / "evaluation.md").read_text()
-    assert "What ours and the peer have in common" in text and seq.name in text
-    assert evaluate.main(["--roots", str(seq), "--out", str(out), "--no-plots"]) == 0
-    assert json.loads((out / "evaluation.json").read_text())["rows"][0]["peer"]["cached"] is True

@@ -276,6 +276,9 @@ class PipelineConfig:
     max_residual_px: float | None = 3.0  # improvement (null = paper): drop features > 3 px from their reprojection
     keep_survivors: bool = True  # improvement (false = paper): a re-selection keeps the features still tracked
     min_separation_px: float = 8.0  # ... and adds new ones only this far from a survivor
+    predict_init: bool = True  # improvement (false = paper): LK starts at the constant-velocity prediction
+    ransac_threshold_m: float | None = None  # improvement (null = off): RANSAC (Horn) inliers within this x max(1,z^2)
+    ransac_min_motion_px: float = 0.0  # ... in frames whose median tracked displacement exceeds this
     record: bool = False  # compute every frame's per-feature cues (torchtrack-record)
 
 

@@ -26,10 +26,11 @@ from torch import Tensor
 from torchtrack.data.frame import FrameBatch
 from torchtrack.estimators.backends import BackendResult, Observation, PoseBackend
 from torchtrack.estimators.base import masked_mean
+from torchtrack.estimators.ransac import ransac_rigid
 from torchtrack.filter.models import measure_points
 from torchtrack.filter.weighting import Variances, WeightingInputs
 from torchtrack.frontend import FrontEnd, PreparedFrame, smooth_depth_mask
-from torchtrack.geometry import T_inv, make_T, sample_depth, transform_points
+from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, se3_log, transform_points
 from torchtrack.image.flow import TrackResult
 from torchtrack.learn.cues import stack_cues
 from torchtrack.metrics import reprojection_errors
@@ -90,6 +91,9 @@ class TrackerState:
         n_model: (B,) features of the current model when it was taken (the re-selection criterion).
         T_cam_obj: (B, 4, 4) float64 current object pose in the depth camera.
         T_world_obj: (B, 4, 4) float64 the model frame in the tracker's world (first camera = identity).
+        velocity: (B, 6) float64 twist per second (v, omega) of the last frame-to-frame motion of the object in the
+            camera, ``se3_log(T_cam_obj(t) inv(T_cam_obj(t-1))) / dt``: independent of the model frame, so it
+            survives a re-selection (the EKF's velocity restarts at zero there). Zero before the second frame.
     """
 
     prev: PreparedFrame | None = None
@@ -103,6 +107,7 @@ class TrackerState:
     n_model: Tensor | None = None
     T_cam_obj: Tensor | None = None
     T_world_obj: Tensor | None = None
+    velocity: Tensor | None = None
 
     @property
     def started(self) -> bool:
@@ -148,6 +153,15 @@ class Tracker:
             ``min_separation_px``, up to the selector's count. The surviving points keep anchoring the
             pose, so a re-selection no longer resets the model to one frame's estimate (less drift).
         min_separation_px: new features closer than this to a survivor are not added.
+        predict_init: improvement (False = paper): each feature's LK starts where the model point projects under the
+            constant-velocity prediction of the pose (``TrackerState.velocity``), not at its previous pixel: under
+            fast motion the displacement left to LK is the prediction's error, not the whole motion.
+        ransac_threshold_m: improvement (None = off): before the update, keep only the features consistent with
+            the best rigid motion of a RANSAC over the 3D-3D pairs (model point, measured point), Horn's closed form
+            as the minimal solver (:func:`torchtrack.estimators.ransac.ransac_rigid`); a pair is an inlier within
+            this distance times max(1, z^2) (depth noise grows with z^2). LK slips under fast motion are gross
+            outliers that pull a Gaussian update before its gate can see them.
+        ransac_min_motion_px: ... only in frames whose median tracked displacement exceeds this (large motion).
         record: compute the per-feature cues (:mod:`torchtrack.learn.cues`) of every frame into
             ``StepResult.cues`` even when the weighting does not need them (for the observation cache). Poses are
             the same with and without; a weighting with ``needs_cues = True`` gets them in any case.
@@ -172,6 +186,9 @@ class Tracker:
         max_residual_px: float | None = None,
         keep_survivors: bool = False,
         min_separation_px: float = 8.0,
+        predict_init: bool = False,
+        ransac_threshold_m: float | None = None,
+        ransac_min_motion_px: float = 0.0,
         record: bool = False,
         relocaliser: Callable | None = None,
     ) -> None:
@@ -182,6 +199,8 @@ class Tracker:
         self.reselect_fraction, self.min_features = reselect_fraction, min_features
         self.edge_step, self.max_residual_px = edge_step, max_residual_px
         self.keep_survivors, self.min_separation_px = keep_survivors, min_separation_px
+        self.predict_init = predict_init
+        self.ransac_threshold_m, self.ransac_min_motion_px = ransac_threshold_m, ransac_min_motion_px
         self.record = record
         self.relocaliser = relocaliser
         self.state = TrackerState()
@@ -203,14 +222,19 @@ class Tracker:
         if not self.state.started:
             return self._start(frame, cur)
         s, with_cues = self.state, self.wants_cues
-        track = self.flow(s.prev.flow, cur.flow, s.pixels, s.valid, **self._flow_args(with_cues))  # eq. (10)
+        dt = (frame.timestamp - s.timestamp).double().clamp_min(1e-3)
+        init = self._predicted_pixels(frame, dt) if self.predict_init else None
+        track = self.flow(s.prev.flow, cur.flow, s.pixels, s.valid, **self._flow_args(with_cues, init))  # eq. (10)
         points_d, has_depth = measure_points(cur.depth, frame.K, frame.T_color_depth, track.points)  # X_d, eq. (6)
         valid = track.valid & has_depth & frame.active[:, None]
+        if self.ransac_threshold_m is not None:
+            valid = self._consensus(points_d, valid, track.points - s.pixels)
         cues = self._cues(frame, cur, track, points_d, valid) if with_cues else None
         inputs = WeightingInputs(track.d_tim, points_d[..., 2], points_d, valid, frame.K_depth[:, 0, 0], cues=cues)
         var = self.weighting(inputs)  # eqs. (11)-(14)
-        dt = (frame.timestamp - s.timestamp).to(points_d.dtype).clamp_min(1e-3)
-        obs = Observation(dt, s.points_obj, points_d, track.points, valid, frame.K, frame.T_color_depth)
+        obs = Observation(
+            dt.to(points_d.dtype), s.points_obj, points_d, track.points, valid, frame.K, frame.T_color_depth
+        )
         est = self.backend.step(obs, var, active=frame.active)  # eqs. (2)-(7), (15)
         self.state = self._advanced(frame, cur, track.points, valid, est.T_cam_obj.double())  # and the residual drop
         tracked, reselect = self.state, self._needs_model(frame.active)
@@ -220,8 +244,30 @@ class Tracker:
 
     # ---------------------------------------------------------------------------------------------- per frame
     @staticmethod
-    def _flow_args(with_cues: bool) -> dict:
-        return dict(with_residual=True) if with_cues else {}  # the LK residual is a cue
+    def _flow_args(with_cues: bool, init: Tensor | None) -> dict:
+        args = dict(with_residual=True) if with_cues else {}  # the LK residual is a cue
+        return args if init is None else {**args, "init": init}
+
+    def _consensus(self, points_d: Tensor, valid: Tensor, motion_px: Tensor) -> Tensor:
+        """(B, N) ``valid`` without the RANSAC outliers of the (model point, measured point) pairs, in the sequences
+        whose median tracked displacement ``motion_px`` (B, N, 2) exceeds ``ransac_min_motion_px``."""
+        s = self.state
+        z = points_d[..., 2].double()
+        thr = self.ransac_threshold_m * z.square().clamp_min(1.0)
+        fit = ransac_rigid(s.points_obj.double(), points_d.double(), valid, thr)
+        shift = torch.linalg.vector_norm(motion_px, dim=-1).masked_fill(~valid, float("nan")).nanmedian(1).values
+        use = fit.valid & (shift > self.ransac_min_motion_px)
+        return torch.where(use[:, None], fit.inliers, valid)
+
+    def _predicted_pixels(self, frame: FrameBatch, dt: Tensor) -> Tensor:
+        """(B, N, 2) colour pixels of the model points under the constant-velocity pose prediction over ``dt`` (B,)
+        seconds, ``T_pred = exp(xi dt) T_cam_obj``; the previous pixel where the prediction does not project."""
+        s = self.state
+        T_pred = se3_exp(s.velocity * dt[:, None]) @ s.T_cam_obj
+        points_c = transform_points(frame.T_color_depth.double() @ T_pred, s.points_obj.double())
+        pix = project(frame.K.double(), points_c)
+        ok = (points_c[..., 2] > 1e-3) & torch.isfinite(pix).all(-1) & s.valid
+        return torch.where(ok[..., None], pix.to(s.pixels.dtype), s.pixels)
 
     def _needs_model(self, active: Tensor) -> Tensor:
         """(B,) bool: too few features survive (a fraction of the model's, or an absolute count)."""
@@ -253,18 +299,22 @@ class Tracker:
         older; features that do not fit the pose dropped (``max_residual_px``)."""
         s = self.state
         T_cam_obj = torch.where(frame.active[:, None, None], T_cam_obj, s.T_cam_obj)
+        dt = (frame.timestamp - s.timestamp).double().clamp_min(1e-3)
+        velocity = se3_log(T_cam_obj @ T_inv(s.T_cam_obj)) / dt[:, None]  # the motion of this frame, per second
+        velocity = torch.where(frame.active[:, None], velocity, s.velocity)
         residuals = self._residuals(frame, T_cam_obj, s.points_obj, pixels, valid)  # for the drop and for eq. (16)
         if self.max_residual_px is not None:
             valid = valid & (residuals <= self.max_residual_px)
         return replace(s, prev=cur, timestamp=frame.timestamp, pixels=pixels, valid=valid, age=s.age + 1,
-                       residuals=residuals, T_cam_obj=T_cam_obj)  # fmt: skip
+                       residuals=residuals, T_cam_obj=T_cam_obj, velocity=velocity)  # fmt: skip
 
     # ---------------------------------------------------------------------------------------------- the model
     def _start(self, frame: FrameBatch, cur: PreparedFrame) -> StepResult:
         """First frame: every sequence takes it as its model; the world is the first camera."""
         B = frame.rgb.shape[0]
         eye = torch.eye(4, dtype=torch.float64).expand(B, 4, 4).clone()
-        self.state = TrackerState(timestamp=frame.timestamp, T_cam_obj=eye, T_world_obj=eye.clone())
+        zero = torch.zeros(B, 6, dtype=torch.float64)
+        self.state = TrackerState(timestamp=frame.timestamp, T_cam_obj=eye, T_world_obj=eye.clone(), velocity=zero)
         everyone = torch.ones(B, dtype=torch.bool)
         model_T_cam_obj = self._new_model(frame, cur, everyone)
         return self._result(self.state, None, None, everyone, model_T_cam_obj=model_T_cam_obj)
