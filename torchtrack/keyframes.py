@@ -61,9 +61,10 @@ def _sample(img: Tensor, pix: Tensor) -> Tensor:
     return F.grid_sample(img, grid.to(img.dtype), align_corners=True)[..., 0].transpose(1, 2)
 
 
-def _normals(points: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
+def _normals(points: Tensor, valid: Tensor, max_rel_step: float = 0.05) -> tuple[Tensor, Tensor]:
     """Normals (B, 3, H, W) of a point map ``points`` (B, 3, H, W) by central differences, facing the camera;
-    valid (B, 1, H, W) where the point and its four neighbours are."""
+    valid (B, 1, H, W) where the point and its four neighbours are, with depth steps to them below
+    ``max_rel_step`` of the depth (no normals, and no interpolated points, across occlusion boundaries)."""
     dx = F.pad(points[..., :, 2:] - points[..., :, :-2], (1, 1, 0, 0))
     dy = F.pad(points[..., 2:, :] - points[..., :-2, :], (0, 0, 1, 1))
     n = torch.linalg.cross(dx, dy, dim=1)
@@ -71,7 +72,9 @@ def _normals(points: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
     n = torch.where((n * points).sum(1, keepdim=True) > 0, -n, n)
     v = valid.float()
     nb = F.pad(v[..., :, 2:] * v[..., :, :-2], (1, 1, 0, 0)) * F.pad(v[..., 2:, :] * v[..., :-2, :], (0, 0, 1, 1))
-    return n, (nb * v) > 0.5
+    z = points[:, 2:3]
+    smooth = (dx[:, 2:3].abs() <= 2 * max_rel_step * z) & (dy[:, 2:3].abs() <= 2 * max_rel_step * z)
+    return n, ((nb * v) > 0.5) & smooth
 
 
 def _huber(r: Tensor, k: float) -> Tensor:
@@ -265,3 +268,22 @@ class KeyframeAligner:
         use = active & res.valid & small & torch.isfinite(step).all(-1)
         T_out = se3_exp(torch.where(use[:, None], step, 0.0)) @ T_est
         return torch.where(use[:, None, None], T_out, T_est), use
+
+
+def set_backend_pose(backend, T_cam_obj: Tensor, mask: Tensor) -> None:
+    """Move the pose of ``backend`` to ``T_cam_obj`` (B, 4, 4) for the sequences in ``mask`` (B,): an EKF's mean pose
+    is reset (Euler angles unwrapped next to the old ones) and its velocity and covariance kept; a registration
+    back end's previous pose is replaced. The aligned pose is taken as the filter's new mean, not fused as a
+    measurement: the covariance stays the EKF's own."""
+    from torchtrack.filter.fusion import FilterState
+    from torchtrack.filter.models import pose_to_state
+
+    state = getattr(backend, "state", None)
+    if hasattr(backend, "ekf") and state is not None:
+        x = pose_to_state(T_cam_obj.to(state.mean.dtype))[:, :6]
+        old = state.mean[:, :6]
+        ang = old[:, :3] + torch.remainder(x[:, :3] - old[:, :3] + torch.pi, 2 * torch.pi) - torch.pi
+        new = torch.cat([ang, x[:, 3:], state.mean[:, 6:]], 1)
+        backend.state = FilterState(torch.where(mask[:, None], new, state.mean), state.cov)
+    elif getattr(backend, "T_prev", None) is not None:
+        backend.T_prev = torch.where(mask[:, None, None], T_cam_obj.to(backend.T_prev.dtype), backend.T_prev)

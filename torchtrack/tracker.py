@@ -32,6 +32,7 @@ from torchtrack.filter.weighting import Variances, WeightingInputs
 from torchtrack.frontend import FrontEnd, PreparedFrame, smooth_depth_mask
 from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, se3_log, transform_points
 from torchtrack.image.flow import TrackResult
+from torchtrack.keyframes import KeyframeAligner, set_backend_pose
 from torchtrack.learn.cues import stack_cues
 from torchtrack.metrics import reprojection_errors
 
@@ -167,6 +168,11 @@ class Tracker:
             the same with and without; a weighting with ``needs_cues = True`` gets them in any case.
         relocaliser: improvement (None = paper): after each frame, the loss check and relocalisation
             (:class:`torchtrack.relocalise.Relocaliser`; it calls :meth:`relocalise`).
+        keyframe_align: improvement (False = paper): keep the last ``keyframe_count`` model frames (grey, depth,
+            pose) and after each update align the frame densely (photometric + point-to-plane Gauss-Newton on the
+            grid downsampled by ``keyframe_factor``) to the nearest of them; the aligned pose replaces the back
+            end's (``keyframe_blend`` < 1: that fraction of the way), see :mod:`torchtrack.keyframes`;
+            ``keyframe_photometric`` / ``keyframe_geometric`` switch its two terms.
 
     The tracker's model and last estimate live in one :class:`TrackerState`, ``self.state``.
     """
@@ -191,6 +197,12 @@ class Tracker:
         ransac_min_motion_px: float = 0.0,
         record: bool = False,
         relocaliser: Callable | None = None,
+        keyframe_align: bool = False,
+        keyframe_count: int = 5,
+        keyframe_factor: int = 4,
+        keyframe_blend: float = 1.0,
+        keyframe_photometric: bool = True,
+        keyframe_geometric: bool = True,
     ) -> None:
         if not 0.0 <= reselect_fraction < 1.0:
             raise ValueError(f"reselect_fraction must be in [0, 1), got {reselect_fraction}")
@@ -203,6 +215,9 @@ class Tracker:
         self.ransac_threshold_m, self.ransac_min_motion_px = ransac_threshold_m, ransac_min_motion_px
         self.record = record
         self.relocaliser = relocaliser
+        terms = dict(use_photometric=keyframe_photometric, use_geometric=keyframe_geometric)
+        kf = dict(count=keyframe_count, factor=keyframe_factor, blend=keyframe_blend, **terms)
+        self.keyframes = KeyframeAligner(**kf) if keyframe_align else None
         self.state = TrackerState()
 
     @property
@@ -236,7 +251,8 @@ class Tracker:
             dt.to(points_d.dtype), s.points_obj, points_d, track.points, valid, frame.K, frame.T_color_depth
         )
         est = self.backend.step(obs, var, active=frame.active)  # eqs. (2)-(7), (15)
-        self.state = self._advanced(frame, cur, track.points, valid, est.T_cam_obj.double())  # and the residual drop
+        T_cam_obj = est.T_cam_obj.double() if self.keyframes is None else self._keyframe_corrected(frame, cur, est)
+        self.state = self._advanced(frame, cur, track.points, valid, T_cam_obj)  # and the residual drop
         tracked, reselect = self.state, self._needs_model(frame.active)
         model_T_cam_obj = self._new_model(frame, cur, reselect) if reselect.any() else None  # §III re-selection
         extra = dict(observation=obs, variances=var, cues=cues, model_T_cam_obj=model_T_cam_obj, estimate=est)
@@ -268,6 +284,17 @@ class Tracker:
         pix = project(frame.K.double(), points_c)
         ok = (points_c[..., 2] > 1e-3) & torch.isfinite(pix).all(-1) & s.valid
         return torch.where(ok[..., None], pix.to(s.pixels.dtype), s.pixels)
+
+    def _keyframe_corrected(self, frame: FrameBatch, cur: PreparedFrame, est: BackendResult) -> Tensor:
+        """(B, 4, 4) the back end's pose after the dense alignment to the nearest keyframe; the back end's mean pose
+        is moved there too (velocity and covariance kept) where the alignment was applied."""
+        s, T_cd = self.state, frame.T_color_depth.double()
+        T_cam_obj = est.T_cam_obj.double()
+        T_world_color = s.T_world_obj @ T_inv(T_cam_obj) @ T_inv(T_cd)
+        T_new, used = self.keyframes.correct(cur.gray, cur.depth, T_world_color, frame.active)
+        T_cam_obj_new = T_inv(T_new @ T_cd) @ s.T_world_obj
+        set_backend_pose(self.backend, T_cam_obj_new, used)
+        return torch.where(used[:, None, None], T_cam_obj_new, T_cam_obj)
 
     def _needs_model(self, active: Tensor) -> Tensor:
         """(B,) bool: too few features survive (a fraction of the model's, or an absolute count)."""
@@ -352,6 +379,9 @@ class Tracker:
         residuals = self._residuals(frame, T_cam_obj, state.points_obj, state.pixels, state.valid)
         self.state = replace(state, residuals=residuals)  # in the new layout: the next frame's prev_reproj cue
         self.backend.reset(T_cam_obj, mask)
+        if self.keyframes is not None:  # the model frame is a keyframe
+            T_world_color = self.state.T_world_cam @ T_inv(frame.T_color_depth.double())
+            self.keyframes.add(cur.gray, cur.depth, frame.K, T_world_color, mask)
         return T_cam_obj
 
     def _with_survivors(self, pixels: Tensor, points_d: Tensor, valid: Tensor, cornerness: Tensor, mask: Tensor):
