@@ -221,6 +221,10 @@ class KeyframeAligner:
         self.count, self.factor, self.levels, self.blend = count, factor, tuple(levels), blend
         self.max_step_m, self.max_step_rad = max_step_m, max_step_deg * torch.pi / 180
         self.align = align
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget every keyframe (a new run)."""
         self.gray = self.depth = self.K = self.T_world_color = self.valid = self.n_added = None
 
     def add(self, gray: Tensor, depth: Tensor, K: Tensor, T_world_color: Tensor, mask: Tensor) -> None:
@@ -255,7 +259,7 @@ class KeyframeAligner:
         k = dist.argmin(1)
         rows = torch.arange(B)
         T_kf = self.T_world_color[rows, k]
-        g, d, _ = downsample(gray.float(), depth.float(), self.K[rows, k], self.factor)  # (its K: the stored one)
+        g, d, _ = downsample(gray.float(), depth.float(), self.K[rows, k], self.factor)  # only the images are used
         res = align_coarse_to_fine(
             g, d, self.gray[rows, k], self.depth[rows, k], self.K[rows, k], T_inv(T_kf) @ T_est, levels=self.levels,
             **self.align,

@@ -342,6 +342,8 @@ class Tracker:
         eye = torch.eye(4, dtype=torch.float64).expand(B, 4, 4).clone()
         zero = torch.zeros(B, 6, dtype=torch.float64)
         self.state = TrackerState(timestamp=frame.timestamp, T_cam_obj=eye, T_world_obj=eye.clone(), velocity=zero)
+        if self.keyframes is not None:
+            self.keyframes.reset()
         everyone = torch.ones(B, dtype=torch.bool)
         model_T_cam_obj = self._new_model(frame, cur, everyone)
         return self._result(self.state, None, None, everyone, model_T_cam_obj=model_T_cam_obj)
