@@ -101,9 +101,9 @@ def test_aligner_corrects_against_nearest_keyframe():
     T_true = pose([0.02, 0.01, 0.0], [0.01, 0.0, 0.0])  # near the first keyframe
     g, d = render(T_true)
     T_est = pose([0.0, 0.0, 0.01], [0.0, 0.0, 0.0]) @ T_true  # 1 cm off
-    T_new, used = aligner.correct(g, d, T_est[None], torch.ones(1, dtype=torch.bool))
-    assert bool(used[0])
-    assert se3_log(T_inv(T_true) @ T_new[0])[:3].norm() < 0.1 * 2.0 / 130.0
+    fix = aligner.correct(g, d, T_est[None], torch.ones(1, dtype=torch.bool))
+    assert bool(fix.used[0]) and not bool(fix.latest[0])  # the first keyframe is nearer than the newest
+    assert se3_log(T_inv(T_true) @ fix.T_world_color[0])[:3].norm() < 0.1 * 2.0 / 130.0
 
 
 def test_bad_input_raises():

@@ -198,6 +198,14 @@ def pose_distance(T_a: Tensor, T_b: Tensor, m_per_rad: float = 0.3) -> Tensor:
     return torch.linalg.vector_norm(T_a[..., :3, 3] - T_b[..., :3, 3], dim=-1) + m_per_rad * ang
 
 
+class Correction(NamedTuple):
+    """T_world_color (B, 4, 4) float64 corrected poses; used (B,) applied; latest (B,) against the newest keyframe."""
+
+    T_world_color: Tensor
+    used: Tensor
+    latest: Tensor
+
+
 class KeyframeAligner:
     """The last ``count`` keyframes of each of B sequences (grey, depth, K on a coarse grid, colour camera pose in
     the tracker's world) and the correction of a current pose against the nearest of them.
@@ -247,10 +255,11 @@ class KeyframeAligner:
         self.valid[rows, slot] = True
         self.n_added[rows] += 1
 
-    def correct(self, gray: Tensor, depth: Tensor, T_world_color: Tensor, active: Tensor) -> tuple[Tensor, Tensor]:
+    def correct(self, gray: Tensor, depth: Tensor, T_world_color: Tensor, active: Tensor) -> Correction:
         """The corrected colour camera poses (B, 4, 4) float64 of the current frames (gray, depth (B,1,H,W) on the
-        grid ``add`` saw) estimated at ``T_world_color``, and (B,) bool where a correction was applied (``active``
-        sequences whose alignment to their nearest keyframe succeeded within the step limits)."""
+        grid ``add`` saw) estimated at ``T_world_color``; ``used`` (B,) where a correction was applied (``active``
+        sequences whose alignment to their nearest keyframe succeeded within the step limits); ``latest`` (B,)
+        where that keyframe is the one added last (the tracker's current model frame)."""
         B = gray.shape[0]
         if self.gray is None or self.gray.shape[0] != B:
             raise ValueError(f"KeyframeAligner.correct: no keyframes stored for a batch of {B}")
@@ -271,7 +280,8 @@ class KeyframeAligner:
         )
         use = active & res.valid & small & torch.isfinite(step).all(-1)
         T_out = se3_exp(torch.where(use[:, None], step, 0.0)) @ T_est
-        return torch.where(use[:, None, None], T_out, T_est), use
+        latest = k == (self.n_added - 1) % self.count
+        return Correction(torch.where(use[:, None, None], T_out, T_est), use, latest)
 
 
 def set_backend_pose(backend, T_cam_obj: Tensor, mask: Tensor) -> None:

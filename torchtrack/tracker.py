@@ -172,7 +172,9 @@ class Tracker:
             pose) and after each update align the frame densely (photometric + point-to-plane Gauss-Newton on the
             grid downsampled by ``keyframe_factor``) to the nearest of them; the aligned pose replaces the back
             end's (``keyframe_blend`` < 1: that fraction of the way), see :mod:`torchtrack.keyframes`;
-            ``keyframe_photometric`` / ``keyframe_geometric`` switch its two terms.
+            ``keyframe_photometric`` / ``keyframe_geometric`` switch its two terms; ``keyframe_anchor``: a
+            correction against an older keyframe than the model frame moves the model frame (``T_world_obj``)
+            instead of the pose the features measure.
 
     The tracker's model and last estimate live in one :class:`TrackerState`, ``self.state``.
     """
@@ -203,6 +205,7 @@ class Tracker:
         keyframe_blend: float = 1.0,
         keyframe_photometric: bool = True,
         keyframe_geometric: bool = True,
+        keyframe_anchor: bool = True,
     ) -> None:
         if not 0.0 <= reselect_fraction < 1.0:
             raise ValueError(f"reselect_fraction must be in [0, 1), got {reselect_fraction}")
@@ -218,6 +221,7 @@ class Tracker:
         terms = dict(use_photometric=keyframe_photometric, use_geometric=keyframe_geometric)
         kf = dict(count=keyframe_count, factor=keyframe_factor, blend=keyframe_blend, **terms)
         self.keyframes = KeyframeAligner(**kf) if keyframe_align else None
+        self.keyframe_anchor = keyframe_anchor
         self.state = TrackerState()
 
     @property
@@ -286,15 +290,24 @@ class Tracker:
         return torch.where(ok[..., None], pix.to(s.pixels.dtype), s.pixels)
 
     def _keyframe_corrected(self, frame: FrameBatch, cur: PreparedFrame, est: BackendResult) -> Tensor:
-        """(B, 4, 4) the back end's pose after the dense alignment to the nearest keyframe; the back end's mean pose
-        is moved there too (velocity and covariance kept) where the alignment was applied."""
+        """(B, 4, 4) the object pose after the dense alignment to the nearest keyframe. Against the current model
+        frame (the newest keyframe) the correction refines ``T_cam_obj`` and the back end's mean pose moves there
+        (velocity and covariance kept). Against an older keyframe it moves the model frame in the world,
+        ``T_world_obj``, and leaves ``T_cam_obj`` to the features: they are measured against the current model,
+        and correcting their pose towards another frame would set the two against each other every frame.
+        With ``anchor`` off every correction goes to ``T_cam_obj``."""
         s, T_cd = self.state, frame.T_color_depth.double()
         T_cam_obj = est.T_cam_obj.double()
         T_world_color = s.T_world_obj @ T_inv(T_cam_obj) @ T_inv(T_cd)
-        T_new, used = self.keyframes.correct(cur.gray, cur.depth, T_world_color, frame.active)
-        T_cam_obj_new = T_inv(T_new @ T_cd) @ s.T_world_obj
-        set_backend_pose(self.backend, T_cam_obj_new, used)
-        return torch.where(used[:, None, None], T_cam_obj_new, T_cam_obj)
+        fix = self.keyframes.correct(cur.gray, cur.depth, T_world_color, frame.active)
+        T_world_cam = fix.T_world_color @ T_cd
+        relative = fix.used & fix.latest if self.keyframe_anchor else fix.used
+        anchor = fix.used & ~relative
+        T_cam_obj_new = T_inv(T_world_cam) @ s.T_world_obj
+        set_backend_pose(self.backend, T_cam_obj_new, relative)
+        T_world_obj = torch.where(anchor[:, None, None], T_world_cam @ T_cam_obj, s.T_world_obj)
+        self.state = replace(s, T_world_obj=T_world_obj)
+        return torch.where(relative[:, None, None], T_cam_obj_new, T_cam_obj)
 
     def _needs_model(self, active: Tensor) -> Tensor:
         """(B,) bool: too few features survive (a fraction of the model's, or an absolute count)."""
