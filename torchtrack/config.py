@@ -286,7 +286,9 @@ class PipelineConfig:
     keyframe_blend: float = 1.0  # ... 1 replaces the EKF's pose with the aligned one; < 1 that fraction of the way
     keyframe_photometric: bool = True  # ... its grey-value term
     keyframe_geometric: bool = True  # ... its point-to-plane term
-    keyframe_anchor: bool = True  # ... against an older keyframe than the model: move the model frame, not the pose
+    keyframe_anchor: str = (
+        "older"  # ... corrections that move the model frame, not the pose: older (keyframe), all, none
+    )
 
 
 @dataclass

@@ -172,9 +172,9 @@ class Tracker:
             pose) and after each update align the frame densely (photometric + point-to-plane Gauss-Newton on the
             grid downsampled by ``keyframe_factor``) to the nearest of them; the aligned pose replaces the back
             end's (``keyframe_blend`` < 1: that fraction of the way), see :mod:`torchtrack.keyframes`;
-            ``keyframe_photometric`` / ``keyframe_geometric`` switch its two terms; ``keyframe_anchor``: a
-            correction against an older keyframe than the model frame moves the model frame (``T_world_obj``)
-            instead of the pose the features measure.
+            ``keyframe_photometric`` / ``keyframe_geometric`` switch its two terms; ``keyframe_anchor``: which
+            corrections move the model frame (``T_world_obj``) instead of the pose the features measure: "older"
+            (against a keyframe older than the model frame), "all" or "none".
 
     The tracker's model and last estimate live in one :class:`TrackerState`, ``self.state``.
     """
@@ -205,7 +205,7 @@ class Tracker:
         keyframe_blend: float = 1.0,
         keyframe_photometric: bool = True,
         keyframe_geometric: bool = True,
-        keyframe_anchor: bool = True,
+        keyframe_anchor: str = "older",
     ) -> None:
         if not 0.0 <= reselect_fraction < 1.0:
             raise ValueError(f"reselect_fraction must be in [0, 1), got {reselect_fraction}")
@@ -221,6 +221,8 @@ class Tracker:
         terms = dict(use_photometric=keyframe_photometric, use_geometric=keyframe_geometric)
         kf = dict(count=keyframe_count, factor=keyframe_factor, blend=keyframe_blend, **terms)
         self.keyframes = KeyframeAligner(**kf) if keyframe_align else None
+        if keyframe_anchor not in ("none", "older", "all"):
+            raise ValueError(f"keyframe_anchor must be none, older or all, got {keyframe_anchor!r}")
         self.keyframe_anchor = keyframe_anchor
         self.state = TrackerState()
 
@@ -295,13 +297,16 @@ class Tracker:
         (velocity and covariance kept). Against an older keyframe it moves the model frame in the world,
         ``T_world_obj``, and leaves ``T_cam_obj`` to the features: they are measured against the current model,
         and correcting their pose towards another frame would set the two against each other every frame.
-        With ``anchor`` off every correction goes to ``T_cam_obj``."""
+        ``keyframe_anchor``: "older" as above, "all" every correction moves ``T_world_obj`` (the features and the
+        filter never see it; only the trajectory and the next model's chain do), "none" every one moves ``T_cam_obj``."""
         s, T_cd = self.state, frame.T_color_depth.double()
         T_cam_obj = est.T_cam_obj.double()
         T_world_color = s.T_world_obj @ T_inv(T_cam_obj) @ T_inv(T_cd)
         fix = self.keyframes.correct(cur.gray, cur.depth, T_world_color, frame.active)
         T_world_cam = fix.T_world_color @ T_cd
-        relative = fix.used & fix.latest if self.keyframe_anchor else fix.used
+        relative = {"none": fix.used, "older": fix.used & fix.latest, "all": torch.zeros_like(fix.used)}[
+            self.keyframe_anchor
+        ]
         anchor = fix.used & ~relative
         T_cam_obj_new = T_inv(T_world_cam) @ s.T_world_obj
         set_backend_pose(self.backend, T_cam_obj_new, relative)
