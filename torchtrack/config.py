@@ -280,6 +280,15 @@ class PipelineConfig:
     ransac_threshold_m: float | None = None  # improvement (null = off): RANSAC (Horn) inliers within this x max(1,z^2)
     ransac_min_motion_px: float = 0.0  # ... in frames whose median tracked displacement exceeds this
     record: bool = False  # compute every frame's per-feature cues (torchtrack-record)
+    keyframe_align: bool = False  # improvement (false = paper; off while measured): dense alignment to a keyframe
+    keyframe_count: int = 5  # ... the last this many model frames kept per sequence
+    keyframe_factor: int = 4  # ... aligned on the input downsampled by this (640x480 -> 160x120), then by 2x that
+    keyframe_blend: float = 1.0  # ... 1 replaces the EKF's pose with the aligned one; < 1 that fraction of the way
+    keyframe_photometric: bool = True  # ... its grey-value term
+    keyframe_geometric: bool = True  # ... its point-to-plane term
+    keyframe_anchor: str = (
+        "older"  # ... corrections that move the model frame, not the pose: older (keyframe), all, none
+    )
 
 
 @dataclass

@@ -32,6 +32,7 @@ from torchtrack.filter.weighting import Variances, WeightingInputs
 from torchtrack.frontend import FrontEnd, PreparedFrame, smooth_depth_mask
 from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, se3_log, transform_points
 from torchtrack.image.flow import TrackResult
+from torchtrack.keyframes import KeyframeAligner, set_backend_pose
 from torchtrack.learn.cues import stack_cues
 from torchtrack.metrics import reprojection_errors
 
@@ -167,6 +168,13 @@ class Tracker:
             the same with and without; a weighting with ``needs_cues = True`` gets them in any case.
         relocaliser: improvement (None = paper): after each frame, the loss check and relocalisation
             (:class:`torchtrack.relocalise.Relocaliser`; it calls :meth:`relocalise`).
+        keyframe_align: improvement (False = paper): keep the last ``keyframe_count`` model frames (grey, depth,
+            pose) and after each update align the frame densely (photometric + point-to-plane Gauss-Newton on the
+            grid downsampled by ``keyframe_factor``) to the nearest of them; the aligned pose replaces the back
+            end's (``keyframe_blend`` < 1: that fraction of the way), see :mod:`torchtrack.keyframes`;
+            ``keyframe_photometric`` / ``keyframe_geometric`` switch its two terms; ``keyframe_anchor``: which
+            corrections move the model frame (``T_world_obj``) instead of the pose the features measure: "older"
+            (against a keyframe older than the model frame), "all" or "none".
 
     The tracker's model and last estimate live in one :class:`TrackerState`, ``self.state``.
     """
@@ -191,6 +199,13 @@ class Tracker:
         ransac_min_motion_px: float = 0.0,
         record: bool = False,
         relocaliser: Callable | None = None,
+        keyframe_align: bool = False,
+        keyframe_count: int = 5,
+        keyframe_factor: int = 4,
+        keyframe_blend: float = 1.0,
+        keyframe_photometric: bool = True,
+        keyframe_geometric: bool = True,
+        keyframe_anchor: str = "older",
     ) -> None:
         if not 0.0 <= reselect_fraction < 1.0:
             raise ValueError(f"reselect_fraction must be in [0, 1), got {reselect_fraction}")
@@ -203,6 +218,12 @@ class Tracker:
         self.ransac_threshold_m, self.ransac_min_motion_px = ransac_threshold_m, ransac_min_motion_px
         self.record = record
         self.relocaliser = relocaliser
+        terms = dict(use_photometric=keyframe_photometric, use_geometric=keyframe_geometric)
+        kf = dict(count=keyframe_count, factor=keyframe_factor, blend=keyframe_blend, **terms)
+        self.keyframes = KeyframeAligner(**kf) if keyframe_align else None
+        if keyframe_anchor not in ("none", "older", "all"):
+            raise ValueError(f"keyframe_anchor must be none, older or all, got {keyframe_anchor!r}")
+        self.keyframe_anchor = keyframe_anchor
         self.state = TrackerState()
 
     @property
@@ -236,7 +257,8 @@ class Tracker:
             dt.to(points_d.dtype), s.points_obj, points_d, track.points, valid, frame.K, frame.T_color_depth
         )
         est = self.backend.step(obs, var, active=frame.active)  # eqs. (2)-(7), (15)
-        self.state = self._advanced(frame, cur, track.points, valid, est.T_cam_obj.double())  # and the residual drop
+        T_cam_obj = est.T_cam_obj.double() if self.keyframes is None else self._keyframe_corrected(frame, cur, est)
+        self.state = self._advanced(frame, cur, track.points, valid, T_cam_obj)  # and the residual drop
         tracked, reselect = self.state, self._needs_model(frame.active)
         model_T_cam_obj = self._new_model(frame, cur, reselect) if reselect.any() else None  # §III re-selection
         extra = dict(observation=obs, variances=var, cues=cues, model_T_cam_obj=model_T_cam_obj, estimate=est)
@@ -268,6 +290,29 @@ class Tracker:
         pix = project(frame.K.double(), points_c)
         ok = (points_c[..., 2] > 1e-3) & torch.isfinite(pix).all(-1) & s.valid
         return torch.where(ok[..., None], pix.to(s.pixels.dtype), s.pixels)
+
+    def _keyframe_corrected(self, frame: FrameBatch, cur: PreparedFrame, est: BackendResult) -> Tensor:
+        """(B, 4, 4) the object pose after the dense alignment to the nearest keyframe. Against the current model
+        frame (the newest keyframe) the correction refines ``T_cam_obj`` and the back end's mean pose moves there
+        (velocity and covariance kept). Against an older keyframe it moves the model frame in the world,
+        ``T_world_obj``, and leaves ``T_cam_obj`` to the features: they are measured against the current model,
+        and correcting their pose towards another frame would set the two against each other every frame.
+        ``keyframe_anchor``: "older" as above, "all" every correction moves ``T_world_obj`` (the features and the
+        filter never see it; only the trajectory and the next model's chain do), "none" every one moves ``T_cam_obj``."""
+        s, T_cd = self.state, frame.T_color_depth.double()
+        T_cam_obj = est.T_cam_obj.double()
+        T_world_color = s.T_world_obj @ T_inv(T_cam_obj) @ T_inv(T_cd)
+        fix = self.keyframes.correct(cur.gray, cur.depth, T_world_color, frame.active)
+        T_world_cam = fix.T_world_color @ T_cd
+        relative = {"none": fix.used, "older": fix.used & fix.latest, "all": torch.zeros_like(fix.used)}[
+            self.keyframe_anchor
+        ]
+        anchor = fix.used & ~relative
+        T_cam_obj_new = T_inv(T_world_cam) @ s.T_world_obj
+        set_backend_pose(self.backend, T_cam_obj_new, relative)
+        T_world_obj = torch.where(anchor[:, None, None], T_world_cam @ T_cam_obj, s.T_world_obj)
+        self.state = replace(s, T_world_obj=T_world_obj)
+        return torch.where(relative[:, None, None], T_cam_obj_new, T_cam_obj)
 
     def _needs_model(self, active: Tensor) -> Tensor:
         """(B,) bool: too few features survive (a fraction of the model's, or an absolute count)."""
@@ -315,6 +360,8 @@ class Tracker:
         eye = torch.eye(4, dtype=torch.float64).expand(B, 4, 4).clone()
         zero = torch.zeros(B, 6, dtype=torch.float64)
         self.state = TrackerState(timestamp=frame.timestamp, T_cam_obj=eye, T_world_obj=eye.clone(), velocity=zero)
+        if self.keyframes is not None:
+            self.keyframes.reset()
         everyone = torch.ones(B, dtype=torch.bool)
         model_T_cam_obj = self._new_model(frame, cur, everyone)
         return self._result(self.state, None, None, everyone, model_T_cam_obj=model_T_cam_obj)
@@ -352,6 +399,9 @@ class Tracker:
         residuals = self._residuals(frame, T_cam_obj, state.points_obj, state.pixels, state.valid)
         self.state = replace(state, residuals=residuals)  # in the new layout: the next frame's prev_reproj cue
         self.backend.reset(T_cam_obj, mask)
+        if self.keyframes is not None:  # the model frame is a keyframe
+            T_world_color = self.state.T_world_cam @ T_inv(frame.T_color_depth.double())
+            self.keyframes.add(cur.gray, cur.depth, frame.K, T_world_color, mask)
         return T_cam_obj
 
     def _with_survivors(self, pixels: Tensor, points_d: Tensor, valid: Tensor, cornerness: Tensor, mask: Tensor):
