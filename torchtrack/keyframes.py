@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torchtrack.geometry import T_inv, backproject_depth, se3_exp, se3_log
+from torchtrack.geometry import T_inv, backproject_depth, hat, rotation_angle, se3_exp, se3_log
 
 
 class AlignResult(NamedTuple):
@@ -85,11 +85,8 @@ def _huber(r: Tensor, k: float) -> Tensor:
 
 def _dp_dxi(p: Tensor) -> Tensor:
     """(B, P, 3, 6) derivative of exp(xi) p at xi = 0: [I, -[p]x]."""
-    x, y, z = p.unbind(-1)
-    o = torch.zeros_like(x)
-    skew = torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).reshape(*p.shape[:-1], 3, 3)
     eye = torch.eye(3, dtype=p.dtype).expand(*p.shape[:-1], 3, 3)
-    return torch.cat([eye, -skew], -1)
+    return torch.cat([eye, -hat(p)], -1)
 
 
 def align_to_keyframe(
@@ -193,8 +190,7 @@ def align_coarse_to_fine(gray_cur, depth_cur, gray_ref, depth_ref, K, T_init, *,
 
 def pose_distance(T_a: Tensor, T_b: Tensor, m_per_rad: float = 0.3) -> Tensor:
     """(...) translation distance + m_per_rad x rotation angle between camera poses (..., 4, 4)."""
-    d = T_inv(T_b) @ T_a
-    ang = torch.linalg.vector_norm(se3_log(d)[..., 3:], dim=-1)
+    ang = rotation_angle(T_b[..., :3, :3].mT @ T_a[..., :3, :3])
     return torch.linalg.vector_norm(T_a[..., :3, 3] - T_b[..., :3, 3], dim=-1) + m_per_rad * ang
 
 

@@ -22,7 +22,7 @@ from torch import Tensor
 
 from torchtrack.data.frame import FrameBatch
 from torchtrack.frontend import depth_in_colour, smooth_depth_mask
-from torchtrack.geometry import T_inv, transform_points
+from torchtrack.geometry import T_inv, backproject, transform_points
 from torchtrack.io import write_atomic, write_json
 from torchtrack.mapping.render import perspective_view, top_down_view
 from torchtrack.mapping.tsdf import TsdfFusion
@@ -59,21 +59,13 @@ def frame_points(
     ok = (z > min_depth) & (z < max_depth)
     if edge_step is not None:
         ok &= smooth_depth_mask(z, edge_step, radius=1)
-    n = len(sel)
     ok = ok[:, 0]
     i, row, col = ok.nonzero(as_tuple=True)  # P: sequence, row and column in the subsampled grid (by sequence)
-    zp = z[:, 0][i, row, col].double()
-    K = frame.K[sel].double()
-    fx, fy, cx, cy = (K[:, r, c][i] for r, c in ((0, 0), (1, 1), (0, 2), (1, 2)))  # P each
-    u, v = (col * s).double(), (row * s).double()
-    p_color = torch.stack([(u - cx) / fx * zp, (v - cy) / fy * zp, zp], -1)  # pinhole back-projection
-    T = T_world_color[sel].double()
-    parts = p_color.split(ok.reshape(n, -1).sum(1).tolist())
-    xyz = (
-        torch.cat([transform_points(T[k], c) for k, c in enumerate(parts)])
-        if n > 1
-        else transform_points(T[0], p_color)
-    )
+    counts = ok.flatten(1).sum(1).tolist()  # points per selected sequence (nonzero orders them by sequence)
+    zp = z[:, 0][i, row, col].double().split(counts)
+    uv = torch.stack([col * s, row * s], -1).double().split(counts)  # colour pixels
+    K, T = frame.K[sel].double(), T_world_color[sel].double()
+    xyz = torch.cat([transform_points(T[k], backproject(K[k], uv[k], zp[k])) for k in range(len(sel))])
     rgb = frame.rgb[:, :, ::s, ::s][sel].permute(0, 2, 3, 1)[i, row, col]
     return FramePoints(xyz, rgb, sel[i], depth, sel)
 
