@@ -13,6 +13,10 @@ on the variants.
     python experiments/evaluate.py --roots ../shared/data/sun3d_fragment1 --max-frames 20 --peers o3d_hybrid
     python experiments/evaluate.py pipeline.predict_init=false --out outputs/eval_off   # Hydra overrides
 
+``--seeds 1,2,3`` also runs ours on the ``jitter`` variant (half a grey level of colour noise, seeded) of every row's
+folder, one per seed: the long sequences are chaotic, so one run says little. The row's ATE/RPE and its ratios then
+use the median over the plain run and the jittered ones, and the table shows it with its range.
+
 ``--variants`` adds the perturbed variants of every sequence (:func:`torchtrack.data.perturb.make_variant`, seed
 ``--seed``): skip2/3/4, reversed, photometric, depth_noise, built from the first ``--variant-frames`` frames (so
 that the long sequence stays feasible on 2 cores; the table says so).
@@ -222,13 +226,16 @@ def table(rows: list[dict], peers: list[str], compare: dict[str, dict] | None = 
     """One line per (sequence, variant): ours, each peer (ATE mm / RPE mm / ms per frame), the best and the ratios;
     ``compare`` {label: {(sequence, variant): ours}} adds ours from other runs (ablations) as columns."""
     compare = compare or {}
+    seeded = any(r.get("ours_median") for r in rows)
     head = ["sequence", "variant", "frames", "ours ATE / RPE / ms", "re-sel."]
+    head += ["ours median ATE [range] / RPE, runs"] if seeded else []
     head += [f"{c} ATE / RPE / ms, re-sel." for c in compare] + list(peers)
     head += ["best (ATE)", "ATE ours/best", "RPE ours/best RPE", "target"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         o, q = r.get("ours") or {}, r.get("ratio", {})
         cells = [r["sequence"], r["variant"], str(r.get("frames", "–")), triple(o), str(o.get("reselections", "–"))]
+        cells += [spread(r.get("ours_median"))] if seeded else []
         for runs in compare.values():
             c = runs.get((r["sequence"], r["variant"]))
             cells.append(f"{triple(c)}, {c.get('reselections', '–')}" if c else "–")
@@ -258,6 +265,16 @@ def triple(m: dict | None) -> str:
     if "error" in m:
         return "failed"
     return f"{fmt(m.get('ate_rmse_m'), 1e3, 1)} / {fmt(m.get('rpe_trans_m'), 1e3, 2)} / {ms(m)}"
+
+
+def spread(m: dict | None) -> str:
+    """A median cell: 'ATE [min-max] / RPE, runs' in mm."""
+    if not m or m.get("ate_rmse_m") is None:
+        return "–"
+    lo, hi = m["ate_rmse_m_range"]
+    return (
+        f"{m['ate_rmse_m'] * 1e3:.1f} [{lo * 1e3:.1f}-{hi * 1e3:.1f}] / {fmt(m.get('rpe_trans_m'), 1e3)}, {m['runs']}"
+    )
 
 
 def floor_table(rows: list[dict]) -> str:
@@ -307,6 +324,12 @@ def footnotes(rows: list[dict], peers: list[str], args) -> str:
             "frames of its sequence (only 7scenes_redkitchen is longer); skipK keeps every K-th frame (K x faster "
             "motion)."
         )
+    seeds = sorted({r["seed"] for row in rows for r in row.get("ours_runs", [])[1:]})
+    if seeds:
+        notes.append(
+            f"ours median: over the plain run and the `jitter` variants (seeds {', '.join(map(str, seeds))}: half a grey"
+            " level of colour noise) of the same frames; the ratios and the target use it."
+        )
     cut = [f"{r['sequence']} (first {r['frames']} of {n_listed(Path(r['root']))})" for r in rows
            if r["variant"] == "real" and r.get("frames") and Path(r["root"]).is_dir() and r["frames"] < n_listed(Path(r["root"]))]  # fmt: skip
     if cut:
@@ -332,6 +355,28 @@ def git_describe() -> str:
 # ----------------------------------------------------------------------------------------------- main
 
 
+def jittered(root: Path, max_frames: int | None, overrides: list[str], args) -> list[dict]:
+    """Ours on the ``jitter`` variant of ``root`` (its first ``max_frames`` frames) for every seed of ``--seeds``;
+    each run folder goes to ``OUT/ours_jitter/s<seed>/``."""
+    runs = []
+    for seed in args.seeds:
+        folder = make_variant(root, "jitter", args.cache, seed=seed, first=max_frames)
+        cfg = compose_config(folder, None, overrides)
+        runs.append({**run_ours(cfg, args.out / "ours_jitter" / f"s{seed}", plots=False), "seed": seed})
+    return runs
+
+
+def median_metrics(runs: list[dict]) -> dict:
+    """Per metric (ATE, RPE, fps, re-selections): the median over the runs that have it, and ``<key>_range``
+    [min, max]; ``runs`` the number of runs."""
+    out: dict = {"runs": len(runs)}
+    for key in (*METRICS, "fps", "reselections"):
+        vals = [r[key] for r in runs if r.get(key) is not None]
+        if vals:
+            out[key], out[f"{key}_range"] = float(np.median(vals)), [float(min(vals)), float(max(vals))]
+    return out
+
+
 def evaluate_one(src: Path, root: Path, kind: str, args, overrides: list[str]) -> dict:
     """One table row: ours and every peer on ``root`` (``src`` itself or its ``kind`` variant)."""
     from peers import PEERS
@@ -347,6 +392,9 @@ def evaluate_one(src: Path, root: Path, kind: str, args, overrides: list[str]) -
         row["ours"] = run_ours(cfg, args.out / "ours", plots=not args.no_plots)
         check_trajectory(args.out / "ours" / seq.name, seq, row["ours"])
         row["ours_wall_s"] = time.perf_counter() - t0
+        if args.seeds:
+            row["ours_runs"] = [row["ours"], *jittered(root, max_frames, overrides, args)]
+            row["ours_median"] = median_metrics(row["ours_runs"])
         for name in args.peers:
             try:
                 row["peers"][name] = run_peer(seq, PEERS[name], args.out / "peers")
@@ -356,9 +404,8 @@ def evaluate_one(src: Path, root: Path, kind: str, args, overrides: list[str]) -
         row["best"] = best_peer(row["peers"])
         if row["best"]:
             best, best_rpe = row["peers"][row["best"]], row["peers"][best_peer(row["peers"], "rpe_trans_m")]
-            row["ratio"] = {
-                k: ratio(row["ours"].get(k), (best_rpe if k == "rpe_trans_m" else best).get(k)) for k in METRICS
-            }
+            ours = row.get("ours_median") or row["ours"]
+            row["ratio"] = {k: ratio(ours.get(k), (best_rpe if k == "rpe_trans_m" else best).get(k)) for k in METRICS}
             if kind == "real" and seq.has_groundtruth and row["ours"].get("ate_rmse_m") is not None:
                 peer_folder = args.out / "peers" / row["best"] / seq.name
                 row["shared"] = shared_floor(args.out / "ours" / seq.name, peer_folder, seq)
@@ -397,6 +444,7 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     ap.add_argument("--variant-frames", type=int, default=300, help="variants are built from this many frames")
     ap.add_argument("--no-real", action="store_true", help="only the variants (e.g. a second process)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the variants")
+    ap.add_argument("--seeds", default="", help="comma-separated jitter seeds: ours also on those, median reported")
     ap.add_argument("--cache", type=Path, default=default_cache(), help="folder of the built variants")
     ap.add_argument("--results", type=Path, default=None, help="replace this script's section of this markdown file")
     ap.add_argument(
@@ -420,6 +468,10 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     args = ap.parse_args(opts)
     args.peers = [] if args.no_peer else [p for p in args.peers.split(",") if p]
     args.variants = [v for v in args.variants.split(",") if v and v != "none"]
+    try:
+        args.seeds = [int(x) for x in args.seeds.split(",") if x.strip()]
+    except ValueError:
+        ap.error(f"--seeds wants comma-separated integers, got {args.seeds!r}")
     unknown = [p for p in args.peers if p not in PEERS] + [v for v in args.variants if v not in VARIANTS]
     if unknown:
         ap.error(f"unknown peer(s) or variant(s): {', '.join(unknown)}")

@@ -97,3 +97,29 @@ def test_unknown_peer_or_variant_is_refused():
         evaluate.parse_args(["--peers", "nope"])
     with pytest.raises(SystemExit):
         evaluate.parse_args(["--variants", "skip9"])
+    with pytest.raises(SystemExit):
+        evaluate.parse_args(["--seeds", "1,x"])
+
+
+def test_seeds_median_over_the_plain_and_jittered_runs(seq, tmp_path):
+    """--seeds 1,2 runs ours on two jitter variants too: the row's median and range are those of the three
+    metrics.json files, the jittered inputs differ from the plain ones, and the ratio uses the median."""
+    out = tmp_path / "eval"
+    argv = ["--roots", str(seq), "--out", str(out), "--no-plots", "--peers", "cv2_rgbd", "--cache", str(tmp_path / "c")]
+    assert evaluate.main([*argv, "--seeds", "1,2"]) == 0
+    (row,) = json.loads((out / "evaluation.json").read_text())["rows"]
+    folders = [out / "ours" / seq.name] + sorted((out / "ours_jitter").glob("s*/*"))
+    assert [f.parent.name for f in folders[1:]] == ["s1", "s2"]
+    ates = [json.loads((f / "metrics.json").read_text())["ate_rmse_m"] for f in folders]
+    assert row["ours_median"]["runs"] == 3
+    assert row["ours_median"]["ate_rmse_m"] == pytest.approx(float(np.median(ates)), rel=1e-12)
+    assert row["ours_median"]["ate_rmse_m_range"] == pytest.approx([min(ates), max(ates)], rel=1e-12)
+    peer = json.loads((out / "peers" / "cv2_rgbd" / seq.name / "metrics.json").read_text())["ate_rmse_m"]
+    assert row["ratio"]["ate_rmse_m"] == pytest.approx(np.median(ates) / peer, rel=1e-12)
+    jitter = sorted((tmp_path / "c").glob("*jitter-s1*"))
+    assert jitter, "the jitter variant is built in the cache"
+    import cv2
+
+    plain, noisy = (cv2.imread(str(TumSequence(f).rgb_paths[0])) for f in (seq, jitter[0]))
+    assert plain.shape == noisy.shape and 0 < np.abs(plain.astype(int) - noisy).max() <= 3  # the same frame, noisy
+    assert "ours median ATE [range]" in (out / "evaluation.md").read_text()
