@@ -119,6 +119,7 @@ class RegionConfig:
     near: float | None = None  # m; null: from the depth histogram (nearest mode)
     far: float | None = None
     largest_component: bool = False
+    erode_px: int = 0  # px: keep the model's features this far inside the region (LK windows off the silhouette)
 
 
 @dataclass
@@ -136,6 +137,8 @@ class SelectConfig:
     nms_radius: int = 2  # non-maximum suppression radius when spread is false
     min_cornerness: float = 0.05
     require_sim: bool = False  # true: with lam < 1 only pixels with a defined (non-planar) shape index
+    roi_patches: int | None = 150  # improvement (null = paper): smaller patches until the region's box holds this many
+    min_patch: int = 8  # ... patches no smaller than this (px)
 
 
 @dataclass
