@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import cv2
@@ -16,6 +17,7 @@ from torchtrack.image.select import (
     FeatureSelector,
     cornerness_maps,
     patch_shape,
+    roi_patch_size,
     select_features,
 )
 from torchtrack.image.shape_index import compute_sim
@@ -245,3 +247,62 @@ def test_module_equals_function():
     out = FeatureSelector(lam=0.3, patch_size=[20, 24], border=5)(gray, depth, K)
     ref = select_features(gray, depth, K, lam=0.3, patch_size=(20, 24), border=5)
     assert all(torch.equal(a, b) for a, b in zip(out, ref, strict=True))
+
+
+# ---------------------------------------------------------------------------------------------- roi_patches
+def rect_roi(top: int, left: int, h: int, w: int, shape=(1, 1, H, W)) -> torch.Tensor:
+    roi = torch.zeros(shape, dtype=torch.bool)
+    roi[..., top : top + h, left : left + w] = True
+    return roi
+
+
+@pytest.mark.parametrize(("h", "w", "n", "expected"), [(60, 80, 150, 5), (60, 80, 20, 15), (100, 120, 30, 20)])
+def test_roi_patch_size_is_the_closed_form(h, w, n, expected):
+    """floor(sqrt(box area / n)) clamped to [min_patch, patch_size]; the box is the eligible pixels' bounding box
+    (holes inside it do not count)."""
+    roi = rect_roi(30, 40, h, w)
+    roi[..., 35:45, 50:60] = False  # a hole inside the box
+    size = math.floor(math.sqrt(h * w / n))
+    assert size == expected
+    assert roi_patch_size(roi, 32, n, min_patch=1) == [min(32, size)]
+    assert roi_patch_size(roi, 32, n, min_patch=8) == [min(32, max(8, size))]
+    assert roi_patch_size(torch.zeros_like(roi), 24, n) == [24]  # nothing eligible: the configured size
+    assert roi_patch_size(torch.ones_like(roi), 32, 150) == [min(32, math.floor(math.sqrt(H * W / 150)))]
+
+
+def test_roi_patches_is_the_fixed_grid_of_that_size():
+    """With roi_patches the selection equals the plain selection at the patch size of the closed form; a region that
+    is large enough keeps the configured patch size, so the result is unchanged."""
+    gray, depth, K = synthetic_frame(4)
+    roi = rect_roi(60, 100, 90, 120)
+    size = max(8, math.floor(math.sqrt(90 * 120 / 150)))  # the roi lies inside the border and has depth
+    a = select_features(gray, depth, K, roi=roi, roi_patches=150)
+    b = select_features(gray, depth, K, roi=roi, patch_size=size)
+    assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
+    assert int(a.valid.sum()) > 2 * int(select_features(gray, depth, K, roi=roi).valid.sum())
+    full = rect_roi(0, 0, H, W)
+    c = select_features(gray, depth, K, roi=full, patch_size=16, roi_patches=100)  # box holds > 100 patches of 16
+    d = select_features(gray, depth, K, roi=full, patch_size=16)
+    assert all(torch.equal(x, y) for x, y in zip(c, d, strict=True))
+
+
+def test_roi_patches_batched_equals_looped():
+    """Frames of one batch get their own patch sizes (a small and a large region)."""
+    frames = [synthetic_frame(s) for s in range(2)]
+    gray, depth, K = torch.cat([f[0] for f in frames]), torch.cat([f[1] for f in frames]), torch.cat([K_of()] * 2)
+    roi = torch.cat([rect_roi(60, 100, 80, 110), rect_roi(20, 20, 200, 280)])
+    batched = select_features(gray, depth, K, roi=roi, roi_patches=150)
+    for b in range(2):
+        one = select_features(gray[b : b + 1], depth[b : b + 1], K[b : b + 1], roi=roi[b : b + 1], roi_patches=150)
+        n = one.valid.shape[1]
+        assert torch.equal(batched.valid[b, :n], one.valid[0]) and not batched.valid[b, n:].any()
+        for x, y in zip(batched, one, strict=True):
+            assert torch.equal(x[b, :n], y[0])
+
+
+def test_roi_patches_bad_input_raises():
+    gray, depth, K = synthetic_frame()
+    with pytest.raises(ValueError, match="roi_patches needs an int patch_size"):
+        select_features(gray, depth, K, grid=(8, 10), roi_patches=100)
+    with pytest.raises(ValueError, match="roi_patches and min_patch must be >= 1"):
+        select_features(gray, depth, K, roi_patches=0)
