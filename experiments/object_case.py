@@ -46,7 +46,7 @@ FRAMES = 60
 CASES: dict[str, dict] = {
     "slow": dict(trans_step_m=0.003, rot_step_deg=1.0),
     "clean": dict(trans_step_m=0.003, rot_step_deg=1.0, noise="none"),
-    "fast": dict(trans_step_m=0.008, rot_step_deg=3.0),
+    "fast": dict(trans_step_m=0.005, rot_step_deg=3.0),
     "rotation": dict(trans_step_m=0.0005, rot_step_deg=3.0),
     "far_background": dict(trans_step_m=0.003, rot_step_deg=1.0, background=True),
 }
@@ -77,6 +77,13 @@ def object_fraction(folder: Path) -> float:
     return sum(fr) / len(fr)
 
 
+def peer_folder(root: Path, out: Path) -> Path:
+    """Where the peers' results on ``root`` are cached: per rendered configuration for a synthetic case (the peers'
+    cache key names the frames, not their content), else ``out/peers``."""
+    meta = root / "config.json"
+    return out / "peers" / (json.loads(meta.read_text())["digest"] if meta.is_file() else "")
+
+
 def run_row(root: Path, ours: dict[str, list[str]], peers: list[str], out: Path) -> dict:
     """One row: every configuration of ours and every peer on ``root``."""
     from peers import PEERS
@@ -87,12 +94,15 @@ def run_row(root: Path, ours: dict[str, list[str]], peers: list[str], out: Path)
         (seq,) = build_sequences(cfg.data)
         folder = out / "ours" / label
         m = run_ours(cfg, folder, plots=False)
-        check_trajectory(folder / seq.name, seq, m)
+        if m.get("complete", True):
+            check_trajectory(folder / seq.name, seq, m)
+        else:  # e.g. the object left the view: a cell with the reason, not a lost table
+            m = {**m, "ate_rmse_m": None}
         row["ours"][label] = m
     row["frames"], row["depth_fraction"] = len(seq), object_fraction(root)
     for name in peers:
         try:
-            row["peers"][name] = run_peer(seq, PEERS[name], out / "peers")
+            row["peers"][name] = run_peer(seq, PEERS[name], peer_folder(root, out))
         except Exception as e:  # a failing peer is a cell
             log.exception("%s: peer %s failed", seq.name, name)
             row["peers"][name] = {"error": f"{type(e).__name__}: {e}".splitlines()[0]}
@@ -102,7 +112,7 @@ def run_row(root: Path, ours: dict[str, list[str]], peers: list[str], out: Path)
 
 def _cell(m: dict | None) -> str:
     if not m or m.get("ate_rmse_m") is None:
-        return "–" if not m else f"({m.get('error', 'no ATE')})"
+        return "–" if not m else ("(incomplete)" if m.get("complete") is False else f"({m.get('error', 'no ATE')})")
     return f"{m['ate_rmse_m'] * 1e3:.1f} / {m['rpe_trans_m'] * 1e3:.2f}"
 
 
@@ -115,7 +125,7 @@ def table(rows: list[dict], ours: list[str], peers: list[str]) -> str:
         best = r["peers"].get(r.get("best") or "", {})
         cells = [r["sequence"], str(r["frames"]), f"{100 * r['depth_fraction']:.1f} %"]
         cells += [_cell(r["ours"].get(o)) for o in ours]
-        cells += [f"{r['ours'][o].get('mean_features', 0):.0f} / {r['ours'][o].get('reselections', 0)}" for o in ours]
+        cells += [f"{r['ours'][o].get('mean_features') or 0:.0f} / {r['ours'][o].get('reselections', 0)}" for o in ours]
         cells += [_cell(r["peers"].get(p)) for p in peers]
         cells.append(r.get("best") or "–")
         for o in ours:
