@@ -86,12 +86,12 @@ def pose_errors(traj: torch.Tensor, seq) -> tuple[float, float]:
 
 def test_object_tracking_follows_the_exact_truth(clean_object, tmp_path):
     """region=object on the noise-free small object: the camera in the object's frame within 1.5 mm / 0.3 deg of the
-    truth over 12 frames (1.03 mm, 0.11 deg), with the patches shrunk to the object (roi_patches): many more features than the fixed
+    truth over 12 frames (1.03 mm, 0.11 deg), with the patches shrunk to the object (roi_fraction): many more features than the fixed
     grid gives (~20), which is what keeps the pose from following a few drifting tracks."""
     metrics, traj, seq = track(clean_object, tmp_path / "on", "region=object")
     pos, rot = pose_errors(traj, seq)
     assert pos < 1.25e-3 and rot < 0.15, (pos, rot)  # the fixed grid: 1.42 mm, 0.19 deg
-    off, _, _ = track(clean_object, tmp_path / "off", "region=object", "select.roi_patches=null")
+    off, _, _ = track(clean_object, tmp_path / "off", "region=object", "select.roi_fraction=null")
     assert metrics["mean_features"] > 2.5 * off["mean_features"] and off["mean_features"] < 40
 
 
@@ -123,4 +123,4 @@ def test_data_preset_is_the_slow_case():
         cfg = compose("config", overrides=["data=synthetic_object", "region=object"])
     scene = SyntheticConfig(**cfg.data.scene)
     assert scene.digest() == oc.case_config("slow").digest()
-    assert cfg.region.whole_frame is False and cfg.select.roi_patches == 150
+    assert cfg.region.whole_frame is False and cfg.select.roi_fraction == 0.5

@@ -249,60 +249,60 @@ def test_module_equals_function():
     assert all(torch.equal(a, b) for a, b in zip(out, ref, strict=True))
 
 
-# ---------------------------------------------------------------------------------------------- roi_patches
+# ---------------------------------------------------------------------------------------------- roi_fraction
 def rect_roi(top: int, left: int, h: int, w: int, shape=(1, 1, H, W)) -> torch.Tensor:
     roi = torch.zeros(shape, dtype=torch.bool)
     roi[..., top : top + h, left : left + w] = True
     return roi
 
 
-@pytest.mark.parametrize(("h", "w", "n", "expected"), [(60, 80, 150, 5), (60, 80, 20, 15), (100, 120, 30, 20)])
-def test_roi_patch_size_is_the_closed_form(h, w, n, expected):
-    """floor(sqrt(box area / n)) clamped to [min_patch, patch_size]; the box is the eligible pixels' bounding box
-    (holes inside it do not count)."""
+@pytest.mark.parametrize(("h", "w", "frac", "expected"), [(60, 80, 0.5, 11), (60, 80, 0.1, 25), (100, 120, 0.5, 17)])
+def test_roi_patch_size_is_the_closed_form(h, w, frac, expected):
+    """floor(32 sqrt(box area / (frac H W))) clamped to [min_patch, 32]; the box is the eligible pixels' bounding box
+    (holes inside it do not count); a box covering more than frac of the image keeps 32."""
     roi = rect_roi(30, 40, h, w)
     roi[..., 35:45, 50:60] = False  # a hole inside the box
-    size = math.floor(math.sqrt(h * w / n))
+    size = math.floor(32 * math.sqrt(h * w / (frac * H * W)))
     assert size == expected
-    assert roi_patch_size(roi, 32, n, min_patch=1) == [min(32, size)]
-    assert roi_patch_size(roi, 32, n, min_patch=8) == [min(32, max(8, size))]
-    assert roi_patch_size(torch.zeros_like(roi), 24, n) == [24]  # nothing eligible: the configured size
-    assert roi_patch_size(torch.ones_like(roi), 32, 150) == [min(32, math.floor(math.sqrt(H * W / 150)))]
+    assert roi_patch_size(roi, 32, frac, min_patch=1) == [size]
+    assert roi_patch_size(roi, 32, frac, min_patch=12) == [max(12, size)]
+    assert roi_patch_size(torch.zeros_like(roi), 24, frac) == [24]  # nothing eligible: the configured size
+    assert roi_patch_size(rect_roi(0, 0, H, W // 2 + 2), 32, 0.5) == [32]  # just over half the image
 
 
-def test_roi_patches_is_the_fixed_grid_of_that_size():
-    """With roi_patches the selection equals the plain selection at the patch size of the closed form; a region that
-    is large enough keeps the configured patch size, so the result is unchanged."""
+def test_roi_fraction_is_the_fixed_grid_of_that_size():
+    """With roi_fraction the selection equals the plain selection at the patch size of the closed form; a region that
+    covers more of the image keeps the configured patch size, so the result is unchanged."""
     gray, depth, K = synthetic_frame(4)
-    roi = rect_roi(60, 100, 90, 120)
-    size = max(8, math.floor(math.sqrt(90 * 120 / 150)))  # the roi lies inside the border and has depth
-    a = select_features(gray, depth, K, roi=roi, roi_patches=150)
+    roi = rect_roi(60, 100, 90, 120)  # inside the border, with depth everywhere
+    size = max(8, math.floor(32 * math.sqrt(90 * 120 / (0.5 * H * W))))
+    a = select_features(gray, depth, K, roi=roi, roi_fraction=0.5)
     b = select_features(gray, depth, K, roi=roi, patch_size=size)
     assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
     assert int(a.valid.sum()) > 2 * int(select_features(gray, depth, K, roi=roi).valid.sum())
     full = rect_roi(0, 0, H, W)
-    c = select_features(gray, depth, K, roi=full, patch_size=16, roi_patches=100)  # box holds > 100 patches of 16
+    c = select_features(gray, depth, K, roi=full, patch_size=16, roi_fraction=0.5)  # box: 83 % of the image
     d = select_features(gray, depth, K, roi=full, patch_size=16)
     assert all(torch.equal(x, y) for x, y in zip(c, d, strict=True))
 
 
-def test_roi_patches_batched_equals_looped():
+def test_roi_fraction_batched_equals_looped():
     """Frames of one batch get their own patch sizes (a small and a large region)."""
     frames = [synthetic_frame(s) for s in range(2)]
     gray, depth, K = torch.cat([f[0] for f in frames]), torch.cat([f[1] for f in frames]), torch.cat([K_of()] * 2)
     roi = torch.cat([rect_roi(60, 100, 80, 110), rect_roi(20, 20, 200, 280)])
-    batched = select_features(gray, depth, K, roi=roi, roi_patches=150)
+    batched = select_features(gray, depth, K, roi=roi, roi_fraction=0.5)
     for b in range(2):
-        one = select_features(gray[b : b + 1], depth[b : b + 1], K[b : b + 1], roi=roi[b : b + 1], roi_patches=150)
+        one = select_features(gray[b : b + 1], depth[b : b + 1], K[b : b + 1], roi=roi[b : b + 1], roi_fraction=0.5)
         n = one.valid.shape[1]
         assert torch.equal(batched.valid[b, :n], one.valid[0]) and not batched.valid[b, n:].any()
         for x, y in zip(batched, one, strict=True):
             assert torch.equal(x[b, :n], y[0])
 
 
-def test_roi_patches_bad_input_raises():
+def test_roi_fraction_bad_input_raises():
     gray, depth, K = synthetic_frame()
-    with pytest.raises(ValueError, match="roi_patches needs an int patch_size"):
-        select_features(gray, depth, K, grid=(8, 10), roi_patches=100)
-    with pytest.raises(ValueError, match="roi_patches and min_patch must be >= 1"):
-        select_features(gray, depth, K, roi_patches=0)
+    with pytest.raises(ValueError, match="roi_fraction needs an int patch_size"):
+        select_features(gray, depth, K, grid=(8, 10), roi_fraction=0.5)
+    with pytest.raises(ValueError, match="need 0 < roi_fraction <= 1"):
+        select_features(gray, depth, K, roi_fraction=0.0)

@@ -16,11 +16,11 @@
    the global top-N by C after non-maximum suppression in a (2 nms_radius + 1)^2 window, N the
    number of patches of the grid (or ``max_features``).
 
-``roi_patches`` (improvement; None = the paper's fixed grid): the patch size of each frame shrinks (square patches,
-down to ``min_patch``) until the bounding box of its eligible pixels holds at least ``roi_patches`` patches. The
-paper splits the *region of interest* into patches; with a fixed image grid a small object (a few % of the image)
-gets only a couple of dozen features, which is what limits the pose there. A region whose bounding box covers
-more than ``roi_patches`` default patches (half the image at 150 of 300) keeps the configured size.
+``roi_fraction`` (improvement; None = the paper's fixed grid): when the bounding box of a frame's eligible pixels
+covers less than this fraction of the image, its square patches shrink (down to ``min_patch``) so that the box holds
+as many patches as that fraction of the image holds at the configured size (0.5 at 640 x 480, 32 px: 150). The paper
+splits the *region of interest* into patches; with a fixed image grid a small object (a few % of the image) gets
+only a couple of dozen features, which is what limits the pose there. Larger regions keep the configured size.
 
 Only pixels with C > ``min_cornerness`` (default 0.05: a corner of about 5% of the contrast of the
 frame's strong corners) are selected: a textureless patch gives no feature rather than an
@@ -89,11 +89,11 @@ def patch_shape(H: int, W: int, patch_size: int | tuple[int, int] = 32, grid: tu
     return ph, pw, math.ceil(H / ph), math.ceil(W / pw)
 
 
-def roi_patch_size(eligible: Tensor, patch_size: int, roi_patches: int, min_patch: int = 8) -> list[int]:
-    """Per frame the square patch size (pixels) whose grid puts at least ``roi_patches`` patches into the bounding box
-    of the eligible pixels of ``eligible`` (B, 1, H, W) bool: ``floor(sqrt(box area / roi_patches))`` clamped to
+def roi_patch_size(eligible: Tensor, patch_size: int, roi_fraction: float, min_patch: int = 8) -> list[int]:
+    """Per frame the square patch size (pixels) for the bounding box of the eligible pixels of ``eligible``
+    (B, 1, H, W) bool: ``floor(patch_size * sqrt(box area / (roi_fraction * H * W)))`` clamped to
     ``[min_patch, patch_size]`` (``patch_size`` where nothing is eligible)."""
-    B = eligible.shape[0]
+    B, _, H, W = eligible.shape
     rows, cols = eligible[:, 0].any(2), eligible[:, 0].any(1)  # B,H and B,W
     out = []
     for b in range(B):
@@ -102,7 +102,8 @@ def roi_patch_size(eligible: Tensor, patch_size: int, roi_patches: int, min_patc
             out.append(patch_size)
             continue
         area = float((r[-1] - r[0] + 1) * (c[-1] - c[0] + 1))
-        out.append(int(min(patch_size, max(min_patch, math.floor(math.sqrt(area / roi_patches))))))
+        size = math.floor(patch_size * math.sqrt(area / (roi_fraction * H * W)))
+        out.append(int(min(patch_size, max(min_patch, size))))
     return out
 
 
@@ -232,7 +233,7 @@ def select_features(
     corner_kwargs: dict | None = None,
     sim_kwargs: dict | None = None,
     cpu_chunk: int | None = 1,
-    roi_patches: int | None = None,
+    roi_fraction: float | None = None,
     min_patch: int = 8,
 ) -> Features:
     """Spatio-textural feature selection (eq. 9); method and normalisation in the module docstring.
@@ -260,8 +261,9 @@ def select_features(
         cpu_chunk: on CPU, frames go through the per-pixel maps this many at a time (None = all at once).
             A whole batch of full-frame temporaries overflows the caches and, with glibc's default malloc,
             is page-faulted afresh on every call; per-frame chunks are faster. Results are identical.
-        roi_patches: improvement (None = paper): shrink the square patches of each frame, down to ``min_patch``, until
-            the bounding box of its eligible pixels holds this many (module docstring; :func:`roi_patch_size`).
+        roi_fraction: improvement (None = paper): shrink the square patches of a frame whose eligible pixels' bounding
+            box covers less than this fraction of the image, down to ``min_patch`` (module docstring;
+            :func:`roi_patch_size`).
             Needs an int ``patch_size`` and no ``grid``; frames are then selected one at a time.
 
     Returns:
@@ -283,12 +285,14 @@ def select_features(
         raise ValueError(f"select_features: border {border} leaves no pixel of a {H}x{W} image")
 
     sizes = None
-    if roi_patches is not None:
+    if roi_fraction is not None:
         if grid is not None or not isinstance(patch_size, int):
-            raise ValueError("select_features: roi_patches needs an int patch_size and no grid")
-        if roi_patches < 1 or min_patch < 1:
-            raise ValueError(f"select_features: roi_patches and min_patch must be >= 1, got {roi_patches}, {min_patch}")
-        sizes = roi_patch_size(_eligible(depth, roi, None, border) > 0, patch_size, roi_patches, min_patch)
+            raise ValueError("select_features: roi_fraction needs an int patch_size and no grid")
+        if not 0.0 < roi_fraction <= 1.0 or min_patch < 1:
+            raise ValueError(
+                f"select_features: need 0 < roi_fraction <= 1 and min_patch >= 1, got {roi_fraction}, {min_patch}"
+            )
+        sizes = roi_patch_size(_eligible(depth, roi, None, border) > 0, patch_size, roi_fraction, min_patch)
         cpu_chunk = 1  # frames may differ in patch size
     n_max = gh * gw if max_features is None else max_features
     if sizes is not None and max_features is None:
@@ -373,7 +377,7 @@ class FeatureSelector:
         corner_kwargs: dict | None = None,
         sim_kwargs: dict | None = None,
         cpu_chunk: int | None = 1,
-        roi_patches: int | None = None,
+        roi_fraction: float | None = None,
         min_patch: int = 8,
     ) -> None:
         if not 0.0 <= lam <= 1.0:
@@ -391,7 +395,7 @@ class FeatureSelector:
             corner_kwargs=dict(corner_kwargs or {}),
             sim_kwargs=dict(sim_kwargs or {}),
             cpu_chunk=cpu_chunk,
-            roi_patches=roi_patches,
+            roi_fraction=roi_fraction,
             min_patch=min_patch,
         )
 
