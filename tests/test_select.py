@@ -268,6 +268,9 @@ def test_roi_patch_size_is_the_closed_form(h, w, frac, expected):
     assert roi_patch_size(roi, 32, frac, min_patch=12) == [max(12, size)]
     assert roi_patch_size(torch.zeros_like(roi), 24, frac) == [24]  # nothing eligible: the configured size
     assert roi_patch_size(rect_roi(0, 0, H, W // 2 + 2), 32, 0.5) == [32]  # just over half the image
+    inside = rect_roi(10, 10, H - 20, (W - 20) // 2 + 2)  # just over half the image inside a 10 px border
+    no_border = math.floor(32 * math.sqrt((H - 20) * ((W - 20) // 2 + 2) / (0.5 * H * W)))
+    assert roi_patch_size(inside, 32, 0.5, border=10) == [32] and roi_patch_size(inside, 32, 0.5) == [no_border] != [32]
 
 
 def test_roi_fraction_is_the_fixed_grid_of_that_size():
@@ -275,13 +278,13 @@ def test_roi_fraction_is_the_fixed_grid_of_that_size():
     covers more of the image keeps the configured patch size, so the result is unchanged."""
     gray, depth, K = synthetic_frame(4)
     roi = rect_roi(60, 100, 90, 120)  # inside the border, with depth everywhere
-    size = max(8, math.floor(32 * math.sqrt(90 * 120 / (0.5 * H * W))))
+    size = max(8, math.floor(32 * math.sqrt(90 * 120 / (0.5 * (H - 24) * (W - 24)))))  # border 12
     a = select_features(gray, depth, K, roi=roi, roi_fraction=0.5)
     b = select_features(gray, depth, K, roi=roi, patch_size=size)
     assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
     assert int(a.valid.sum()) > 2 * int(select_features(gray, depth, K, roi=roi).valid.sum())
     full = rect_roi(0, 0, H, W)
-    c = select_features(gray, depth, K, roi=full, patch_size=16, roi_fraction=0.5)  # box: 83 % of the image
+    c = select_features(gray, depth, K, roi=full, patch_size=16, roi_fraction=0.5)  # the whole image inside the border
     d = select_features(gray, depth, K, roi=full, patch_size=16)
     assert all(torch.equal(x, y) for x, y in zip(c, d, strict=True))
 

@@ -17,8 +17,9 @@
    number of patches of the grid (or ``max_features``).
 
 ``roi_fraction`` (improvement; None = the paper's fixed grid): when the bounding box of a frame's eligible pixels
-covers less than this fraction of the image, its square patches shrink (down to ``min_patch``) so that the box holds
-as many patches as that fraction of the image holds at the configured size (0.5 at 640 x 480, 32 px: 150). The paper
+covers less than this fraction of the image inside the border, its square patches shrink (down to ``min_patch``) so
+that the box holds as many patches as that fraction of the image holds at the configured size (0.5 at 640 x 480,
+32 px: ~137). The paper
 splits the *region of interest* into patches; with a fixed image grid a small object (a few % of the image) gets
 only a couple of dozen features, which is what limits the pose there. Larger regions keep the configured size.
 
@@ -89,11 +90,15 @@ def patch_shape(H: int, W: int, patch_size: int | tuple[int, int] = 32, grid: tu
     return ph, pw, math.ceil(H / ph), math.ceil(W / pw)
 
 
-def roi_patch_size(eligible: Tensor, patch_size: int, roi_fraction: float, min_patch: int = 8) -> list[int]:
+def roi_patch_size(
+    eligible: Tensor, patch_size: int, roi_fraction: float, min_patch: int = 8, border: int = 0
+) -> list[int]:
     """Per frame the square patch size (pixels) for the bounding box of the eligible pixels of ``eligible``
-    (B, 1, H, W) bool: ``floor(patch_size * sqrt(box area / (roi_fraction * H * W)))`` clamped to
-    ``[min_patch, patch_size]`` (``patch_size`` where nothing is eligible)."""
+    (B, 1, H, W) bool: ``floor(patch_size * sqrt(box area / (roi_fraction * A)))`` clamped to
+    ``[min_patch, patch_size]`` (``patch_size`` where nothing is eligible), A = (H - 2 border) (W - 2 border) the
+    image inside the border."""
     B, _, H, W = eligible.shape
+    inside = max(1, (H - 2 * border) * (W - 2 * border))
     rows, cols = eligible[:, 0].any(2), eligible[:, 0].any(1)  # B,H and B,W
     out = []
     for b in range(B):
@@ -102,7 +107,7 @@ def roi_patch_size(eligible: Tensor, patch_size: int, roi_fraction: float, min_p
             out.append(patch_size)
             continue
         area = float((r[-1] - r[0] + 1) * (c[-1] - c[0] + 1))
-        size = math.floor(patch_size * math.sqrt(area / (roi_fraction * H * W)))
+        size = math.floor(patch_size * math.sqrt(area / (roi_fraction * inside)))
         out.append(int(min(patch_size, max(min_patch, size))))
     return out
 
@@ -262,7 +267,7 @@ def select_features(
             A whole batch of full-frame temporaries overflows the caches and, with glibc's default malloc,
             is page-faulted afresh on every call; per-frame chunks are faster. Results are identical.
         roi_fraction: improvement (None = paper): shrink the square patches of a frame whose eligible pixels' bounding
-            box covers less than this fraction of the image, down to ``min_patch`` (module docstring;
+            box covers less than this fraction of the image inside ``border``, down to ``min_patch`` (module docstring;
             :func:`roi_patch_size`).
             Needs an int ``patch_size`` and no ``grid``; frames are then selected one at a time.
 
@@ -292,7 +297,8 @@ def select_features(
             raise ValueError(
                 f"select_features: need 0 < roi_fraction <= 1 and min_patch >= 1, got {roi_fraction}, {min_patch}"
             )
-        sizes = roi_patch_size(_eligible(depth, roi, None, border) > 0, patch_size, roi_fraction, min_patch)
+        eligible = _eligible(depth, roi, None, border) > 0
+        sizes = roi_patch_size(eligible, patch_size, roi_fraction, min_patch, border)
         cpu_chunk = 1  # frames may differ in patch size
     n_max = gh * gw if max_features is None else max_features
     if sizes is not None and max_features is None:
