@@ -20,6 +20,7 @@ from torchtrack.config import (
     PaperWeightingConfig,
     PipelineConfig,
     RelocaliseConfig,
+    SelectConfig,
     validate,
 )
 from torchtrack.data.errors import DataError
@@ -113,6 +114,7 @@ def differences(schema: type) -> dict[str, tuple]:
 PAPER_NODES = {
     PipelineConfig: ("pipeline", ()), FlowConfig: ("flow", ()), EKFBackendConfig: ("tracker", ()),
     PaperWeightingConfig: ("weighting", ("weighting=paper",)), RelocaliseConfig: ("relocalise", ()),
+    SelectConfig: ("select", ()),
 }  # fmt: skip
 
 

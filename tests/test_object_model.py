@@ -176,3 +176,18 @@ def test_feature_spread_is_norm_of_per_axis_std():
         assert abs(float(s[b]) - ref) < 1e-12
     assert torch.allclose(feature_spread(pts[:1]), s[:1])
     assert feature_spread(pts, torch.zeros(2, 30, dtype=torch.bool)).tolist() == [0.0, 0.0]
+
+
+# ---------------------------------------------------------------------------------------------- erosion
+@pytest.mark.parametrize("radius", [1, 3, 6])
+def test_erode_px_against_opencv(radius):
+    """region.erode_px: the mask eroded by a (2r+1)^2 square, as cv2.erode (whose default border never erodes)."""
+    depth, _ = layered_depth(2)
+    base = object_mask(depth, largest_component=True)
+    m = object_mask(depth, largest_component=True, erode_px=radius)
+    kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    ref = cv2.erode(base[0, 0].numpy().astype(np.uint8), kernel) > 0
+    assert np.array_equal(m[0, 0].numpy(), ref) and 0 < int(m.sum()) < int(base.sum())
+    assert torch.equal(ObjectRegion(largest_component=True, erode_px=radius)(depth), m)
+    with pytest.raises(ValueError, match="erode_px must be >= 0"):
+        ObjectRegion(erode_px=-1)

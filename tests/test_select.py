@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import cv2
@@ -16,6 +17,7 @@ from torchtrack.image.select import (
     FeatureSelector,
     cornerness_maps,
     patch_shape,
+    roi_patch_size,
     select_features,
 )
 from torchtrack.image.shape_index import compute_sim
@@ -245,3 +247,65 @@ def test_module_equals_function():
     out = FeatureSelector(lam=0.3, patch_size=[20, 24], border=5)(gray, depth, K)
     ref = select_features(gray, depth, K, lam=0.3, patch_size=(20, 24), border=5)
     assert all(torch.equal(a, b) for a, b in zip(out, ref, strict=True))
+
+
+# ---------------------------------------------------------------------------------------------- roi_fraction
+def rect_roi(top: int, left: int, h: int, w: int, shape=(1, 1, H, W)) -> torch.Tensor:
+    roi = torch.zeros(shape, dtype=torch.bool)
+    roi[..., top : top + h, left : left + w] = True
+    return roi
+
+
+@pytest.mark.parametrize(("h", "w", "frac", "expected"), [(60, 80, 0.5, 11), (60, 80, 0.1, 25), (100, 120, 0.5, 17)])
+def test_roi_patch_size_is_the_closed_form(h, w, frac, expected):
+    """floor(32 sqrt(box area / (frac H W))) clamped to [min_patch, 32]; the box is the eligible pixels' bounding box
+    (holes inside it do not count); a box covering more than frac of the image keeps 32."""
+    roi = rect_roi(30, 40, h, w)
+    roi[..., 35:45, 50:60] = False  # a hole inside the box
+    size = math.floor(32 * math.sqrt(h * w / (frac * H * W)))
+    assert size == expected
+    assert roi_patch_size(roi, 32, frac, min_patch=1) == [size]
+    assert roi_patch_size(roi, 32, frac, min_patch=12) == [max(12, size)]
+    assert roi_patch_size(torch.zeros_like(roi), 24, frac) == [24]  # nothing eligible: the configured size
+    assert roi_patch_size(rect_roi(0, 0, H, W // 2 + 2), 32, 0.5) == [32]  # just over half the image
+    inside = rect_roi(10, 10, H - 20, (W - 20) // 2 + 2)  # just over half the image inside a 10 px border
+    no_border = math.floor(32 * math.sqrt((H - 20) * ((W - 20) // 2 + 2) / (0.5 * H * W)))
+    assert roi_patch_size(inside, 32, 0.5, border=10) == [32] and roi_patch_size(inside, 32, 0.5) == [no_border] != [32]
+
+
+def test_roi_fraction_is_the_fixed_grid_of_that_size():
+    """With roi_fraction the selection equals the plain selection at the patch size of the closed form; a region that
+    covers more of the image keeps the configured patch size, so the result is unchanged."""
+    gray, depth, K = synthetic_frame(4)
+    roi = rect_roi(60, 100, 90, 120)  # inside the border, with depth everywhere
+    size = max(8, math.floor(32 * math.sqrt(90 * 120 / (0.5 * (H - 24) * (W - 24)))))  # border 12
+    a = select_features(gray, depth, K, roi=roi, roi_fraction=0.5)
+    b = select_features(gray, depth, K, roi=roi, patch_size=size)
+    assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
+    assert int(a.valid.sum()) > 2 * int(select_features(gray, depth, K, roi=roi).valid.sum())
+    full = rect_roi(0, 0, H, W)
+    c = select_features(gray, depth, K, roi=full, patch_size=16, roi_fraction=0.5)  # the whole image inside the border
+    d = select_features(gray, depth, K, roi=full, patch_size=16)
+    assert all(torch.equal(x, y) for x, y in zip(c, d, strict=True))
+
+
+def test_roi_fraction_batched_equals_looped():
+    """Frames of one batch get their own patch sizes (a small and a large region)."""
+    frames = [synthetic_frame(s) for s in range(2)]
+    gray, depth, K = torch.cat([f[0] for f in frames]), torch.cat([f[1] for f in frames]), torch.cat([K_of()] * 2)
+    roi = torch.cat([rect_roi(60, 100, 80, 110), rect_roi(20, 20, 200, 280)])
+    batched = select_features(gray, depth, K, roi=roi, roi_fraction=0.5)
+    for b in range(2):
+        one = select_features(gray[b : b + 1], depth[b : b + 1], K[b : b + 1], roi=roi[b : b + 1], roi_fraction=0.5)
+        n = one.valid.shape[1]
+        assert torch.equal(batched.valid[b, :n], one.valid[0]) and not batched.valid[b, n:].any()
+        for x, y in zip(batched, one, strict=True):
+            assert torch.equal(x[b, :n], y[0])
+
+
+def test_roi_fraction_bad_input_raises():
+    gray, depth, K = synthetic_frame()
+    with pytest.raises(ValueError, match="roi_fraction needs an int patch_size"):
+        select_features(gray, depth, K, grid=(8, 10), roi_fraction=0.5)
+    with pytest.raises(ValueError, match="need 0 < roi_fraction <= 1"):
+        select_features(gray, depth, K, roi_fraction=0.0)

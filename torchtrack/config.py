@@ -119,6 +119,7 @@ class RegionConfig:
     near: float | None = None  # m; null: from the depth histogram (nearest mode)
     far: float | None = None
     largest_component: bool = False
+    erode_px: int = 0  # px: keep the model's features this far inside the region (LK windows off the silhouette)
 
 
 @dataclass
@@ -136,6 +137,9 @@ class SelectConfig:
     nms_radius: int = 2  # non-maximum suppression radius when spread is false
     min_cornerness: float = 0.05
     require_sim: bool = False  # true: with lam < 1 only pixels with a defined (non-planar) shape index
+    roi_fraction: float | None = 0.5  # improvement (null = paper): a region whose box covers less of the image (inside
+    # the border) gets patches shrunk so that the box holds as many as this fraction of the image would
+    min_patch: int = 8  # ... patches no smaller than this (px)
 
 
 @dataclass

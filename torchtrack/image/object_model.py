@@ -97,6 +97,7 @@ def object_mask(
     far: float | Tensor | None = None,
     largest_component: bool = False,
     whole_frame: bool = False,
+    erode_px: int = 0,
     **range_kwargs,
 ) -> Tensor:
     """The object's pixels by depth thresholding: (B, 1, H, W) bool.
@@ -107,6 +108,9 @@ def object_mask(
             from :func:`depth_range` (``range_kwargs`` passed on).
         largest_component: keep only the largest 8-connected region (kornia).
         whole_frame: the object is every pixel with depth (scene tracking); near/far are ignored.
+        erode_px: keep only pixels whose whole (2 erode_px + 1)^2 window is in the mask (after the largest
+            component): a feature's LK window then lies on the object, not across its silhouette, where the
+            background does not follow the object's motion and biases the track.
     """
     _check_depth(depth, "object_mask")
     B = depth.shape[0]
@@ -121,7 +125,14 @@ def object_mask(
         near = torch.as_tensor(near, dtype=depth.dtype, device=depth.device).expand(B).view(B, 1, 1, 1)
         far = torch.as_tensor(far, dtype=depth.dtype, device=depth.device).expand(B).view(B, 1, 1, 1)
         mask = has & (depth >= near) & (depth <= far)
-    return keep_largest_component(mask) if largest_component else mask
+    mask = keep_largest_component(mask) if largest_component else mask
+    return erode(mask, erode_px) if erode_px > 0 else mask
+
+
+def erode(mask: Tensor, radius: int) -> Tensor:
+    """(B, 1, H, W) bool: pixels whose whole (2 radius + 1)^2 window (clipped at the image border) is in mask."""
+    size = 2 * radius + 1
+    return -F.max_pool2d(-mask.float(), size, stride=1, padding=radius) > 0.5
 
 
 class ObjectRegion:
@@ -133,11 +144,15 @@ class ObjectRegion:
         far: float | None = None,
         largest_component: bool = False,
         whole_frame: bool = False,
+        erode_px: int = 0,
         **range_kwargs,
     ) -> None:
+        if erode_px < 0:
+            raise ValueError(f"ObjectRegion: erode_px must be >= 0, got {erode_px}")
         self.kwargs = dict(
-            near=near, far=far, largest_component=largest_component, whole_frame=whole_frame, **range_kwargs
-        )
+            near=near, far=far, largest_component=largest_component, whole_frame=whole_frame, erode_px=erode_px,
+            **range_kwargs,
+        )  # fmt: skip
 
     def __call__(self, depth: Tensor) -> Tensor:
         return object_mask(depth, **self.kwargs)

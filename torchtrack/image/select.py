@@ -16,6 +16,13 @@
    the global top-N by C after non-maximum suppression in a (2 nms_radius + 1)^2 window, N the
    number of patches of the grid (or ``max_features``).
 
+``roi_fraction`` (improvement; None = the paper's fixed grid): when the bounding box of a frame's eligible pixels
+covers less than this fraction of the image inside the border, its square patches shrink (down to ``min_patch``) so
+that the box holds as many patches as that fraction of the image holds at the configured size (0.5 at 640 x 480,
+32 px: ~137). The paper
+splits the *region of interest* into patches; with a fixed image grid a small object (a few % of the image) gets
+only a couple of dozen features, which is what limits the pose there. Larger regions keep the configured size.
+
 Only pixels with C > ``min_cornerness`` (default 0.05: a corner of about 5% of the contrast of the
 frame's strong corners) are selected: a textureless patch gives no feature rather than an
 untrackable one.
@@ -81,6 +88,28 @@ def patch_shape(H: int, W: int, patch_size: int | tuple[int, int] = 32, grid: tu
     if ph < 1 or pw < 1:
         raise ValueError(f"select_features: patch size must be positive, got {(ph, pw)}")
     return ph, pw, math.ceil(H / ph), math.ceil(W / pw)
+
+
+def roi_patch_size(
+    eligible: Tensor, patch_size: int, roi_fraction: float, min_patch: int = 8, border: int = 0
+) -> list[int]:
+    """Per frame the square patch size (pixels) for the bounding box of the eligible pixels of ``eligible``
+    (B, 1, H, W) bool: ``floor(patch_size * sqrt(box area / (roi_fraction * A)))`` clamped to
+    ``[min_patch, patch_size]`` (``patch_size`` where nothing is eligible), A = (H - 2 border) (W - 2 border) the
+    image inside the border."""
+    B, _, H, W = eligible.shape
+    inside = max(1, (H - 2 * border) * (W - 2 * border))
+    rows, cols = eligible[:, 0].any(2), eligible[:, 0].any(1)  # B,H and B,W
+    out = []
+    for b in range(B):
+        r, c = torch.nonzero(rows[b])[:, 0], torch.nonzero(cols[b])[:, 0]
+        if r.numel() == 0:
+            out.append(patch_size)
+            continue
+        area = float((r[-1] - r[0] + 1) * (c[-1] - c[0] + 1))
+        size = math.floor(patch_size * math.sqrt(area / (roi_fraction * inside)))
+        out.append(int(min(patch_size, max(min_patch, size))))
+    return out
 
 
 def _patches(x: Tensor, ph: int, pw: int, gh: int, gw: int, value: float) -> Tensor:
@@ -209,6 +238,8 @@ def select_features(
     corner_kwargs: dict | None = None,
     sim_kwargs: dict | None = None,
     cpu_chunk: int | None = 1,
+    roi_fraction: float | None = None,
+    min_patch: int = 8,
 ) -> Features:
     """Spatio-textural feature selection (eq. 9); method and normalisation in the module docstring.
 
@@ -235,6 +266,10 @@ def select_features(
         cpu_chunk: on CPU, frames go through the per-pixel maps this many at a time (None = all at once).
             A whole batch of full-frame temporaries overflows the caches and, with glibc's default malloc,
             is page-faulted afresh on every call; per-frame chunks are faster. Results are identical.
+        roi_fraction: improvement (None = paper): shrink the square patches of a frame whose eligible pixels' bounding
+            box covers less than this fraction of the image inside ``border``, down to ``min_patch`` (module docstring;
+            :func:`roi_patch_size`).
+            Needs an int ``patch_size`` and no ``grid``; frames are then selected one at a time.
 
     Returns:
         Features, N = the largest number of selected features over the batch (or ``max_features``).
@@ -254,23 +289,48 @@ def select_features(
     if 2 * border >= min(H, W):
         raise ValueError(f"select_features: border {border} leaves no pixel of a {H}x{W} image")
 
+    sizes = None
+    if roi_fraction is not None:
+        if grid is not None or not isinstance(patch_size, int):
+            raise ValueError("select_features: roi_fraction needs an int patch_size and no grid")
+        if not 0.0 < roi_fraction <= 1.0 or min_patch < 1:
+            raise ValueError(
+                f"select_features: need 0 < roi_fraction <= 1 and min_patch >= 1, got {roi_fraction}, {min_patch}"
+            )
+        eligible = _eligible(depth, roi, None, border) > 0
+        sizes = roi_patch_size(eligible, patch_size, roi_fraction, min_patch, border)
+        cpu_chunk = 1  # frames may differ in patch size
     n_max = gh * gw if max_features is None else max_features
-    step = B if (cpu_chunk is None or gray.device.type != "cpu") else max(1, cpu_chunk)
+    if sizes is not None and max_features is None:
+        n_max = max(math.ceil(H / p) * math.ceil(W / p) for p in sizes)
+    step = B if (cpu_chunk is None or (gray.device.type != "cpu" and sizes is None)) else max(1, cpu_chunk)
     parts = []
     for s in range(0, B, step):  # chunks of frames on CPU (see cpu_chunk); one pass on other devices
         sl = slice(s, s + step)
+        patches = (ph, pw, gh, gw) if sizes is None else patch_shape(H, W, sizes[s])
         maps = cornerness_maps(
             gray[sl], depth[sl], K[sl], roi=None if roi is None else roi[sl],
-            sim=None if sim is None else type(sim)(*(t[sl] for t in sim)), lam=lam, patches=(ph, pw, gh, gw),
+            sim=None if sim is None else type(sim)(*(t[sl] for t in sim)), lam=lam, patches=patches,
             border=border, require_sim=require_sim, corner_kwargs=corner_kwargs, sim_kwargs=sim_kwargs,
         )  # fmt: skip
+        ph, pw, gh, gw = patches
         if spread:
             pixels, value = _patch_maxima(maps.C, ph, pw, gh, gw)
         else:
             pixels, value = _local_maxima(maps.C, nms_radius, n_max)
         parts.append((pixels, value, _gather_map(maps.c_int, pixels), _gather_map(maps.c_sim, pixels)))
+    if sizes is not None:  # frames with different grids: pad the candidates to the largest count (value -1: none)
+        P = max(p[0].shape[1] for p in parts)
+        parts = [(_pad(a, P, 0.0), _pad(v, P, -1.0), _pad(ci, P, 0.0), _pad(cs, P, 0.0)) for a, v, ci, cs in parts]
     candidates = [torch.cat(x) for x in zip(*parts, strict=True)]
     return _finish(*candidates, depth, K, n_max, min_cornerness)
+
+
+def _pad(x: Tensor, n: int, value: float) -> Tensor:
+    """Pad dim 1 of x (B, P, ...) to n with ``value``."""
+    if x.shape[1] == n:
+        return x
+    return torch.cat([x, x.new_full((x.shape[0], n - x.shape[1], *x.shape[2:]), value)], dim=1)
 
 
 def _finish(
@@ -323,6 +383,8 @@ class FeatureSelector:
         corner_kwargs: dict | None = None,
         sim_kwargs: dict | None = None,
         cpu_chunk: int | None = 1,
+        roi_fraction: float | None = None,
+        min_patch: int = 8,
     ) -> None:
         if not 0.0 <= lam <= 1.0:
             raise ValueError(f"FeatureSelector: lam must be in [0, 1], got {lam}")
@@ -339,6 +401,8 @@ class FeatureSelector:
             corner_kwargs=dict(corner_kwargs or {}),
             sim_kwargs=dict(sim_kwargs or {}),
             cpu_chunk=cpu_chunk,
+            roi_fraction=roi_fraction,
+            min_patch=min_patch,
         )
 
     def __call__(self, gray: Tensor, depth: Tensor, K: Tensor, *, roi: Tensor | None = None, sim=None) -> Features:

@@ -11,6 +11,7 @@ RENDERER_VERSION = "1"
 
 MODES = ("scene", "object")
 NOISES = ("kinect", "none")
+OBJECTS = ("compound", "small")  # object mode: the ~30 cm compound object, or a ~15 cm one (the object case)
 
 
 @dataclass
@@ -54,6 +55,10 @@ class SyntheticConfig:
     ``mode="object"``: static camera, one compound object moving (rotating about its own centre) in
     front of an optional far background; ground truth T_obj_cam (world := object) and T_cam_obj.
     ``background`` (object mode only): the room behind the object, else empty space (depth 0).
+    ``object`` (object mode only): ``"compound"`` (box, sphere, two cylinders, ~30 cm, seen from 0.9 m) or
+    ``"small"`` (an ~18 cm textured box with a sphere and a cylinder, seen from ``object_distance_m``, 0.55 m by
+    default: it fills about 5-10 % of the image, the object case of issue 12).
+    ``object_distance_m``: camera-to-object-centre distance in metres (None: the object's default).
     Intrinsics left as None are derived from the image size (525 px focal at 640 x 480, centre
     ``(W - 1) / 2, (H - 1) / 2``). Motion: smooth sums of sinusoids whose RMS step per frame is
     ``trans_step_m`` metres and ``rot_step_deg`` degrees.
@@ -79,12 +84,18 @@ class SyntheticConfig:
     depth_scale: float = 5000.0
     kinect: KinectNoise = field(default_factory=KinectNoise)
     depth_camera: dict | None = None
+    object: str = "compound"
+    object_distance_m: float | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.kinect, dict):  # from JSON / Hydra
             self.kinect = KinectNoise(**self.kinect)
         if self.mode not in MODES:
             raise ValueError(f"SyntheticConfig.mode must be one of {MODES}, got {self.mode!r}")
+        if self.object not in OBJECTS:
+            raise ValueError(f"SyntheticConfig.object must be one of {OBJECTS}, got {self.object!r}")
+        if self.object_distance_m is not None and self.object_distance_m <= 0.1:
+            raise ValueError(f"SyntheticConfig.object_distance_m must be > 0.1 m, got {self.object_distance_m}")
         if self.noise not in NOISES:
             raise ValueError(f"SyntheticConfig.noise must be one of {NOISES}, got {self.noise!r}")
         if self.width < 16 or self.height < 16:
@@ -119,11 +130,12 @@ class SyntheticConfig:
             }
 
     def to_dict(self) -> dict:
-        """Resolved, JSON-serialisable parameters (no ``depth_camera`` when depth is registered: same digests as
-        before the option existed)."""
+        """Resolved, JSON-serialisable parameters (no ``depth_camera`` when depth is registered, no ``object`` /
+        ``object_distance_m`` at their defaults: same digests as before the options existed)."""
         out = asdict(self)
-        if out["depth_camera"] is None:
-            del out["depth_camera"]
+        for key, default in (("depth_camera", None), ("object", "compound"), ("object_distance_m", None)):
+            if out[key] == default:
+                del out[key]
         return out
 
     def digest(self) -> str:

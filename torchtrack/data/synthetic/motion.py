@@ -75,6 +75,19 @@ def _moving(T0: Tensor, frames: int, cfg: SyntheticConfig, gen: torch.Generator)
 # Default viewpoints (world z up): the room corner from 2.3 m, and the object from 0.9 m, looking down.
 SCENE_EYE, SCENE_TARGET = (0.7, -2.1, 1.35), (0.0, 0.1, 0.3)
 OBJECT_EYE, OBJECT_CENTRE = (0.0, -0.85, 1.3), (0.0, 0.0, 1.0)
+SMALL_OBJECT_DISTANCE = 0.55  # m, the small object's default camera distance (same viewing direction)
+
+
+def object_eye(cfg: SyntheticConfig) -> tuple[float, float, float]:
+    """The static camera's centre in object mode: on the line from OBJECT_CENTRE to OBJECT_EYE, at
+    ``cfg.object_distance_m`` (default: OBJECT_EYE for the compound object, 0.55 m for the small one)."""
+    d = cfg.object_distance_m
+    if d is None and cfg.object == "compound":
+        return OBJECT_EYE
+    d = SMALL_OBJECT_DISTANCE if d is None else d
+    ray = [e - c for e, c in zip(OBJECT_EYE, OBJECT_CENTRE, strict=True)]
+    n = math.sqrt(sum(v * v for v in ray))
+    return tuple(c + d * v / n for c, v in zip(OBJECT_CENTRE, ray, strict=True))
 
 
 def sequence_poses(cfg: SyntheticConfig) -> SequencePoses:
@@ -82,6 +95,6 @@ def sequence_poses(cfg: SyntheticConfig) -> SequencePoses:
     gen = torch.Generator().manual_seed(int(cfg.seed) + _MOTION_SEED_OFFSET)
     if cfg.mode == "scene":
         return SequencePoses(_moving(look_at(SCENE_EYE, SCENE_TARGET), cfg.frames, cfg, gen), None)
-    T_world_cam = look_at(OBJECT_EYE, OBJECT_CENTRE).expand(cfg.frames, 4, 4).clone()
+    T_world_cam = look_at(object_eye(cfg), OBJECT_CENTRE).expand(cfg.frames, 4, 4).clone()
     T_world_obj = _moving(pose(OBJECT_CENTRE, (0.0, 0.0, 30.0)), cfg.frames, cfg, gen)
     return SequencePoses(T_world_cam, T_world_obj)

@@ -198,6 +198,16 @@ def _compound_object(tex: _Textures) -> list[Primitive]:
     ]
 
 
+def _small_object(tex: _Textures) -> list[Primitive]:
+    """A small rigid object (group 1, ~18 cm across): a 16 x 10 x 8 cm box, a 4 cm sphere on it and a lying
+    cylinder, finely textured (2-2.5 cm cells) so that a few dozen corners stay visible at 0.55 m."""
+    return [
+        Primitive("box", (0.08, 0.05, 0.04), pose((0.0, 0.0, 0.0)), tex(0.025, 0.02, 0.6), group=1),
+        Primitive("sphere", (0.04,), pose((0.025, 0.005, 0.072), (0, 0, 40)), tex(0.02, 0.015, 0.7), group=1),
+        Primitive("cylinder", (0.023, 0.058), pose((0.0, -0.072, -0.016), (0, 90, 0)), tex(0.02, 0.015, 0.7), group=1),
+    ]  # fmt: skip
+
+
 def make_scene(primitives: list[Primitive], cfg: SyntheticConfig) -> Scene:
     """A scene of the given primitives seen through cfg's camera, texture tables drawn from cfg.seed."""
     gen = torch.Generator().manual_seed(int(cfg.seed) + 1)
@@ -219,11 +229,14 @@ def random_texture(
 
 
 def default_scene(cfg: SyntheticConfig) -> Scene:
-    """The scene of ``cfg``: room corner with props (scene mode) or a compound object (object mode)."""
+    """The scene of ``cfg``: room corner with props (scene mode) or ``cfg.object`` (object mode)."""
     gen = torch.Generator().manual_seed(int(cfg.seed))
     tex = _Textures(gen)
     prims: list[Primitive] = []
     if cfg.mode == "scene" or cfg.background:
         prims += _room(tex)
-    prims += _props(tex, gen) if cfg.mode == "scene" else _compound_object(tex)
+    if cfg.mode == "scene":
+        prims += _props(tex, gen)
+    else:
+        prims += _small_object(tex) if cfg.object == "small" else _compound_object(tex)
     return make_scene(prims, cfg)
