@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
@@ -33,6 +33,7 @@ from torchtrack.frontend import FrontEnd, PreparedFrame, smooth_depth_mask
 from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, se3_log, transform_points
 from torchtrack.image.flow import TrackResult
 from torchtrack.keyframes import KeyframeAligner, set_backend_pose
+from torchtrack.landmarks import LandmarkMap
 from torchtrack.learn.cues import stack_cues
 from torchtrack.metrics import reprojection_errors
 
@@ -175,6 +176,13 @@ class Tracker:
             ``keyframe_photometric`` / ``keyframe_geometric`` switch its two terms; ``keyframe_anchor``: which
             corrections move the model frame (``T_world_obj``) instead of the pose the features measure: "older"
             (against a keyframe older than the model frame), "all" or "none".
+        landmarks: improvement (False = paper): the model frames are also keyframes whose features outlive their
+            model (:class:`torchtrack.landmarks.LandmarkMap`, the last ``landmark_keyframes``, up to
+            ``landmark_per_keyframe`` features each): at a re-selection the visible ones are re-tracked from their
+            keyframe (LK started at their projection, verified by the forward-backward check, the photometric
+            residual and depth) and join the new model at their ORIGINAL world positions, after the survivors and
+            before new features; ``landmark_correct``: the camera pose is first re-fitted to them (RANSAC + Horn)
+            where at least ``landmark_min_inliers`` agree, so the new model is measured from the corrected pose.
 
     The tracker's model and last estimate live in one :class:`TrackerState`, ``self.state``.
     """
@@ -206,6 +214,12 @@ class Tracker:
         keyframe_photometric: bool = True,
         keyframe_geometric: bool = True,
         keyframe_anchor: str = "older",
+        landmarks: bool = False,
+        landmark_keyframes: int = 8,
+        landmark_per_keyframe: int = 128,
+        landmark_correct: bool = True,
+        landmark_min_inliers: int = 8,
+        landmark_max_angle_deg: float = 15.0,
     ) -> None:
         if not 0.0 <= reselect_fraction < 1.0:
             raise ValueError(f"reselect_fraction must be in [0, 1), got {reselect_fraction}")
@@ -224,6 +238,11 @@ class Tracker:
         if keyframe_anchor not in ("none", "older", "all"):
             raise ValueError(f"keyframe_anchor must be none, older or all, got {keyframe_anchor!r}")
         self.keyframe_anchor = keyframe_anchor
+        lm = dict(keyframes=landmark_keyframes, per_keyframe=landmark_per_keyframe, correct=landmark_correct,
+                  min_inliers=landmark_min_inliers, min_separation_px=min_separation_px,
+                  max_angle_deg=landmark_max_angle_deg)  # fmt: skip
+        self.landmarks = LandmarkMap(**lm) if landmarks else None
+        self.reacquired_total: Tensor | Any = 0  # (B,) landmarks re-acquired so far (after the first frame)
         self.state = TrackerState()
 
     @property
@@ -362,6 +381,9 @@ class Tracker:
         self.state = TrackerState(timestamp=frame.timestamp, T_cam_obj=eye, T_world_obj=eye.clone(), velocity=zero)
         if self.keyframes is not None:
             self.keyframes.reset()
+        if self.landmarks is not None:
+            self.landmarks.reset()
+        self.reacquired_total = torch.zeros(B, dtype=torch.long)
         everyone = torch.ones(B, dtype=torch.bool)
         model_T_cam_obj = self._new_model(frame, cur, everyone)
         return self._result(self.state, None, None, everyone, model_T_cam_obj=model_T_cam_obj)
@@ -369,6 +391,7 @@ class Tracker:
     def _new_model(self, frame: FrameBatch, cur: PreparedFrame, mask: Tensor) -> Tensor:
         """Take the current frame as the model of the sequences in ``mask`` (B,): PCM features, pose, chain; the
         back end starts over there. Returns the pose (B, 4, 4) the back end is reset to (meaningful where ``mask``)."""
+        kept = self._kept(frame, cur, mask)  # survivors, re-acquired landmarks (may correct T_world_obj)
         s = self.state
         roi = self.region(cur.depth)
         if self.edge_step is not None:
@@ -378,8 +401,8 @@ class Tracker:
         points_d, has_depth = measure_points(cur.depth, frame.K, frame.T_color_depth, pixels)
         valid = feats.valid & has_depth
         age = torch.zeros_like(valid, dtype=torch.long)
-        if self.keep_survivors and s.pixels is not None:
-            pixels, points_d, valid, age, cornerness = self._with_survivors(pixels, points_d, valid, cornerness, mask)
+        if kept is not None:
+            pixels, points_d, valid, age, cornerness = self._with_kept(kept, pixels, points_d, valid, cornerness)
         centroid = masked_mean(points_d, valid.to(points_d.dtype))
         points_obj = torch.where(valid[..., None], points_d - centroid[:, None], torch.zeros_like(points_d))
         T_cam_obj = make_T(torch.eye(3, dtype=torch.float64).expand(len(mask), 3, 3), centroid.double())
@@ -402,28 +425,53 @@ class Tracker:
         if self.keyframes is not None:  # the model frame is a keyframe
             T_world_color = self.state.T_world_cam @ T_inv(frame.T_color_depth.double())
             self.keyframes.add(cur.gray, cur.depth, frame.K, T_world_color, mask)
+        if self.landmarks is not None:  # ... and its features are landmarks, at their world positions
+            st = self.state
+            world = transform_points(st.T_world_obj, st.points_obj.double())
+            self.landmarks.add(cur, frame.timestamp, st.T_world_cam, st.pixels, world, st.cornerness, st.valid, mask)
         return T_cam_obj
 
-    def _with_survivors(self, pixels: Tensor, points_d: Tensor, valid: Tensor, cornerness: Tensor, mask: Tensor):
-        """Keep the tracked features of the sequences in ``mask``, add the new ones (B, M) that are at least
-        ``min_separation_px`` from all of them, up to the larger of M and the current model's width (a poor
-        selection never cuts survivors). Survivors come first; their model points are moved into the camera by
-        the current pose, so that the new model frame sees them where the old one did; they keep their age and
-        cornerness (B, M, 2 for the new ones).
-        Returns (pixels (B, W, 2), points in the camera (B, W, 3), valid (B, W), age (B, W), cornerness (B, W, 2))."""
+    def _kept(self, frame: FrameBatch, cur: PreparedFrame, mask: Tensor) -> _Kept | None:
+        """What a re-selection of the sequences in ``mask`` (B,) keeps before it selects new features, in the
+        current camera: the survivors (``keep_survivors``; their model points moved into the camera by the current
+        pose, so that the new model frame sees them where the old one did) and then the re-acquired landmarks
+        (``landmarks``; their stored world positions moved into the camera by the camera pose, corrected first
+        where the landmarks re-fit it). None on the first frame or with neither switch."""
         s = self.state
-        keep = s.valid & mask[:, None]
-        old_points = transform_points(s.T_cam_obj.to(points_d.dtype), s.points_obj)
-        gap = torch.cdist(pixels, s.pixels).masked_fill(~keep[:, None, :], float("inf")).amin(2)
-        ok = torch.cat([keep, valid & (gap >= self.min_separation_px)], 1)
-        width = max(valid.shape[1], s.pixels.shape[1])
+        if s.pixels is None or not (self.keep_survivors or self.landmarks is not None):
+            return None
+        keep = s.valid & mask[:, None] if self.keep_survivors else torch.zeros_like(s.valid)
+        points = transform_points(s.T_cam_obj.float(), s.points_obj.float())
+        kept = _Kept(s.pixels, points, keep, s.age, s.cornerness)
+        if self.landmarks is None:
+            return kept
+        world = transform_points(s.T_world_obj, s.points_obj.double())
+        acq = self.landmarks.reacquire(
+            self.flow, cur, frame.K, frame.T_color_depth, s.T_world_cam, s.pixels, keep, mask, tracked_world=world
+        )  # fmt: skip
+        T_world_cam = torch.where(mask[:, None, None], acq.T_world_cam, s.T_world_cam)
+        self.state = replace(s, T_world_obj=T_world_cam @ s.T_cam_obj)  # the landmarks' correction, if any
+        self.reacquired_total = self.reacquired_total + (acq.valid & mask[:, None]).sum(1)
+        points = transform_points(T_inv(T_world_cam), acq.points_world).float()  # the ORIGINAL world positions
+        found = _Kept(acq.pixels, points, acq.valid & mask[:, None], torch.zeros_like(acq.valid, dtype=torch.long),
+                      acq.cornerness)  # fmt: skip
+        return _Kept(*(torch.cat([a, b.to(a.dtype)], 1) for a, b in zip(kept, found, strict=True)))
+
+    def _with_kept(self, kept: _Kept, pixels: Tensor, points_d: Tensor, valid: Tensor, cornerness: Tensor):
+        """The kept features (B, K) first, then the new ones (B, M) that are at least ``min_separation_px`` from all
+        of them, up to the larger of M and the current model's width (a poor selection never cuts the kept ones).
+        Kept features keep their age and cornerness (B, M, 2 for the new ones).
+        Returns (pixels (B, W, 2), points in the camera (B, W, 3), valid (B, W), age (B, W), cornerness (B, W, 2))."""
+        gap = torch.cdist(pixels, kept.pixels.to(pixels.dtype)).masked_fill(~kept.valid[:, None, :], float("inf"))
+        ok = torch.cat([kept.valid, valid & (gap.amin(2) >= self.min_separation_px)], 1)
+        width = max(valid.shape[1], self.state.pixels.shape[1])
         order = torch.sort((~ok).to(torch.uint8), dim=1, stable=True).indices[:, :width]  # valid first
         rows = torch.arange(ok.shape[0])[:, None]
         ok = ok[rows, order]
-        pixels = torch.cat([s.pixels, pixels], 1)[rows, order]
-        points = torch.cat([old_points, points_d], 1)[rows, order]
-        age = torch.cat([s.age, torch.zeros_like(valid, dtype=torch.long)], 1)[rows, order]
-        cornerness = torch.cat([s.cornerness, cornerness], 1)[rows, order]
+        pixels = torch.cat([kept.pixels.to(pixels.dtype), pixels], 1)[rows, order]
+        points = torch.cat([kept.points.to(points_d.dtype), points_d], 1)[rows, order]
+        age = torch.cat([kept.age, torch.zeros_like(valid, dtype=torch.long)], 1)[rows, order]
+        cornerness = torch.cat([kept.cornerness.to(cornerness.dtype), cornerness], 1)[rows, order]
         ok3 = ok[..., None]
         return (
             torch.where(ok3, pixels, 0.0), torch.where(ok3, points, 0.0), ok, torch.where(ok, age, 0),
@@ -437,6 +485,8 @@ class Tracker:
         s = self.state
         T_world_obj = torch.where(mask[:, None, None], T_world_cam.double() @ s.T_cam_obj, s.T_world_obj)
         self.state = replace(s, valid=s.valid & ~mask[:, None], T_world_obj=T_world_obj)
+        if self.landmarks is not None:  # a model taken this frame, at the lost pose, is no keyframe
+            self.landmarks.forget(frame.timestamp, mask)
         self._new_model(frame, s.prev, mask)
 
     # ---------------------------------------------------------------------------------------------- outputs
@@ -468,6 +518,17 @@ class Tracker:
             d_tim=d_tim if d_tim is not None else torch.zeros(B, N),
             **extra,
         )
+
+
+class _Kept(NamedTuple):
+    """Features a re-selection keeps, (B, K, ...): colour pixels, points in the current depth camera, valid, age,
+    cornerness (B, K, 2)."""
+
+    pixels: Tensor
+    points: Tensor
+    valid: Tensor
+    age: Tensor
+    cornerness: Tensor
 
 
 def _where(mask: Tensor, new: Tensor, old: Tensor) -> Tensor:
