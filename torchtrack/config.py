@@ -295,6 +295,7 @@ class PipelineConfig:
     landmark_correct: bool = True  # ... re-fit the camera pose to the re-acquired landmarks (RANSAC + Horn)
     landmark_min_inliers: int = 8  # ... when at least this many agree
     landmark_max_angle_deg: float = 15.0  # ... re-track only landmarks seen from within this angle (rotation, rays)
+    landmark_every: int = 0  # ... also every this many frames into the current model (0: only at re-selections)
 
 
 @dataclass

@@ -92,7 +92,12 @@ class LandmarkMap:
         self.max_offset_m, self.occlusion = max_offset_m, occlusion
         self.correct, self.inlier_m, self.min_inliers = correct, inlier_m, min_inliers
         self.max_correction_m, self.max_correction_rad = max_correction_m, math.radians(max_correction_deg)
-        self.max_angle_deg, self.max_scale, self.converge_px, self.probe_px = max_angle_deg, max_scale, converge_px, probe_px
+        self.max_angle_deg, self.max_scale, self.converge_px, self.probe_px = (
+            max_angle_deg,
+            max_scale,
+            converge_px,
+            probe_px,
+        )
         self.reset()
 
     def reset(self) -> None:
@@ -259,7 +264,9 @@ class LandmarkMap:
         fit = refine_pose(K, fit.T_color_world, world, pixels, meas, fit.inliers, sigma_m=self.inlier_m)
         T_new = T_inv(fit.T_color_world) @ T_cd
         step = se3_log(T_inv(T_world_cam) @ T_new)
-        small = (step[:, :3].norm(dim=-1) <= self.max_correction_m) & (step[:, 3:].norm(dim=-1) <= self.max_correction_rad)
+        small = (step[:, :3].norm(dim=-1) <= self.max_correction_m) & (
+            step[:, 3:].norm(dim=-1) <= self.max_correction_rad
+        )
         use = small & (fit.inliers[:, :n].sum(1) >= self.min_inliers)
         T_out = torch.where(use[:, None, None], T_new, T_world_cam)
         kept = refine_pose(K, T_cd @ T_inv(T_out), world, pixels, meas, good, sigma_m=self.inlier_m, iters=0).inliers

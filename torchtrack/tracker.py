@@ -220,6 +220,7 @@ class Tracker:
         landmark_correct: bool = True,
         landmark_min_inliers: int = 8,
         landmark_max_angle_deg: float = 15.0,
+        landmark_every: int = 0,
     ) -> None:
         if not 0.0 <= reselect_fraction < 1.0:
             raise ValueError(f"reselect_fraction must be in [0, 1), got {reselect_fraction}")
@@ -242,6 +243,10 @@ class Tracker:
                   min_inliers=landmark_min_inliers, min_separation_px=min_separation_px,
                   max_angle_deg=landmark_max_angle_deg)  # fmt: skip
         self.landmarks = LandmarkMap(**lm) if landmarks else None
+        if landmark_every < 0:
+            raise ValueError(f"landmark_every must be >= 0, got {landmark_every}")
+        self.landmark_every = landmark_every
+        self.since_landmarks: Tensor | Any = 0  # (B,) frames since the last model or re-acquisition
         self.reacquired_total: Tensor | Any = 0  # (B,) landmarks re-acquired so far (after the first frame)
         self.state = TrackerState()
 
@@ -278,6 +283,8 @@ class Tracker:
         est = self.backend.step(obs, var, active=frame.active)  # eqs. (2)-(7), (15)
         T_cam_obj = est.T_cam_obj.double() if self.keyframes is None else self._keyframe_corrected(frame, cur, est)
         self.state = self._advanced(frame, cur, track.points, valid, T_cam_obj)  # and the residual drop
+        if self.landmarks is not None and self.landmark_every > 0:
+            self._reanchor(frame, cur)  # every k frames: landmarks back into the current model
         tracked, reselect = self.state, self._needs_model(frame.active)
         model_T_cam_obj = self._new_model(frame, cur, reselect) if reselect.any() else None  # §III re-selection
         extra = dict(observation=obs, variances=var, cues=cues, model_T_cam_obj=model_T_cam_obj, estimate=est)
@@ -333,6 +340,35 @@ class Tracker:
         self.state = replace(s, T_world_obj=T_world_obj)
         return torch.where(relative[:, None, None], T_cam_obj_new, T_cam_obj)
 
+    def _reanchor(self, frame: FrameBatch, cur: PreparedFrame) -> None:
+        """The sequences ``landmark_every`` frames past their last model or re-acquisition re-acquire landmarks into
+        the current model (no new model): the camera pose is re-fitted (``landmark_correct``) by moving the model
+        frame in the world, ``T_world_obj``, so the filter's pose of the object is untouched; the verified landmarks
+        join the model at their ORIGINAL world positions, expressed in the (moved) model frame."""
+        self.since_landmarks = self.since_landmarks + frame.active.long()
+        mask = frame.active & (self.since_landmarks >= self.landmark_every)
+        if not mask.any():
+            return
+        self.since_landmarks = torch.where(mask, 0, self.since_landmarks)
+        s = self.state
+        world = transform_points(s.T_world_obj, s.points_obj.double())
+        acq = self.landmarks.reacquire(
+            self.flow, cur, frame.K, frame.T_color_depth, s.T_world_cam, s.pixels, s.valid, mask, tracked_world=world
+        )  # fmt: skip
+        found = acq.valid & mask[:, None]
+        self.reacquired_total = self.reacquired_total + found.sum(1)
+        T_world_obj = torch.where(mask[:, None, None], acq.T_world_cam @ s.T_cam_obj, s.T_world_obj)
+        points_obj = transform_points(T_inv(T_world_obj), acq.points_world).to(s.points_obj.dtype)
+        new = dict(pixels=acq.pixels.to(s.pixels.dtype), valid=found, points_obj=points_obj,
+                   age=torch.zeros_like(found, dtype=torch.long), cornerness=acq.cornerness.to(s.cornerness.dtype))  # fmt: skip
+        merged = {k: torch.cat([getattr(s, k), v], 1) for k, v in new.items()}
+        width = max(s.pixels.shape[1], int(merged["valid"].sum(1).max()))
+        order = torch.sort((~merged["valid"]).to(torch.uint8), dim=1, stable=True).indices[:, :width]  # valid first
+        rows = torch.arange(order.shape[0])[:, None]
+        merged = {k: v[rows, order] for k, v in merged.items()}
+        residuals = self._residuals(frame, s.T_cam_obj, merged["points_obj"], merged["pixels"], merged["valid"])
+        self.state = replace(s, **merged, residuals=residuals, T_world_obj=T_world_obj)
+
     def _needs_model(self, active: Tensor) -> Tensor:
         """(B,) bool: too few features survive (a fraction of the model's, or an absolute count)."""
         n, s = self.state.valid.sum(1), self.state
@@ -384,6 +420,7 @@ class Tracker:
         if self.landmarks is not None:
             self.landmarks.reset()
         self.reacquired_total = torch.zeros(B, dtype=torch.long)
+        self.since_landmarks = torch.zeros(B, dtype=torch.long)
         everyone = torch.ones(B, dtype=torch.bool)
         model_T_cam_obj = self._new_model(frame, cur, everyone)
         return self._result(self.state, None, None, everyone, model_T_cam_obj=model_T_cam_obj)
@@ -426,6 +463,7 @@ class Tracker:
             T_world_color = self.state.T_world_cam @ T_inv(frame.T_color_depth.double())
             self.keyframes.add(cur.gray, cur.depth, frame.K, T_world_color, mask)
         if self.landmarks is not None:  # ... and its features are landmarks, at their world positions
+            self.since_landmarks = torch.where(mask, 0, self.since_landmarks)
             st = self.state
             world = transform_points(st.T_world_obj, st.points_obj.double())
             self.landmarks.add(cur, frame.timestamp, st.T_world_cam, st.pixels, world, st.cornerness, st.valid, mask)
