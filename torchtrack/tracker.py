@@ -183,6 +183,13 @@ class Tracker:
             residual and depth) and join the new model at their ORIGINAL world positions, after the survivors and
             before new features; ``landmark_correct``: the camera pose is first re-fitted to them (RANSAC + Horn)
             where at least ``landmark_min_inliers`` agree, so the new model is measured from the corrected pose.
+            ``landmark_max_angle_deg``: only landmarks whose keyframe saw them within this angle (camera rotation and
+            ray) are re-tracked. ``landmark_every`` > 0: also every that many frames into the current model (no new
+            model; a correction moves ``T_world_obj``, never the filter's pose).
+        reselect_coverage: improvement (None = paper): the fraction rule (``reselect_fraction``) re-selects only while
+            the surviving features occupy fewer than this fraction of the ``reselect_grid`` x ``reselect_grid``
+            image cells; ``min_features`` still always does. Under fast motion most of a new model's features can
+            fail at once while the rest still span the view: no thrashing from one new model to the next.
 
     The tracker's model and last estimate live in one :class:`TrackerState`, ``self.state``.
     """
@@ -221,6 +228,8 @@ class Tracker:
         landmark_min_inliers: int = 8,
         landmark_max_angle_deg: float = 15.0,
         landmark_every: int = 0,
+        reselect_coverage: float | None = None,
+        reselect_grid: int = 4,
     ) -> None:
         if not 0.0 <= reselect_fraction < 1.0:
             raise ValueError(f"reselect_fraction must be in [0, 1), got {reselect_fraction}")
@@ -246,6 +255,10 @@ class Tracker:
         if landmark_every < 0:
             raise ValueError(f"landmark_every must be >= 0, got {landmark_every}")
         self.landmark_every = landmark_every
+        if reselect_coverage is not None and not 0.0 < reselect_coverage <= 1.0 or reselect_grid < 1:
+            raise ValueError(f"reselect_coverage must be in (0, 1] and reselect_grid >= 1, got {reselect_coverage}, "
+                             f"{reselect_grid}")  # fmt: skip
+        self.reselect_coverage, self.reselect_grid = reselect_coverage, reselect_grid
         self.since_landmarks: Tensor | Any = 0  # (B,) frames since the last model or re-acquisition
         self.reacquired_total: Tensor | Any = 0  # (B,) landmarks re-acquired so far (after the first frame)
         self.state = TrackerState()
@@ -285,7 +298,7 @@ class Tracker:
         self.state = self._advanced(frame, cur, track.points, valid, T_cam_obj)  # and the residual drop
         if self.landmarks is not None and self.landmark_every > 0:
             self._reanchor(frame, cur)  # every k frames: landmarks back into the current model
-        tracked, reselect = self.state, self._needs_model(frame.active)
+        tracked, reselect = self.state, self._needs_model(frame.active, tuple(cur.gray.shape[-2:]))
         model_T_cam_obj = self._new_model(frame, cur, reselect) if reselect.any() else None  # §III re-selection
         extra = dict(observation=obs, variances=var, cues=cues, model_T_cam_obj=model_T_cam_obj, estimate=est)
         return self._result(tracked, track.winner, track.d_tim, reselect, **extra)  # the frame as tracked
@@ -369,10 +382,15 @@ class Tracker:
         residuals = self._residuals(frame, s.T_cam_obj, merged["points_obj"], merged["pixels"], merged["valid"])
         self.state = replace(s, **merged, residuals=residuals, T_world_obj=T_world_obj)
 
-    def _needs_model(self, active: Tensor) -> Tensor:
-        """(B,) bool: too few features survive (a fraction of the model's, or an absolute count)."""
+    def _needs_model(self, active: Tensor, size: tuple[int, int]) -> Tensor:
+        """(B,) bool: too few features survive (a fraction of the model's, or an absolute count); with
+        ``reselect_coverage``, the fraction rule applies only where the survivors also cover too little of the image
+        (``size`` (H, W)): a model whose features still span the view keeps tracking."""
         n, s = self.state.valid.sum(1), self.state
-        return active & ((n < self.reselect_fraction * s.n_model) | (n < self.min_features))
+        few = n < self.reselect_fraction * s.n_model
+        if self.reselect_coverage is not None:
+            few = few & (coverage(s.pixels, s.valid, size, self.reselect_grid) < self.reselect_coverage)
+        return active & (few | (n < self.min_features))
 
     def _cues(self, frame: FrameBatch, cur: PreparedFrame, track: TrackResult, points_d: Tensor, valid: Tensor):
         """(B, N, C) cues of the tracked features (:data:`torchtrack.learn.cues.CUE_NAMES`), zeros where not valid."""
@@ -439,7 +457,8 @@ class Tracker:
         valid = feats.valid & has_depth
         age = torch.zeros_like(valid, dtype=torch.long)
         if kept is not None:
-            pixels, points_d, valid, age, cornerness = self._with_kept(kept, pixels, points_d, valid, cornerness)
+            found = self._found if self.landmarks is not None else None
+            pixels, points_d, valid, age, cornerness = self._with_kept(kept, pixels, points_d, valid, cornerness, found)
         centroid = masked_mean(points_d, valid.to(points_d.dtype))
         points_obj = torch.where(valid[..., None], points_d - centroid[:, None], torch.zeros_like(points_d))
         T_cam_obj = make_T(torch.eye(3, dtype=torch.float64).expand(len(mask), 3, 3), centroid.double())
@@ -476,6 +495,7 @@ class Tracker:
         (``landmarks``; their stored world positions moved into the camera by the camera pose, corrected first
         where the landmarks re-fit it). None on the first frame or with neither switch."""
         s = self.state
+        self._found = torch.zeros(len(mask), dtype=torch.long)
         if s.pixels is None or not (self.keep_survivors or self.landmarks is not None):
             return None
         keep = s.valid & mask[:, None] if self.keep_survivors else torch.zeros_like(s.valid)
@@ -489,20 +509,30 @@ class Tracker:
         )  # fmt: skip
         T_world_cam = torch.where(mask[:, None, None], acq.T_world_cam, s.T_world_cam)
         self.state = replace(s, T_world_obj=T_world_cam @ s.T_cam_obj)  # the landmarks' correction, if any
-        self.reacquired_total = self.reacquired_total + (acq.valid & mask[:, None]).sum(1)
+        self._found = (acq.valid & mask[:, None]).sum(1)
+        self.reacquired_total = self.reacquired_total + self._found
         points = transform_points(T_inv(T_world_cam), acq.points_world).float()  # the ORIGINAL world positions
         found = _Kept(acq.pixels, points, acq.valid & mask[:, None], torch.zeros_like(acq.valid, dtype=torch.long),
                       acq.cornerness)  # fmt: skip
         return _Kept(*(torch.cat([a, b.to(a.dtype)], 1) for a, b in zip(kept, found, strict=True)))
 
-    def _with_kept(self, kept: _Kept, pixels: Tensor, points_d: Tensor, valid: Tensor, cornerness: Tensor):
+    def _with_kept(
+        self, kept: _Kept, pixels: Tensor, points_d: Tensor, valid: Tensor, cornerness: Tensor, n_found: Tensor | None
+    ):
         """The kept features (B, K) first, then the new ones (B, M) that are at least ``min_separation_px`` from all
-        of them, up to the larger of M and the current model's width (a poor selection never cuts the kept ones).
+        of them, up to the larger of M and the current model's width (a poor selection never cuts the kept ones); with
+        ``n_found`` (B,) re-acquired landmarks among the kept, up to the larger of M and the survivors, plus those.
         Kept features keep their age and cornerness (B, M, 2 for the new ones).
         Returns (pixels (B, W, 2), points in the camera (B, W, 3), valid (B, W), age (B, W), cornerness (B, W, 2))."""
         gap = torch.cdist(pixels, kept.pixels.to(pixels.dtype)).masked_fill(~kept.valid[:, None, :], float("inf"))
         ok = torch.cat([kept.valid, valid & (gap.amin(2) >= self.min_separation_px)], 1)
-        width = max(valid.shape[1], self.state.pixels.shape[1])
+        if n_found is None:
+            width = max(valid.shape[1], self.state.pixels.shape[1])
+        else:  # per sequence: the survivors or the new selection's count, plus the re-acquired (batched equals looped)
+            n_surv = kept.valid.sum(1) - n_found
+            cap = torch.maximum(n_surv, valid.sum(1)) + n_found
+            ok = ok & (ok.long().cumsum(1) <= cap[:, None])
+            width = int(ok.sum(1).max())
         order = torch.sort((~ok).to(torch.uint8), dim=1, stable=True).indices[:, :width]  # valid first
         rows = torch.arange(ok.shape[0])[:, None]
         ok = ok[rows, order]
@@ -567,6 +597,16 @@ class _Kept(NamedTuple):
     valid: Tensor
     age: Tensor
     cornerness: Tensor
+
+
+def coverage(pixels: Tensor, valid: Tensor, size: tuple[int, int], grid: int) -> Tensor:
+    """(B,) fraction of the ``grid`` x ``grid`` cells of an image of ``size`` (H, W) that hold a valid feature
+    (pixels (B, N, 2), valid (B, N)): how far the features span the view (paper Table I: spread lowers the error)."""
+    H, W = size
+    col = (pixels[..., 0] * grid / W).long().clamp(0, grid - 1)
+    row = (pixels[..., 1] * grid / H).long().clamp(0, grid - 1)
+    hit = torch.zeros(pixels.shape[0], grid * grid).scatter_add_(1, row * grid + col, valid.float())
+    return (hit > 0).float().mean(1)
 
 
 def _where(mask: Tensor, new: Tensor, old: Tensor) -> Tensor:
