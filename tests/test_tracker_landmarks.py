@@ -88,7 +88,7 @@ def test_returning_camera_finds_its_first_pass_accuracy(pan):
     truth as it was at the start; without them the chained models keep their drift.
 
     Measured (320 x 240, noise-free, 40 frames, 35 degrees out and back): first pass (frames 1-3) 1.3 / 1.9 / 2.0 mm
-    with landmarks; the last two frames: off 3.9 / 5.5 mm, on 1.9 / 1.3 mm, on with landmark_every=5 1.1 / 1.7 mm.
+    with landmarks; the last two frames: off 3.9 / 5.5 mm, on 1.6 / 2.2 mm, on with landmark_every=5 1.8 / 2.3 mm.
     """
     poses, frames = pan
     off, _ = run(frames, poses)
