@@ -26,7 +26,7 @@ from torch import Tensor
 from torchtrack.filter.models import measure_points
 from torchtrack.frontend import PreparedFrame
 from torchtrack.geometry import T_inv, hat, project, sample_depth, se3_exp, se3_log, transform_points
-from torchtrack.image.flow import prepare_frame
+from torchtrack.image.flow import FlowFrame, prepare_frame
 
 
 class Reacquired(NamedTuple):
@@ -102,6 +102,7 @@ class LandmarkMap:
 
     def reset(self) -> None:
         self.gray = self.sim = None  # (S, B, 1, H, W) keyframe images
+        self.pyramids: dict[int, FlowFrame] = {}  # LK pyramids of the slots, built on first use
         self.pixels = self.world = self.cornerness = self.valid = self.stamp = self.count = self.T_world_kf = None
 
     def forget(self, timestamp: Tensor, mask: Tensor) -> None:
@@ -139,6 +140,8 @@ class LandmarkMap:
         if len(rows) == 0:
             return
         slot = self.count[rows] % self.S
+        for k in slot.unique().tolist():
+            self.pyramids.pop(k, None)
         self.gray[slot, rows] = gray[rows]
         if self.sim is not None:
             self.sim[slot, rows] = sim[rows]
@@ -220,7 +223,10 @@ class LandmarkMap:
         residual = torch.full(ok.shape, float("inf"))
         for s in slot[ok].unique().tolist():  # one LK call per keyframe slot, batched over B
             sel = ok & (slot == s)
-            kf = prepare_frame(self.gray[s], None if self.sim is None else self.sim[s], cur.flow.pyramid.levels)
+            if s not in self.pyramids:
+                sim = None if self.sim is None else self.sim[s]
+                self.pyramids[s] = prepare_frame(self.gray[s], sim, cur.flow.pyramid.levels)
+            kf = self.pyramids[s]
             tr = flow(kf, cur.flow, kf_pix, sel, with_residual=True, init=proj)  # eq. (10), from the keyframe
             probe = flow(kf, cur.flow, kf_pix, sel, init=proj + self.probe_px)  # a second start must converge there too
             same = torch.linalg.vector_norm(tr.points.float() - probe.points.float(), dim=-1) <= self.converge_px
