@@ -21,6 +21,7 @@ from torchtrack.geometry import T_inv, make_T, so3_exp, transform_points
 from torchtrack.landmarks import LandmarkMap
 
 ON = ("pipeline.landmarks=true",)
+OFF = ("pipeline.landmarks=false",)
 SIZE, FRAMES = (320, 240), 40
 
 
@@ -74,11 +75,11 @@ def run(frames: list[FrameBatch], poses: torch.Tensor, *overrides: str):
     return torch.tensor(errors), tracker
 
 
-def test_switch_off_by_default_and_in_paper():
-    assert compose_cfg().pipeline.landmarks is False
+def test_switch_on_by_default_and_off_in_paper():
+    assert compose_cfg().pipeline.landmarks is True
     assert compose_cfg("+experiment=paper").pipeline.landmarks is False
-    assert build_tracker(compose_cfg()).landmarks is None
-    assert isinstance(build_tracker(compose_cfg(*ON)).landmarks, LandmarkMap)
+    assert build_tracker(compose_cfg(*OFF)).landmarks is None
+    assert isinstance(build_tracker(compose_cfg()).landmarks, LandmarkMap)
     with pytest.raises(InstantiationException, match="landmark_every must be >= 0"):
         build_tracker(compose_cfg(*ON, "pipeline.landmark_every=-1"))
 
@@ -91,7 +92,7 @@ def test_returning_camera_finds_its_first_pass_accuracy(pan):
     with landmarks; the last two frames: off 3.9 / 5.5 mm, on 1.6 / 2.2 mm, on with landmark_every=5 1.8 / 2.3 mm.
     """
     poses, frames = pan
-    off, _ = run(frames, poses)
+    off, _ = run(frames, poses, *OFF)
     on, tracker = run(frames, poses, *ON)
     assert int(tracker.reacquired_total.sum()) > 50  # measured: 133
     first_pass = float(on[1:4].mean())

@@ -289,7 +289,7 @@ class PipelineConfig:
     keyframe_anchor: str = (
         "older"  # ... corrections that move the model frame, not the pose: older (keyframe), all, none
     )
-    landmarks: bool = False  # improvement (false = paper): re-selections re-acquire old model points from keyframes
+    landmarks: bool = True  # improvement (false = paper): re-selections re-acquire old model points from keyframes
     landmark_keyframes: int = 8  # ... keyframes (model frames) kept per sequence
     landmark_per_keyframe: int = 128  # ... landmarks kept per keyframe
     landmark_correct: bool = True  # ... re-fit the camera pose to the re-acquired landmarks (RANSAC + Horn)
