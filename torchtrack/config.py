@@ -292,7 +292,7 @@ class PipelineConfig:
     landmarks: bool = True  # improvement (false = paper): re-selections re-acquire old model points from keyframes
     landmark_keyframes: int = 8  # ... keyframes (model frames) kept per sequence
     landmark_per_keyframe: int = 128  # ... landmarks kept per keyframe
-    landmark_correct: bool = True  # ... re-fit the camera pose to the re-acquired landmarks (RANSAC + Horn)
+    landmark_correct: bool = True  # ... re-fit the camera pose to the re-acquired landmarks (and the model's features)
     landmark_min_inliers: int = 8  # ... when at least this many agree
     landmark_max_angle_deg: float = 15.0  # ... re-track only landmarks seen from within this angle (rotation, rays)
     landmark_every: int = 0  # ... also every this many frames into the current model (0: only at re-selections)

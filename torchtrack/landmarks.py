@@ -1,15 +1,15 @@
 """Landmark re-acquisition: model points that outlive their model, re-tracked from the keyframe that saw them.
 
-Every model frame is a keyframe: its grey (and SIM) image and its model features, each with its pixel there and its
-position in the tracker's world, are kept, the last ``keyframes`` per sequence (a ring; ``per_keyframe`` features
-each). At a re-selection the landmarks are projected with the current camera pose; those inside the image, in front
-of the camera and not occluded (the depth there agrees with the predicted one) are tracked from their keyframe into
-the current frame by the same combined LK + TIM tracker (eq. 10), starting at the projection, and kept only when the
-forward-backward check passes, the LK photometric residual is small and the depth at the tracked pixel puts the point
-within ``max_offset_m`` of the prediction. The verified ones enter the new model with their ORIGINAL world positions,
-so old anchors pull the pose back instead of chaining the drift; with ``correct`` the camera pose is first re-fitted
-to them (a RANSAC over the 3D-3D pairs with Horn's closed form), so that the new model is measured from the
-corrected pose.
+Every model frame is a keyframe: its LK images (intensity and SIM) and its model features, each with its pixel there
+and its position in the tracker's world, are kept, the last ``keyframes`` per sequence (a ring; ``per_keyframe``
+features each). At a re-selection the landmarks are projected with the current camera pose; those inside the image,
+in front of the camera, not occluded (the depth there is not nearer than the predicted one) and seen by their keyframe
+from about the current viewpoint are tracked from their keyframe into the current frame by the same combined LK + TIM
+tracker (eq. 10), starting at the projection, and kept only when the forward-backward check passes, a second start
+converges to the same pixel, the LK photometric residual is small and the depth at the tracked pixel puts the point
+within ``max_offset_m`` of the prediction. With ``correct`` the camera pose is then re-fitted (:func:`refine_pose`)
+to them together with the current model's features (the prior), and the verified ones enter the new model with their
+ORIGINAL world positions: old anchors pull the pose back instead of chaining the drift.
 
 Frames: ``world`` is the tracker's world (its first camera); ``cam`` the depth camera; pixels are colour pixels.
 """
@@ -58,9 +58,14 @@ class LandmarkMap:
         max_shift_px: largest distance between the tracked pixel and the projection (the drift it may correct).
         max_offset_m: largest distance between the measured and the predicted 3D point, times max(1, z^2).
         occlusion: a projection is occluded where the depth there is nearer than the predicted by this fraction.
-        correct: re-fit the camera pose to the re-acquired landmarks (RANSAC + Horn) when ``min_inliers`` agree.
-        inlier_m: RANSAC inlier distance, times max(1, z^2).
-        min_inliers: landmarks needed for a correction (fewer: no correction, the landmarks still join the model).
+        correct: re-fit the camera pose to the re-acquired landmarks and the current model's features
+            (:func:`refine_pose`) when ``min_inliers`` landmarks agree.
+        inlier_m: the 3D residual's standard deviation in that fit, times max(1, z^2) (pixels: 1 px).
+        min_inliers: landmarks needed for a correction (fewer: no correction, the inliers still join the model).
+        max_correction_m, max_correction_deg: a larger correction is not applied (a wrong fit, not drift).
+        max_angle_deg: re-track only landmarks whose keyframe's rotation and ray to the point are within this angle.
+        max_scale: ... and whose depth changed by at most this ratio (LK tracks a translation of the window).
+        converge_px, probe_px: a second LK started ``probe_px`` away must end within ``converge_px`` of the first.
     """
 
     def __init__(
@@ -92,12 +97,8 @@ class LandmarkMap:
         self.max_offset_m, self.occlusion = max_offset_m, occlusion
         self.correct, self.inlier_m, self.min_inliers = correct, inlier_m, min_inliers
         self.max_correction_m, self.max_correction_rad = max_correction_m, math.radians(max_correction_deg)
-        self.max_angle_deg, self.max_scale, self.converge_px, self.probe_px = (
-            max_angle_deg,
-            max_scale,
-            converge_px,
-            probe_px,
-        )
+        self.max_angle_deg, self.max_scale = max_angle_deg, max_scale
+        self.converge_px, self.probe_px = converge_px, probe_px
         self.reset()
 
     def reset(self) -> None:

@@ -181,8 +181,9 @@ class Tracker:
             ``landmark_per_keyframe`` features each): at a re-selection the visible ones are re-tracked from their
             keyframe (LK started at their projection, verified by the forward-backward check, the photometric
             residual and depth) and join the new model at their ORIGINAL world positions, after the survivors and
-            before new features; ``landmark_correct``: the camera pose is first re-fitted to them (RANSAC + Horn)
-            where at least ``landmark_min_inliers`` agree, so the new model is measured from the corrected pose.
+            before new features; ``landmark_correct``: the camera pose is first re-fitted to them and the survivors
+            (:func:`torchtrack.landmarks.refine_pose`) where at least ``landmark_min_inliers`` agree, by moving the
+            model frame in the world, so the new model is measured from the corrected pose.
             ``landmark_max_angle_deg``: only landmarks whose keyframe saw them within this angle (camera rotation and
             ray) are re-tracked. ``landmark_every`` > 0: also every that many frames into the current model (no new
             model; a correction moves ``T_world_obj``, never the filter's pose).
