@@ -14,6 +14,9 @@ from torchtrack.config import CONF_DIR
 from torchtrack.data import iterate_batched
 from torchtrack.geometry import T_inv, se3_log
 
+# the landmarks' re-tracking from keyframes (pipeline.landmarks) calls the flow too: these tests spy on the tracking
+NO_LANDMARKS = ("pipeline.landmarks=false",)
+
 
 class SpyFlow:
     """Wraps the tracker's flow and records the ``init`` of every call (None when not given)."""
@@ -34,7 +37,7 @@ def test_init_is_the_constant_velocity_projection(synth):  # noqa: F811
     """init(t) = projection (cv2.projectPoints) of the model points under inv(T_wc(t-1)) T_wc(t-2) T_cam_obj: the
     last camera motion applied once more (equal time steps), re-selections included."""
     seq = fast(synth)
-    tracker = make_tracker("data=tum", "pipeline.predict_init=true", "pipeline.reselect_fraction=0.9")
+    tracker = make_tracker("data=tum", "pipeline.predict_init=true", "pipeline.reselect_fraction=0.9", *NO_LANDMARKS)
     spy = tracker.flow = SpyFlow(tracker.flow)
     T_wc, checked, reselected = [], 0, []
     for frame in iterate_batched([seq], prefetch=False):
@@ -59,7 +62,7 @@ def test_velocity_is_the_camera_motion_and_survives_reselection(synth):  # noqa:
     """state.velocity = se3_log(inv(T_world_cam(t)) T_world_cam(t-1)) / dt at every frame, a re-selection included
     (the camera-frame motion does not depend on the model frame)."""
     seq = fast(synth, frames=8)
-    tracker = make_tracker("data=tum", "pipeline.predict_init=true", "pipeline.reselect_fraction=0.95")
+    tracker = make_tracker("data=tum", "pipeline.predict_init=true", "pipeline.reselect_fraction=0.95", *NO_LANDMARKS)
     prev, reselections = None, 0
     for frame in iterate_batched([seq], prefetch=False):
         res = tracker.step(frame)
@@ -72,7 +75,7 @@ def test_velocity_is_the_camera_motion_and_survives_reselection(synth):  # noqa:
     assert reselections >= 1  # the property was checked across a re-selection
 
 
-@pytest.mark.parametrize("overrides", [["pipeline.predict_init=false"], ["+experiment=paper"]])
+@pytest.mark.parametrize("overrides", [["pipeline.predict_init=false", *NO_LANDMARKS], ["+experiment=paper"]])
 def test_paper_and_switch_off_start_at_the_previous_pixel(synth, overrides):  # noqa: F811
     seq = fast(synth, frames=3)
     tracker = make_tracker("data=tum", *overrides)

@@ -9,6 +9,9 @@ from test_tracker import make_tracker, synth  # noqa: F401  (fixture)
 from torchtrack.data import iterate_batched
 from torchtrack.filter.models import measure_points
 
+# the landmarks' re-tracking from keyframes (pipeline.landmarks) calls the flow too: only the tracking is corrupted here
+NO_LANDMARKS = ("pipeline.landmarks=false",)
+
 
 class CorruptingFlow:
     """The tracker's flow, then every 4th tracked feature moved 60 px sideways (a gross LK slip; another quarter in
@@ -28,7 +31,7 @@ class CorruptingFlow:
 
 def test_ransac_removes_exactly_the_corrupted_tracks(synth):  # noqa: F811
     seq = synth(seed=2, frames=4)
-    tracker = make_tracker("data=tum", "pipeline.ransac_threshold_m=0.02")
+    tracker = make_tracker("data=tum", "pipeline.ransac_threshold_m=0.02", *NO_LANDMARKS)
     flow = tracker.flow = CorruptingFlow(tracker.flow)
     checked = 0
     for frame in iterate_batched([seq], prefetch=False):
@@ -48,7 +51,9 @@ def test_ransac_removes_exactly_the_corrupted_tracks(synth):  # noqa: F811
 def test_ransac_only_under_large_motion(synth):  # noqa: F811
     """Below ``ransac_min_motion_px`` of median displacement the corrupted tracks reach the back end."""
     seq = synth(seed=2, frames=3)
-    tracker = make_tracker("data=tum", "pipeline.ransac_threshold_m=0.02", "pipeline.ransac_min_motion_px=1000")
+    tracker = make_tracker(
+        "data=tum", "pipeline.ransac_threshold_m=0.02", "pipeline.ransac_min_motion_px=1000", *NO_LANDMARKS
+    )
     flow = tracker.flow = CorruptingFlow(tracker.flow)
     for frame in iterate_batched([seq], prefetch=False):
         res = tracker.step(frame)

@@ -293,6 +293,16 @@ class PipelineConfig:
     keyframe_anchor: str = (
         "older"  # ... corrections that move the model frame, not the pose: older (keyframe), all, none
     )
+    landmarks: bool = True  # improvement (false = paper): re-selections re-acquire old model points from keyframes
+    landmark_keyframes: int = 8  # ... keyframes (model frames) kept per sequence
+    landmark_per_keyframe: int = 128  # ... landmarks kept per keyframe
+    landmark_correct: bool = True  # ... re-fit the camera pose to the re-acquired landmarks (and the model's features)
+    landmark_min_inliers: int = 8  # ... when at least this many agree
+    landmark_max_angle_deg: float = 15.0  # ... re-track only landmarks seen from within this angle (rotation, rays)
+    landmark_every: int = 0  # ... also every this many frames into the current model (0: only at re-selections)
+    reselect_coverage: float | None = None  # improvement (null = paper): the fraction rule re-selects only while the
+    # survivors occupy fewer than this fraction of the image's grid cells (min_features always re-selects)
+    reselect_grid: int = 4  # ... cells per side
 
 
 @dataclass

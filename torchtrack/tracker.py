@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
@@ -33,6 +33,7 @@ from torchtrack.frontend import FrontEnd, PreparedFrame, smooth_depth_mask
 from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, se3_log, transform_points
 from torchtrack.image.flow import TrackResult
 from torchtrack.keyframes import KeyframeAligner, set_backend_pose
+from torchtrack.landmarks import LandmarkMap
 from torchtrack.learn.cues import stack_cues
 from torchtrack.metrics import reprojection_errors
 
@@ -175,6 +176,21 @@ class Tracker:
             ``keyframe_photometric`` / ``keyframe_geometric`` switch its two terms; ``keyframe_anchor``: which
             corrections move the model frame (``T_world_obj``) instead of the pose the features measure: "older"
             (against a keyframe older than the model frame), "all" or "none".
+        landmarks: improvement (False = paper): the model frames are also keyframes whose features outlive their
+            model (:class:`torchtrack.landmarks.LandmarkMap`, the last ``landmark_keyframes``, up to
+            ``landmark_per_keyframe`` features each): at a re-selection the visible ones are re-tracked from their
+            keyframe (LK started at their projection, verified by the forward-backward check, the photometric
+            residual and depth) and join the new model at their ORIGINAL world positions, after the survivors and
+            before new features; ``landmark_correct``: the camera pose is first re-fitted to them and the survivors
+            (:func:`torchtrack.landmarks.refine_pose`) where at least ``landmark_min_inliers`` agree, by moving the
+            model frame in the world, so the new model is measured from the corrected pose.
+            ``landmark_max_angle_deg``: only landmarks whose keyframe saw them within this angle (camera rotation and
+            ray) are re-tracked. ``landmark_every`` > 0: also every that many frames into the current model (no new
+            model; a correction moves ``T_world_obj``, never the filter's pose).
+        reselect_coverage: improvement (None = paper): the fraction rule (``reselect_fraction``) re-selects only while
+            the surviving features occupy fewer than this fraction of the ``reselect_grid`` x ``reselect_grid``
+            image cells; ``min_features`` still always does. Under fast motion most of a new model's features can
+            fail at once while the rest still span the view: no thrashing from one new model to the next.
 
     The tracker's model and last estimate live in one :class:`TrackerState`, ``self.state``.
     """
@@ -206,6 +222,15 @@ class Tracker:
         keyframe_photometric: bool = True,
         keyframe_geometric: bool = True,
         keyframe_anchor: str = "older",
+        landmarks: bool = False,
+        landmark_keyframes: int = 8,
+        landmark_per_keyframe: int = 128,
+        landmark_correct: bool = True,
+        landmark_min_inliers: int = 8,
+        landmark_max_angle_deg: float = 15.0,
+        landmark_every: int = 0,
+        reselect_coverage: float | None = None,
+        reselect_grid: int = 4,
     ) -> None:
         if not 0.0 <= reselect_fraction < 1.0:
             raise ValueError(f"reselect_fraction must be in [0, 1), got {reselect_fraction}")
@@ -224,6 +249,19 @@ class Tracker:
         if keyframe_anchor not in ("none", "older", "all"):
             raise ValueError(f"keyframe_anchor must be none, older or all, got {keyframe_anchor!r}")
         self.keyframe_anchor = keyframe_anchor
+        lm = dict(keyframes=landmark_keyframes, per_keyframe=landmark_per_keyframe, correct=landmark_correct,
+                  min_inliers=landmark_min_inliers, min_separation_px=min_separation_px,
+                  max_angle_deg=landmark_max_angle_deg)  # fmt: skip
+        self.landmarks = LandmarkMap(**lm) if landmarks else None
+        if landmark_every < 0:
+            raise ValueError(f"landmark_every must be >= 0, got {landmark_every}")
+        self.landmark_every = landmark_every
+        if reselect_coverage is not None and not 0.0 < reselect_coverage <= 1.0 or reselect_grid < 1:
+            raise ValueError(f"reselect_coverage must be in (0, 1] and reselect_grid >= 1, got {reselect_coverage}, "
+                             f"{reselect_grid}")  # fmt: skip
+        self.reselect_coverage, self.reselect_grid = reselect_coverage, reselect_grid
+        self.since_landmarks: Tensor | Any = 0  # (B,) frames since the last model or re-acquisition
+        self.reacquired_total: Tensor | Any = 0  # (B,) landmarks re-acquired so far (after the first frame)
         self.state = TrackerState()
 
     @property
@@ -259,7 +297,9 @@ class Tracker:
         est = self.backend.step(obs, var, active=frame.active)  # eqs. (2)-(7), (15)
         T_cam_obj = est.T_cam_obj.double() if self.keyframes is None else self._keyframe_corrected(frame, cur, est)
         self.state = self._advanced(frame, cur, track.points, valid, T_cam_obj)  # and the residual drop
-        tracked, reselect = self.state, self._needs_model(frame.active)
+        if self.landmarks is not None and self.landmark_every > 0:
+            self._reanchor(frame, cur)  # every k frames: landmarks back into the current model
+        tracked, reselect = self.state, self._needs_model(frame.active, tuple(cur.gray.shape[-2:]))
         model_T_cam_obj = self._new_model(frame, cur, reselect) if reselect.any() else None  # §III re-selection
         extra = dict(observation=obs, variances=var, cues=cues, model_T_cam_obj=model_T_cam_obj, estimate=est)
         return self._result(tracked, track.winner, track.d_tim, reselect, **extra)  # the frame as tracked
@@ -314,10 +354,44 @@ class Tracker:
         self.state = replace(s, T_world_obj=T_world_obj)
         return torch.where(relative[:, None, None], T_cam_obj_new, T_cam_obj)
 
-    def _needs_model(self, active: Tensor) -> Tensor:
-        """(B,) bool: too few features survive (a fraction of the model's, or an absolute count)."""
+    def _reanchor(self, frame: FrameBatch, cur: PreparedFrame) -> None:
+        """The sequences ``landmark_every`` frames past their last model or re-acquisition re-acquire landmarks into
+        the current model (no new model): the camera pose is re-fitted (``landmark_correct``) by moving the model
+        frame in the world, ``T_world_obj``, so the filter's pose of the object is untouched; the verified landmarks
+        join the model at their ORIGINAL world positions, expressed in the (moved) model frame."""
+        self.since_landmarks = self.since_landmarks + frame.active.long()
+        mask = frame.active & (self.since_landmarks >= self.landmark_every)
+        if not mask.any():
+            return
+        self.since_landmarks = torch.where(mask, 0, self.since_landmarks)
+        s = self.state
+        world = transform_points(s.T_world_obj, s.points_obj.double())
+        acq = self.landmarks.reacquire(
+            self.flow, cur, frame.K, frame.T_color_depth, s.T_world_cam, s.pixels, s.valid, mask, tracked_world=world
+        )  # fmt: skip
+        found = acq.valid & mask[:, None]
+        self.reacquired_total = self.reacquired_total + found.sum(1)
+        T_world_obj = torch.where(mask[:, None, None], acq.T_world_cam @ s.T_cam_obj, s.T_world_obj)
+        points_obj = transform_points(T_inv(T_world_obj), acq.points_world).to(s.points_obj.dtype)
+        new = dict(pixels=acq.pixels.to(s.pixels.dtype), valid=found, points_obj=points_obj,
+                   age=torch.zeros_like(found, dtype=torch.long), cornerness=acq.cornerness.to(s.cornerness.dtype))  # fmt: skip
+        merged = {k: torch.cat([getattr(s, k), v], 1) for k, v in new.items()}
+        width = max(s.pixels.shape[1], int(merged["valid"].sum(1).max()))
+        order = torch.sort((~merged["valid"]).to(torch.uint8), dim=1, stable=True).indices[:, :width]  # valid first
+        rows = torch.arange(order.shape[0])[:, None]
+        merged = {k: v[rows, order] for k, v in merged.items()}
+        residuals = self._residuals(frame, s.T_cam_obj, merged["points_obj"], merged["pixels"], merged["valid"])
+        self.state = replace(s, **merged, residuals=residuals, T_world_obj=T_world_obj)
+
+    def _needs_model(self, active: Tensor, size: tuple[int, int]) -> Tensor:
+        """(B,) bool: too few features survive (a fraction of the model's, or an absolute count); with
+        ``reselect_coverage``, the fraction rule applies only where the survivors also cover too little of the image
+        (``size`` (H, W)): a model whose features still span the view keeps tracking."""
         n, s = self.state.valid.sum(1), self.state
-        return active & ((n < self.reselect_fraction * s.n_model) | (n < self.min_features))
+        few = n < self.reselect_fraction * s.n_model
+        if self.reselect_coverage is not None:
+            few = few & (coverage(s.pixels, s.valid, size, self.reselect_grid) < self.reselect_coverage)
+        return active & (few | (n < self.min_features))
 
     def _cues(self, frame: FrameBatch, cur: PreparedFrame, track: TrackResult, points_d: Tensor, valid: Tensor):
         """(B, N, C) cues of the tracked features (:data:`torchtrack.learn.cues.CUE_NAMES`), zeros where not valid."""
@@ -362,6 +436,10 @@ class Tracker:
         self.state = TrackerState(timestamp=frame.timestamp, T_cam_obj=eye, T_world_obj=eye.clone(), velocity=zero)
         if self.keyframes is not None:
             self.keyframes.reset()
+        if self.landmarks is not None:
+            self.landmarks.reset()
+        self.reacquired_total = torch.zeros(B, dtype=torch.long)
+        self.since_landmarks = torch.zeros(B, dtype=torch.long)
         everyone = torch.ones(B, dtype=torch.bool)
         model_T_cam_obj = self._new_model(frame, cur, everyone)
         return self._result(self.state, None, None, everyone, model_T_cam_obj=model_T_cam_obj)
@@ -369,6 +447,7 @@ class Tracker:
     def _new_model(self, frame: FrameBatch, cur: PreparedFrame, mask: Tensor) -> Tensor:
         """Take the current frame as the model of the sequences in ``mask`` (B,): PCM features, pose, chain; the
         back end starts over there. Returns the pose (B, 4, 4) the back end is reset to (meaningful where ``mask``)."""
+        kept = self._kept(frame, cur, mask)  # survivors, re-acquired landmarks (may correct T_world_obj)
         s = self.state
         roi = self.region(cur.depth)
         if self.edge_step is not None:
@@ -378,8 +457,9 @@ class Tracker:
         points_d, has_depth = measure_points(cur.depth, frame.K, frame.T_color_depth, pixels)
         valid = feats.valid & has_depth
         age = torch.zeros_like(valid, dtype=torch.long)
-        if self.keep_survivors and s.pixels is not None:
-            pixels, points_d, valid, age, cornerness = self._with_survivors(pixels, points_d, valid, cornerness, mask)
+        if kept is not None:
+            found = self._found if self.landmarks is not None else None
+            pixels, points_d, valid, age, cornerness = self._with_kept(kept, pixels, points_d, valid, cornerness, found)
         centroid = masked_mean(points_d, valid.to(points_d.dtype))
         points_obj = torch.where(valid[..., None], points_d - centroid[:, None], torch.zeros_like(points_d))
         T_cam_obj = make_T(torch.eye(3, dtype=torch.float64).expand(len(mask), 3, 3), centroid.double())
@@ -402,28 +482,65 @@ class Tracker:
         if self.keyframes is not None:  # the model frame is a keyframe
             T_world_color = self.state.T_world_cam @ T_inv(frame.T_color_depth.double())
             self.keyframes.add(cur.gray, cur.depth, frame.K, T_world_color, mask)
+        if self.landmarks is not None:  # ... and its features are landmarks, at their world positions
+            self.since_landmarks = torch.where(mask, 0, self.since_landmarks)
+            st = self.state
+            world = transform_points(st.T_world_obj, st.points_obj.double())
+            self.landmarks.add(cur, frame.timestamp, st.T_world_cam, st.pixels, world, st.cornerness, st.valid, mask)
         return T_cam_obj
 
-    def _with_survivors(self, pixels: Tensor, points_d: Tensor, valid: Tensor, cornerness: Tensor, mask: Tensor):
-        """Keep the tracked features of the sequences in ``mask``, add the new ones (B, M) that are at least
-        ``min_separation_px`` from all of them, up to the larger of M and the current model's width (a poor
-        selection never cuts survivors). Survivors come first; their model points are moved into the camera by
-        the current pose, so that the new model frame sees them where the old one did; they keep their age and
-        cornerness (B, M, 2 for the new ones).
-        Returns (pixels (B, W, 2), points in the camera (B, W, 3), valid (B, W), age (B, W), cornerness (B, W, 2))."""
+    def _kept(self, frame: FrameBatch, cur: PreparedFrame, mask: Tensor) -> _Kept | None:
+        """What a re-selection of the sequences in ``mask`` (B,) keeps before it selects new features, in the
+        current camera: the survivors (``keep_survivors``; their model points moved into the camera by the current
+        pose, so that the new model frame sees them where the old one did) and then the re-acquired landmarks
+        (``landmarks``; their stored world positions moved into the camera by the camera pose, corrected first
+        where the landmarks re-fit it). None on the first frame or with neither switch."""
         s = self.state
-        keep = s.valid & mask[:, None]
-        old_points = transform_points(s.T_cam_obj.to(points_d.dtype), s.points_obj)
-        gap = torch.cdist(pixels, s.pixels).masked_fill(~keep[:, None, :], float("inf")).amin(2)
-        ok = torch.cat([keep, valid & (gap >= self.min_separation_px)], 1)
-        width = max(valid.shape[1], s.pixels.shape[1])
+        self._found = torch.zeros(len(mask), dtype=torch.long)
+        if s.pixels is None or not (self.keep_survivors or self.landmarks is not None):
+            return None
+        keep = s.valid & mask[:, None] if self.keep_survivors else torch.zeros_like(s.valid)
+        points = transform_points(s.T_cam_obj.float(), s.points_obj.float())
+        kept = _Kept(s.pixels, points, keep, s.age, s.cornerness)
+        if self.landmarks is None:
+            return kept
+        world = transform_points(s.T_world_obj, s.points_obj.double())
+        acq = self.landmarks.reacquire(
+            self.flow, cur, frame.K, frame.T_color_depth, s.T_world_cam, s.pixels, keep, mask, tracked_world=world
+        )  # fmt: skip
+        T_world_cam = torch.where(mask[:, None, None], acq.T_world_cam, s.T_world_cam)
+        self.state = replace(s, T_world_obj=T_world_cam @ s.T_cam_obj)  # the landmarks' correction, if any
+        self._found = (acq.valid & mask[:, None]).sum(1)
+        self.reacquired_total = self.reacquired_total + self._found
+        points = transform_points(T_inv(T_world_cam), acq.points_world).float()  # the ORIGINAL world positions
+        found = _Kept(acq.pixels, points, acq.valid & mask[:, None], torch.zeros_like(acq.valid, dtype=torch.long),
+                      acq.cornerness)  # fmt: skip
+        return _Kept(*(torch.cat([a, b.to(a.dtype)], 1) for a, b in zip(kept, found, strict=True)))
+
+    def _with_kept(
+        self, kept: _Kept, pixels: Tensor, points_d: Tensor, valid: Tensor, cornerness: Tensor, n_found: Tensor | None
+    ):
+        """The kept features (B, K) first, then the new ones (B, M) that are at least ``min_separation_px`` from all
+        of them, up to the larger of M and the current model's width (a poor selection never cuts the kept ones); with
+        ``n_found`` (B,) re-acquired landmarks among the kept, up to the larger of M and the survivors, plus those.
+        Kept features keep their age and cornerness (B, M, 2 for the new ones).
+        Returns (pixels (B, W, 2), points in the camera (B, W, 3), valid (B, W), age (B, W), cornerness (B, W, 2))."""
+        gap = torch.cdist(pixels, kept.pixels.to(pixels.dtype)).masked_fill(~kept.valid[:, None, :], float("inf"))
+        ok = torch.cat([kept.valid, valid & (gap.amin(2) >= self.min_separation_px)], 1)
+        if n_found is None:
+            width = max(valid.shape[1], self.state.pixels.shape[1])
+        else:  # per sequence: the survivors or the new selection's count, plus the re-acquired (batched equals looped)
+            n_surv = kept.valid.sum(1) - n_found
+            cap = torch.maximum(n_surv, valid.sum(1)) + n_found
+            ok = ok & (ok.long().cumsum(1) <= cap[:, None])
+            width = int(ok.sum(1).max())
         order = torch.sort((~ok).to(torch.uint8), dim=1, stable=True).indices[:, :width]  # valid first
         rows = torch.arange(ok.shape[0])[:, None]
         ok = ok[rows, order]
-        pixels = torch.cat([s.pixels, pixels], 1)[rows, order]
-        points = torch.cat([old_points, points_d], 1)[rows, order]
-        age = torch.cat([s.age, torch.zeros_like(valid, dtype=torch.long)], 1)[rows, order]
-        cornerness = torch.cat([s.cornerness, cornerness], 1)[rows, order]
+        pixels = torch.cat([kept.pixels.to(pixels.dtype), pixels], 1)[rows, order]
+        points = torch.cat([kept.points.to(points_d.dtype), points_d], 1)[rows, order]
+        age = torch.cat([kept.age, torch.zeros_like(valid, dtype=torch.long)], 1)[rows, order]
+        cornerness = torch.cat([kept.cornerness.to(cornerness.dtype), cornerness], 1)[rows, order]
         ok3 = ok[..., None]
         return (
             torch.where(ok3, pixels, 0.0), torch.where(ok3, points, 0.0), ok, torch.where(ok, age, 0),
@@ -437,6 +554,8 @@ class Tracker:
         s = self.state
         T_world_obj = torch.where(mask[:, None, None], T_world_cam.double() @ s.T_cam_obj, s.T_world_obj)
         self.state = replace(s, valid=s.valid & ~mask[:, None], T_world_obj=T_world_obj)
+        if self.landmarks is not None:  # a model taken this frame, at the lost pose, is no keyframe
+            self.landmarks.forget(frame.timestamp, mask)
         self._new_model(frame, s.prev, mask)
 
     # ---------------------------------------------------------------------------------------------- outputs
@@ -468,6 +587,27 @@ class Tracker:
             d_tim=d_tim if d_tim is not None else torch.zeros(B, N),
             **extra,
         )
+
+
+class _Kept(NamedTuple):
+    """Features a re-selection keeps, (B, K, ...): colour pixels, points in the current depth camera, valid, age,
+    cornerness (B, K, 2)."""
+
+    pixels: Tensor
+    points: Tensor
+    valid: Tensor
+    age: Tensor
+    cornerness: Tensor
+
+
+def coverage(pixels: Tensor, valid: Tensor, size: tuple[int, int], grid: int) -> Tensor:
+    """(B,) fraction of the ``grid`` x ``grid`` cells of an image of ``size`` (H, W) that hold a valid feature
+    (pixels (B, N, 2), valid (B, N)): how far the features span the view (paper Table I: spread lowers the error)."""
+    H, W = size
+    col = (pixels[..., 0] * grid / W).long().clamp(0, grid - 1)
+    row = (pixels[..., 1] * grid / H).long().clamp(0, grid - 1)
+    hit = torch.zeros(pixels.shape[0], grid * grid).scatter_add_(1, row * grid + col, valid.float())
+    return (hit > 0).float().mean(1)
 
 
 def _where(mask: Tensor, new: Tensor, old: Tensor) -> Tensor:

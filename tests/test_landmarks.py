@@ -1,0 +1,213 @@
+"""Landmark re-acquisition (torchtrack.landmarks): the pose refinement against closed-form data, the keyframe ring, and
+re-tracking from a keyframe on rendered frames with exact ground truth."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchtrack.data.frame import FrameBatch
+from torchtrack.data.synthetic import SyntheticConfig
+from torchtrack.data.synthetic.motion import SCENE_EYE, SCENE_TARGET, look_at
+from torchtrack.data.synthetic.render import render_frame
+from torchtrack.data.synthetic.scene import default_scene
+from torchtrack.frontend import FrontEnd, smooth_depth_mask
+from torchtrack.geometry import T_inv, backproject, make_T, project, se3_exp, se3_log, transform_points
+from torchtrack.image.flow import CombinedTracker
+from torchtrack.image.select import select_features
+from torchtrack.landmarks import LandmarkMap, refine_pose
+
+
+def random_scene(B: int, C: int, seed: int = 0):
+    """Well-posed 2D-3D data: points 1-3 m in front of a 640x480 camera at a random pose (axis-angle rotation)."""
+    g = torch.Generator().manual_seed(seed)
+    K = torch.tensor([[525.0, 0, 319.5], [0, 525.0, 239.5], [0, 0, 1]], dtype=torch.float64).expand(B, 3, 3)
+    pix = torch.rand(B, C, 2, generator=g, dtype=torch.float64) * torch.tensor([600.0, 440.0]) + 20
+    z = 1 + 2 * torch.rand(B, C, generator=g, dtype=torch.float64)
+    p_cam = backproject(K, pix, z)
+    T_color_world = se3_exp(torch.randn(B, 6, generator=g, dtype=torch.float64) * 0.3)
+    world = transform_points(T_inv(T_color_world), p_cam)
+    return K, T_color_world, world, pix, p_cam
+
+
+def test_refine_pose_recovers_an_exact_pose():
+    K, T, world, pix, p_cam = random_scene(2, 40)
+    start = se3_exp(torch.tensor([[0.02, -0.01, 0.015, 0.01, -0.02, 0.005]], dtype=torch.float64)) @ T
+    valid = torch.ones(2, 40, dtype=torch.bool)
+    fit = refine_pose(K, start, world, pix, p_cam, valid)
+    torch.testing.assert_close(fit.T_color_world, T, atol=1e-9, rtol=0)
+    assert fit.inliers.all()
+
+
+def test_refine_pose_rejects_outliers_and_ignores_invalid():
+    K, T, world, pix, p_cam = random_scene(1, 50, seed=1)
+    bad = torch.zeros(1, 50, dtype=torch.bool)
+    bad[0, :8] = True  # 16 %: wrong matches, 25-40 px off
+    pix_bad = torch.where(bad[..., None], pix + torch.tensor([25.0, -30.0], dtype=torch.float64), pix)
+    valid = torch.ones(1, 50, dtype=torch.bool)
+    valid[0, 45:] = False
+    pix_bad[0, 45:] += 500.0  # invalid pairs carry garbage that must not count
+    start = se3_exp(torch.tensor([[0.01, 0.01, -0.01, 0.005, 0.0, -0.01]], dtype=torch.float64)) @ T
+    fit = refine_pose(K, start, world, pix_bad, p_cam, valid)
+    fit = refine_pose(K, fit.T_color_world, world, pix_bad, p_cam, fit.inliers)
+    assert torch.equal(fit.inliers, valid & ~bad)
+    torch.testing.assert_close(fit.T_color_world, T, atol=1e-9, rtol=0)
+
+
+def test_refine_pose_batched_equals_looped():
+    K, T, world, pix, p_cam = random_scene(3, 30, seed=2)
+    start = se3_exp(torch.full((3, 6), 0.01, dtype=torch.float64)) @ T
+    pix = pix + 0.3 * torch.randn(pix.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    valid = torch.rand(3, 30, generator=torch.Generator().manual_seed(4)) > 0.2
+    batched = refine_pose(K, start, world, pix, p_cam, valid)
+    for b in range(3):
+        one = refine_pose(K[b : b + 1], start[b : b + 1], world[b : b + 1], pix[b : b + 1], p_cam[b : b + 1],
+                          valid[b : b + 1])  # fmt: skip
+        torch.testing.assert_close(batched.T_color_world[b], one.T_color_world[0], atol=1e-10, rtol=0)
+        assert torch.equal(batched.inliers[b], one.inliers[0])
+
+
+# ------------------------------------------------------------------------------------------------ the keyframe ring
+class _Prepared:
+    """A stand-in for PreparedFrame with only what LandmarkMap.add reads (the LK images)."""
+
+    def __init__(self, value: float, B: int = 2):
+        class Flow:
+            images = (torch.full((B, 1, 8, 8), value), torch.full((B, 1, 8, 8), -value))
+            has_sim = True
+
+        self.flow = Flow()
+
+
+def test_ring_keeps_the_last_keyframes_per_sequence():
+    lm = LandmarkMap(keyframes=3, per_keyframe=4)
+    eye = torch.eye(4, dtype=torch.float64).expand(2, 4, 4)
+    for k in range(5):
+        mask = torch.tensor([True, k % 2 == 0])  # sequence 1 takes a keyframe every other time
+        pixels = torch.full((2, 6, 2), float(k))
+        world = torch.full((2, 6, 3), float(k), dtype=torch.float64)
+        valid = torch.zeros(2, 6, dtype=torch.bool)
+        valid[:, 1 : 1 + k + 1] = True  # k + 1 valid features (more than per_keyframe from k = 4)
+        lm.add(_Prepared(float(k)), torch.full((2,), float(k)), eye, pixels, world, torch.zeros(2, 6, 2), valid, mask)
+    assert lm.count.tolist() == [5, 3]
+    # sequence 0 holds keyframes 3, 4, 2 in slots 0, 1, 2; sequence 1 holds 0, 2, 4
+    assert lm.gray[:, 0, 0, 0, 0].tolist() == [3.0, 4.0, 2.0] and lm.gray[:, 1, 0, 0, 0].tolist() == [0.0, 2.0, 4.0]
+    assert lm.sim[:, 1, 0, 0, 0].tolist() == [-0.0, -2.0, -4.0]
+    assert lm.stamp.tolist() == [[3, 4, 2], [0, 1, 2]]
+    assert lm.valid.sum(-1).tolist() == [[4, 4, 3], [1, 3, 4]]  # at most per_keyframe, valid ones first
+    assert lm.world[0, 1, :, 0].tolist() == [4.0] * 4
+    lm.forget(torch.tensor([4.0, 4.0]), torch.tensor([True, False]))
+    assert lm.valid.sum(-1).tolist() == [[4, 0, 3], [1, 3, 4]]
+
+
+def test_bad_arguments_raise():
+    with pytest.raises(ValueError, match="keyframes, per_keyframe and max_candidates must be >= 1"):
+        LandmarkMap(keyframes=0)
+    lm = LandmarkMap()
+    with pytest.raises(ValueError, match="LandmarkMap.add"):
+        lm.add(_Prepared(0.0), torch.zeros(2), torch.eye(4).expand(2, 4, 4), torch.zeros(2, 5, 2),
+               torch.zeros(2, 4, 3), torch.zeros(2, 5, 2), torch.zeros(2, 5, dtype=torch.bool), torch.ones(2))  # fmt: skip
+
+
+# ------------------------------------------------------------------------------------------------ rendered frames
+SIZE = (320, 240)
+
+
+@pytest.fixture(scope="module")
+def rendered():
+    """The room corner seen from a keyframe camera and from a camera 4 cm / 2 degrees away (exact depth)."""
+    cfg = SyntheticConfig(width=SIZE[0], height=SIZE[1], mode="scene", noise="none", seed=3)
+    scene = default_scene(cfg)
+    T_kf = look_at(SCENE_EYE, SCENE_TARGET)
+    T_cur = T_kf @ se3_exp(torch.tensor([0.03, -0.01, 0.025, 0.01, 0.03, -0.01], dtype=torch.float64))
+    fe = FrontEnd(levels=3)
+    K = scene.K.float()[None]
+
+    def prepared(T):
+        rgbd = render_frame(scene, T)
+        f = FrameBatch(rgb=rgbd.rgb[None].float(), depth=rgbd.depth[None].float(), K=K, K_depth=K,
+                       T_color_depth=torch.eye(4)[None], timestamp=torch.zeros(1, dtype=torch.float64),
+                       T_world_cam_gt=T[None], gt_valid=torch.ones(1, dtype=torch.bool),
+                       active=torch.ones(1, dtype=torch.bool), index=torch.zeros(1, dtype=torch.long))  # fmt: skip
+        return fe(f)
+
+    return dict(K=K, T_kf=T_kf, T_cur=T_cur, kf=prepared(T_kf), cur=prepared(T_cur))
+
+
+def landmarks_of(r, lm: LandmarkMap):
+    """The keyframe's features (eq. 9, off depth edges, as the tracker selects them) as landmarks at their exact world
+    positions (the render's depth and pose)."""
+    feats = select_features(r["kf"].gray, r["kf"].depth, r["K"], roi=smooth_depth_mask(r["kf"].depth, 0.03),
+                            sim=r["kf"].sim)  # fmt: skip
+    pix = feats.pixels[:, feats.valid[0]].float()
+    z = r["kf"].depth[0, 0, pix[0, :, 1].round().long(), pix[0, :, 0].round().long()][None]
+    world = transform_points(r["T_kf"][None], backproject(r["K"].double(), pix.double(), z.double()))
+    lm.add(r["kf"], torch.zeros(1), r["T_kf"][None], pix, world, torch.zeros(*pix.shape[:2], 2), z > 0,
+           torch.ones(1, dtype=torch.bool))  # fmt: skip
+    return world
+
+
+def reacquire(r, lm: LandmarkMap, T_world_cam):
+    none = torch.zeros(1, 0, 2)
+    return lm.reacquire(CombinedTracker(), r["cur"], r["K"], torch.eye(4)[None], T_world_cam, none,
+                        torch.zeros(1, 0, dtype=torch.bool), torch.ones(1, dtype=torch.bool))  # fmt: skip
+
+
+def test_reacquired_landmarks_are_found_where_they_project_and_correct_a_drifted_pose(rendered):
+    """The camera is given 2 cm / 0.6 degrees away from the truth (drift): the landmarks, re-tracked from their
+    keyframe 4 cm / 2 degrees away, land near their true projections, keep their stored world positions bit for bit,
+    and the pose re-fitted to them is the true one within a few millimetres.
+
+    Measured (320 x 240, noise-free): 54 of 77 features re-acquired, pixel error median 0.10 px, max 1.2 px (LK
+    tracks a translation of the window; the view changed by 2 degrees), corrected pose 1.6 mm / 0.04 degrees from
+    the truth (given: 19 mm / 0.6 degrees)."""
+    r = rendered
+    lm = LandmarkMap(per_keyframe=256, max_candidates=256)
+    world = landmarks_of(r, lm)
+    drift = se3_exp(torch.tensor([0.015, 0.01, -0.008, 0.006, -0.007, 0.004], dtype=torch.float64))
+    acq = reacquire(r, lm, (r["T_cur"] @ drift)[None])
+    n = int(acq.valid.sum())
+    assert n >= 40
+    truth = project(r["K"].double(), transform_points(T_inv(r["T_cur"])[None], acq.points_world))
+    err = torch.linalg.vector_norm(acq.pixels.double() - truth, dim=-1)[acq.valid]
+    assert float(err.median()) < 0.2 and float(err.max()) < 2.0
+    stored = {tuple(p.tolist()) for p in world[0]}
+    assert all(tuple(p.tolist()) in stored for p in acq.points_world[acq.valid])  # exactly the stored positions
+    step = se3_log(T_inv(r["T_cur"]) @ acq.T_world_cam[0])
+    assert float(step[:3].norm()) < 4e-3 and float(step[3:].norm()) < math.radians(0.1)
+
+
+def test_no_correction_without_enough_landmarks(rendered):
+    r = rendered
+    lm = LandmarkMap(min_inliers=1000)
+    landmarks_of(r, lm)
+    T = (r["T_cur"] @ se3_exp(torch.tensor([0.01, 0, 0, 0, 0, 0], dtype=torch.float64)))[None]
+    acq = reacquire(r, lm, T)
+    assert acq.valid.any()
+    assert torch.equal(acq.T_world_cam, T)
+
+
+def test_occluded_and_far_views_are_not_candidates(rendered):
+    """A landmark behind the surface the current frame sees (its depth is nearer) is occluded; one whose keyframe
+    looked from more than max_angle_deg away is not re-tracked."""
+    r = rendered
+    lm = LandmarkMap(per_keyframe=256)
+    world = landmarks_of(r, lm)
+    T = r["T_cur"][None]
+    args = (r["cur"], r["K"], torch.eye(4)[None], T, torch.zeros(1, 0, 2), torch.zeros(1, 0, dtype=torch.bool),
+            torch.ones(1, dtype=torch.bool))  # fmt: skip
+    index, ok, _, _ = lm.candidates(*args)
+    assert ok.sum() >= 45  # measured: 55 of 77
+    # push every landmark 30 cm further along its keyframe ray: now behind the visible surface
+    ray = world - r["T_kf"][:3, 3]
+    lm.world[0, 0, : world.shape[1]] = world[0] + 0.3 * ray[0] / ray[0].norm(dim=-1, keepdim=True)
+    assert not lm.candidates(*args)[1].any()
+    lm.world[0, 0, : world.shape[1]] = world[0]
+    lm.T_world_kf[0, 0] = (
+        r["T_kf"]
+        @ make_T(torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64))
+        @ se3_exp(torch.tensor([0, 0, 0, 0, 0.4, 0], dtype=torch.float64))
+    )  # the keyframe turned by 23 degrees
+    assert not lm.candidates(*args)[1].any()

@@ -1,0 +1,345 @@
+"""Landmark re-acquisition: model points that outlive their model, re-tracked from the keyframe that saw them.
+
+Every model frame is a keyframe: its LK images (intensity and SIM) and its model features, each with its pixel there
+and its position in the tracker's world, are kept, the last ``keyframes`` per sequence (a ring; ``per_keyframe``
+features each). At a re-selection the landmarks are projected with the current camera pose; those inside the image,
+in front of the camera, not occluded (the depth there is not nearer than the predicted one) and seen by their keyframe
+from about the current viewpoint are tracked from their keyframe into the current frame by the same combined LK + TIM
+tracker (eq. 10), starting at the projection, and kept only when the forward-backward check passes, a second start
+converges to the same pixel, the LK photometric residual is small and the depth at the tracked pixel puts the point
+within ``max_offset_m`` of the prediction. With ``correct`` the camera pose is then re-fitted (:func:`refine_pose`)
+to them together with the current model's features (the prior), and the verified ones enter the new model with their
+ORIGINAL world positions: old anchors pull the pose back instead of chaining the drift.
+
+Frames: ``world`` is the tracker's world (its first camera); ``cam`` the depth camera; pixels are colour pixels.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchtrack.filter.models import measure_points
+from torchtrack.frontend import PreparedFrame
+from torchtrack.geometry import T_inv, hat, project, sample_depth, se3_exp, se3_log, transform_points
+from torchtrack.image.flow import FlowFrame, prepare_frame
+
+
+class Reacquired(NamedTuple):
+    """Landmarks found again in the current frame, all (B, C, ...) with ``valid`` (B, C).
+
+    pixels: (B, C, 2) tracked colour pixels; points_world: (B, C, 3) float64 their stored world positions;
+    points_cam: (B, C, 3) the points measured from depth at ``pixels`` (depth camera); cornerness: (B, C, 2);
+    T_world_cam: (B, 4, 4) float64 the camera pose the landmarks were verified against (re-fitted with ``correct``).
+    """
+
+    pixels: Tensor
+    points_world: Tensor
+    points_cam: Tensor
+    cornerness: Tensor
+    valid: Tensor
+    T_world_cam: Tensor
+
+
+class LandmarkMap:
+    """The last ``keyframes`` model frames per sequence with their features as world landmarks, batched over B.
+
+    Args:
+        keyframes: keyframes kept per sequence (a ring buffer; the oldest is replaced).
+        per_keyframe: landmarks kept per keyframe (the model's first valid features: survivors and re-acquired first).
+        max_candidates: at most this many landmarks per sequence are re-tracked at one re-selection (oldest keyframe
+            first: the oldest anchors remove the most drift).
+        min_separation_px: a landmark closer than this to a tracked feature or to an older landmark is not re-tracked.
+        max_residual: largest LK photometric residual (mean absolute grey difference over the window, [0, 1]).
+        max_shift_px: largest distance between the tracked pixel and the projection (the drift it may correct).
+        max_offset_m: largest distance between the measured and the predicted 3D point, times max(1, z^2).
+        occlusion: a projection is occluded where the depth there is nearer than the predicted by this fraction.
+        correct: re-fit the camera pose to the re-acquired landmarks and the current model's features
+            (:func:`refine_pose`) when ``min_inliers`` landmarks agree.
+        inlier_m: the 3D residual's standard deviation in that fit, times max(1, z^2) (pixels: 1 px).
+        min_inliers: landmarks needed for a correction (fewer: no correction, the inliers still join the model).
+        max_correction_m, max_correction_deg: a larger correction is not applied (a wrong fit, not drift).
+        max_angle_deg: re-track only landmarks whose keyframe's rotation and ray to the point are within this angle.
+        max_scale: ... and whose depth changed by at most this ratio (LK tracks a translation of the window).
+        converge_px, probe_px: a second LK started ``probe_px`` away must end within ``converge_px`` of the first.
+    """
+
+    def __init__(
+        self,
+        *,
+        keyframes: int = 8,
+        per_keyframe: int = 128,
+        max_candidates: int = 256,
+        min_separation_px: float = 8.0,
+        max_residual: float = 0.1,
+        max_shift_px: float = 30.0,
+        max_offset_m: float = 0.1,
+        occlusion: float = 0.05,
+        correct: bool = True,
+        inlier_m: float = 0.02,
+        min_inliers: int = 8,
+        max_correction_m: float = 0.1,
+        max_correction_deg: float = 5.0,
+        max_angle_deg: float = 15.0,
+        max_scale: float = 1.25,
+        converge_px: float = 0.5,
+        probe_px: float = 3.0,
+    ) -> None:
+        if keyframes < 1 or per_keyframe < 1 or max_candidates < 1:
+            raise ValueError(f"LandmarkMap: keyframes, per_keyframe and max_candidates must be >= 1, got "
+                             f"{keyframes}, {per_keyframe}, {max_candidates}")  # fmt: skip
+        self.S, self.P, self.C = keyframes, per_keyframe, max_candidates
+        self.min_separation_px, self.max_residual, self.max_shift_px = min_separation_px, max_residual, max_shift_px
+        self.max_offset_m, self.occlusion = max_offset_m, occlusion
+        self.correct, self.inlier_m, self.min_inliers = correct, inlier_m, min_inliers
+        self.max_correction_m, self.max_correction_rad = max_correction_m, math.radians(max_correction_deg)
+        self.max_angle_deg, self.max_scale = max_angle_deg, max_scale
+        self.converge_px, self.probe_px = converge_px, probe_px
+        self.reset()
+
+    def reset(self) -> None:
+        self.gray = self.sim = None  # (S, B, 1, H, W) keyframe images
+        self.pyramids: dict[int, FlowFrame] = {}  # LK pyramids of the slots, built on first use
+        self.pixels = self.world = self.cornerness = self.valid = self.stamp = self.count = self.T_world_kf = None
+
+    def forget(self, timestamp: Tensor, mask: Tensor) -> None:
+        """Drop the keyframes of the sequences in ``mask`` (B,) taken at ``timestamp`` (B,) or later: a frame found
+        lost after its model was taken must not leave landmarks at the lost pose."""
+        if self.valid is not None:
+            drop = mask[:, None] & (self.time >= timestamp.double()[:, None])  # B,S
+            self.valid &= ~drop[..., None]
+
+    def _allocate(self, gray: Tensor, sim: Tensor | None) -> None:
+        S, P, B = self.S, self.P, gray.shape[0]
+        self.gray = torch.zeros(S, *gray.shape, dtype=gray.dtype)
+        self.sim = None if sim is None else torch.zeros(S, *sim.shape, dtype=sim.dtype)
+        self.pixels = torch.zeros(B, S, P, 2)
+        self.world = torch.zeros(B, S, P, 3, dtype=torch.float64)
+        self.cornerness = torch.zeros(B, S, P, 2)
+        self.valid = torch.zeros(B, S, P, dtype=torch.bool)
+        self.T_world_kf = torch.eye(4, dtype=torch.float64).repeat(B, S, 1, 1)  # keyframe (depth) camera poses
+        self.time = torch.full((B, S), -float("inf"), dtype=torch.float64)  # keyframe time stamps
+        self.stamp = torch.full((B, S), -1, dtype=torch.long)  # insertion order of each slot; -1 empty
+        self.count = torch.zeros(B, dtype=torch.long)
+
+    def add(self, cur: PreparedFrame, timestamp: Tensor, T_world_cam: Tensor, pixels: Tensor, points_world: Tensor,
+            cornerness: Tensor, valid: Tensor, mask: Tensor) -> None:  # fmt: skip
+        """Store the current frame (time stamps (B,)), its camera at ``T_world_cam`` (B, 4, 4), as a keyframe of the
+        sequences in ``mask`` (B,) with its model features: pixels (B, N, 2), points_world (B, N, 3) in the tracker's
+        world, cornerness (B, N, 2), valid (B, N)."""
+        if pixels.shape[:2] != valid.shape or points_world.shape[:2] != valid.shape or mask.shape != valid.shape[:1]:
+            raise ValueError(f"LandmarkMap.add: pixels, points_world (B, N, .), valid (B, N), mask (B,); got "
+                             f"{tuple(pixels.shape)}, {tuple(points_world.shape)}, {tuple(valid.shape)}, {tuple(mask.shape)}")  # fmt: skip
+        gray, sim = cur.flow.images[0], (cur.flow.images[1] if cur.flow.has_sim else None)  # what LK tracks
+        if self.gray is None:
+            self._allocate(gray, sim)
+        rows = mask.nonzero().squeeze(1)
+        if len(rows) == 0:
+            return
+        slot = self.count[rows] % self.S
+        for k in slot.unique().tolist():
+            self.pyramids.pop(k, None)
+        self.gray[slot, rows] = gray[rows]
+        if self.sim is not None:
+            self.sim[slot, rows] = sim[rows]
+        order = torch.sort((~valid).to(torch.uint8), dim=1, stable=True).indices[:, : self.P]  # valid first
+        self.pixels[rows, slot] = _take(pixels.float(), order, self.P)[rows]
+        self.world[rows, slot] = _take(points_world.double(), order, self.P)[rows]
+        self.cornerness[rows, slot] = _take(cornerness.float(), order, self.P)[rows]
+        self.valid[rows, slot] = _take(valid, order, self.P)[rows]
+        self.T_world_kf[rows, slot] = T_world_cam.double()[rows]
+        self.time[rows, slot] = timestamp.double()[rows]
+        self.stamp[rows, slot] = self.count[rows]
+        self.count[rows] += 1
+
+    def candidates(self, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor, T_world_cam: Tensor,
+                   tracked: Tensor, tracked_valid: Tensor, mask: Tensor):  # fmt: skip
+        """The landmarks worth re-tracking, at most ``max_candidates`` per sequence, oldest keyframe first:
+        in front of the camera, inside the image (LK's border), not occluded, not near a tracked feature (B, N, 2)
+        or an older landmark. Returns (index (B, C) into the flattened (S * P) landmarks, valid (B, C),
+        projection (B, C, 2), predicted point in the depth camera (B, C, 3) float64)."""
+        B, S, P = self.valid.shape
+        H, W = cur.gray.shape[-2:]
+        world = self.world.reshape(B, S * P, 3)
+        X_cam = transform_points(T_inv(T_world_cam.double()), world)
+        X_col = transform_points(T_color_depth.double(), X_cam)
+        proj = project(K.double(), X_col).float()
+        z = X_col[..., 2]
+        border = 12.0
+        inside = (proj[..., 0] >= border) & (proj[..., 0] <= W - 1 - border)
+        inside &= (proj[..., 1] >= border) & (proj[..., 1] <= H - 1 - border)
+        d = sample_depth(cur.depth, proj).double()
+        visible = (z > 0.1) & inside & (d > 0) & (d >= z * (1 - self.occlusion))  # nothing nearer in front of it
+        ok = self.valid.reshape(B, S * P) & visible & mask[:, None] & self._similar_view(T_world_cam, world, X_cam)
+        ok &= _far_from(proj, tracked.float(), tracked_valid, self.min_separation_px)
+        age = self.stamp[:, :, None].expand(B, S, P).reshape(B, S * P)  # smaller = older keyframe
+        key = torch.where(ok, age, torch.iinfo(torch.long).max)
+        C = min(self.C, S * P)
+        index = torch.sort(key, dim=1, stable=True).indices[:, :C]
+        ok, proj = ok.gather(1, index), proj.gather(1, index[..., None].expand(-1, -1, 2))
+        X_cam = X_cam.gather(1, index[..., None].expand(-1, -1, 3))
+        # among themselves: keep a landmark only when no older (earlier in the order) one projects within the gap
+        gap = torch.cdist(proj, proj)
+        earlier = torch.ones(C, C, dtype=torch.bool).tril(-1)
+        clash = (gap < self.min_separation_px) & earlier & ok[:, None, :]
+        return index, ok & ~clash.any(-1), proj, X_cam
+
+    def _similar_view(self, T_world_cam: Tensor, world: Tensor, X_cam: Tensor) -> Tensor:
+        """(B, S * P) bool: the landmark's keyframe saw it from about the current viewpoint (LK tracks translations of
+        a window): the cameras' rotation and the two rays to the point differ by at most ``max_angle_deg`` and its
+        depth by at most the ``max_scale`` ratio, so its window looks about the same."""
+        B, S, P = self.valid.shape
+        R_rel = T_world_cam[:, None, :3, :3].double().transpose(-1, -2) @ self.T_world_kf[..., :3, :3]  # B,S,3,3
+        cos = ((R_rel.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
+        near = torch.rad2deg(torch.acos(cos)) <= self.max_angle_deg  # B,S
+        X_kf = transform_points(T_inv(self.T_world_kf).reshape(B * S, 4, 4), world.reshape(B * S, P, 3))
+        ratio = X_cam[..., 2] / X_kf.reshape(B, S * P, 3)[..., 2].clamp_min(1e-6)
+        scale_ok = (ratio <= self.max_scale) & (ratio >= 1 / self.max_scale)
+        ray_kf = world.reshape(B, S, P, 3) - self.T_world_kf[:, :, None, :3, 3]  # from each camera to the point
+        ray_cur = world - T_world_cam[:, None, :3, 3].double()
+        cos_ray = torch.nn.functional.cosine_similarity(ray_kf.reshape(B, S * P, 3), ray_cur, dim=-1)
+        parallax_ok = cos_ray >= math.cos(math.radians(self.max_angle_deg))
+        return near[:, :, None].expand(B, S, P).reshape(B, S * P) & scale_ok & parallax_ok
+
+    def reacquire(self, flow: Callable, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor, T_world_cam: Tensor,
+                  tracked: Tensor, tracked_valid: Tensor, mask: Tensor, tracked_world: Tensor | None = None,
+                  ) -> Reacquired:  # fmt: skip
+        """Re-track the visible landmarks of the sequences in ``mask`` (B,) from their keyframes into ``cur`` with
+        ``flow`` (the combined LK + TIM tracker, started at the projection under ``T_world_cam`` (B, 4, 4) float64)
+        and verify them; ``tracked`` (B, N, 2) / ``tracked_valid`` (B, N): the features the model keeps, at
+        ``tracked_world`` (B, N, 3) under the current pose: with ``correct`` they take part in the pose fit, so that
+        the landmarks move the pose only as far as they outweigh the current model."""
+        B = T_world_cam.shape[0]
+        if self.gray is None:
+            self._allocate(cur.flow.images[0], cur.flow.images[1] if cur.flow.has_sim else None)
+        index, ok, proj, X_pred = self.candidates(cur, K, T_color_depth, T_world_cam, tracked, tracked_valid, mask)
+        S, P = self.S, self.P
+        slot = index // P
+        kf_pix = self.pixels.reshape(B, S * P, 2).gather(1, index[..., None].expand(-1, -1, 2))
+        pixels, good = proj.clone(), torch.zeros_like(ok)
+        residual = torch.full(ok.shape, float("inf"))
+        for s in slot[ok].unique().tolist():  # one LK call per keyframe slot, batched over B
+            sel = ok & (slot == s)
+            if s not in self.pyramids:
+                sim = None if self.sim is None else self.sim[s]
+                self.pyramids[s] = prepare_frame(self.gray[s], sim, cur.flow.pyramid.levels)
+            kf = self.pyramids[s]
+            tr = flow(kf, cur.flow, kf_pix, sel, with_residual=True, init=proj)  # eq. (10), from the keyframe
+            probe = flow(kf, cur.flow, kf_pix, sel, init=proj + self.probe_px)  # a second start must converge there too
+            same = torch.linalg.vector_norm(tr.points.float() - probe.points.float(), dim=-1) <= self.converge_px
+            pixels = torch.where(sel[..., None], tr.points.float(), pixels)
+            good = torch.where(sel, tr.valid & probe.valid & same, good)
+            residual = torch.where(sel, tr.residual, residual)
+        X_meas, has_depth = measure_points(cur.depth, K, T_color_depth, pixels)
+        z = X_pred[..., 2]
+        offset = torch.linalg.vector_norm(X_meas.double() - X_pred, dim=-1)
+        shift = torch.linalg.vector_norm(pixels - proj, dim=-1)
+        good &= has_depth & (residual <= self.max_residual) & (shift <= self.max_shift_px)
+        good &= offset <= self.max_offset_m * z.square().clamp_min(1.0)
+        good &= _far_from(pixels, tracked.float(), tracked_valid, self.min_separation_px)
+        world = self.world.reshape(B, S * P, 3).gather(1, index[..., None].expand(-1, -1, 3))
+        corner = self.cornerness.reshape(B, S * P, 2).gather(1, index[..., None].expand(-1, -1, 2))
+        T_world_cam = T_world_cam.double()
+        if self.correct:
+            n = good.shape[1]
+            if tracked_world is not None:  # the current model's features: the prior of the fit
+                X_tr, has = measure_points(cur.depth, K, T_color_depth, tracked)
+                world = torch.cat([world, tracked_world.double()], 1)
+                pixels_fit, X_fit = torch.cat([pixels, tracked.float()], 1), torch.cat([X_meas, X_tr], 1)
+                good_fit = torch.cat([good, tracked_valid & has], 1)
+            else:
+                pixels_fit, X_fit, good_fit = pixels, X_meas, good
+            T_world_cam, inl = self._corrected(K, T_color_depth, T_world_cam, world, pixels_fit, X_fit, good_fit, n)
+            world, good = world[:, :n], inl[:, :n]
+        return Reacquired(pixels, world, X_meas, corner, good, T_world_cam)
+
+    def _corrected(self, K: Tensor, T_color_depth: Tensor, T_world_cam: Tensor, world: Tensor, pixels: Tensor,
+                   X_meas: Tensor, good: Tensor, n: int) -> tuple[Tensor, Tensor]:  # fmt: skip
+        """The camera pose (B, 4, 4) re-fitted to the points (world (B, C, 3), their tracked pixels and measured
+        points in the depth camera; the first ``n`` are landmarks, the rest the current model's features) by
+        :func:`refine_pose`, and the inliers among ``good`` (B, C). Sequences with fewer than ``min_inliers``
+        landmark inliers, or a correction above ``max_correction_m`` / ``max_correction_deg``,
+        keep their pose; their landmarks are still filtered by the inlier test under that pose."""
+        T_cd = T_color_depth.double()
+        T_color_world = T_cd @ T_inv(T_world_cam)
+        meas = transform_points(T_cd, X_meas.double())
+        fit = refine_pose(K, T_color_world, world, pixels, meas, good, sigma_m=self.inlier_m)
+        fit = refine_pose(K, fit.T_color_world, world, pixels, meas, fit.inliers, sigma_m=self.inlier_m)
+        T_new = T_inv(fit.T_color_world) @ T_cd
+        step = se3_log(T_inv(T_world_cam) @ T_new)
+        small = (step[:, :3].norm(dim=-1) <= self.max_correction_m) & (
+            step[:, 3:].norm(dim=-1) <= self.max_correction_rad
+        )
+        use = small & (fit.inliers[:, :n].sum(1) >= self.min_inliers)
+        T_out = torch.where(use[:, None, None], T_new, T_world_cam)
+        kept = refine_pose(K, T_cd @ T_inv(T_out), world, pixels, meas, good, sigma_m=self.inlier_m, iters=0).inliers
+        return T_out, kept
+
+
+class PoseFit(NamedTuple):
+    """T_color_world (B, 4, 4) float64; inliers (B, C): within ``inlier`` of the normalised residual at the end."""
+
+    T_color_world: Tensor
+    inliers: Tensor
+
+
+def refine_pose(K: Tensor, T_color_world: Tensor, world: Tensor, pixels: Tensor, measured: Tensor, valid: Tensor, *,
+                sigma_px: float = 1.0, sigma_m: float = 0.02, huber: float = 2.0, inlier: float = 3.0,
+                iters: int = 8) -> PoseFit:  # fmt: skip
+    """Gauss-Newton on the camera pose from world points seen at colour pixels, with their measured 3D points: the
+    reprojection residual (px / ``sigma_px``) and the 3D residual (m / ``sigma_m`` max(1, z^2)), Huber-weighted per
+    point, like the paper's 5 measurements per feature (eqs. 6-7) on a static pose. The pixel term fixes the pose
+    where the keyframe's depth is noisy: along the ray a depth error barely moves a projection.
+
+    Args:
+        K: (B, 3, 3) colour intrinsics; T_color_world: (B, 4, 4) the starting pose (world -> colour camera).
+        world: (B, C, 3) points in the world; pixels: (B, C, 2) where they are seen; measured: (B, C, 3) their
+            points measured from depth, in the colour camera; valid: (B, C).
+    Linearised at the current estimate each iteration (left perturbation ``exp(xi) T``, xi = (v, omega)).
+    """
+    T = T_color_world.double()
+    K = K.double()
+    fx, fy, cx, cy = K[:, 0, 0, None], K[:, 1, 1, None], K[:, 0, 2, None], K[:, 1, 2, None]
+    w = valid.double()
+    eye = torch.eye(6, dtype=torch.float64)
+    for i in range(iters + 1):
+        p = transform_points(T, world.double())  # B,C,3
+        x, y, z = p.unbind(-1)
+        z = z.clamp_min(1e-3)
+        r2 = torch.stack([fx * x / z + cx - pixels[..., 0], fy * y / z + cy - pixels[..., 1]], -1) / sigma_px
+        sig3 = sigma_m * z.square().clamp_min(1.0)
+        r3 = (p - measured.double()) / sig3[..., None]
+        r = torch.cat([r2, r3], -1)  # B,C,5
+        err = torch.linalg.vector_norm(r, dim=-1)
+        if i == iters:
+            break
+        zero = torch.zeros_like(z)
+        Jp = torch.stack([torch.stack([fx / z, zero, -fx * x / z**2], -1),
+                          torch.stack([zero, fy / z, -fy * y / z**2], -1)], -2)  # fmt: skip  # B,C,2,3
+        Jxi = torch.cat([torch.eye(3, dtype=torch.float64).expand(*p.shape[:2], 3, 3), -hat(p)], -1)  # B,C,3,6
+        J = torch.cat([Jp @ Jxi / sigma_px, Jxi / sig3[..., None, None]], -2)  # B,C,5,6
+        hw = torch.where(err <= huber, 1.0, huber / err.clamp_min(1e-12)) * w
+        H = torch.einsum("bcki,bckj,bc->bij", J, J, hw) + 1e-6 * eye
+        g = torch.einsum("bcki,bck,bc->bi", J, r, hw)
+        T = se3_exp(-torch.linalg.solve(H, g)) @ T
+    return PoseFit(T, valid & (err <= inlier))
+
+
+def _far_from(points: Tensor, others: Tensor, others_valid: Tensor, gap: float) -> Tensor:
+    """(B, C) bool: each of points (B, C, 2) is at least ``gap`` px from every valid one of others (B, N, 2)."""
+    if others.shape[1] == 0:
+        return torch.ones(points.shape[:2], dtype=torch.bool)
+    d = torch.cdist(points, others).masked_fill(~others_valid[:, None, :], float("inf"))
+    return d.amin(2) >= gap
+
+
+def _take(x: Tensor, order: Tensor, n: int) -> Tensor:
+    """x (B, N, ...) at the indices order (B, M) along dim 1, padded to n with zeros (False)."""
+    x = x.gather(1, order.view(*order.shape, *[1] * (x.dim() - 2)).expand(-1, -1, *x.shape[2:]))
+    if x.shape[1] >= n:
+        return x
+    return torch.cat([x, torch.zeros(x.shape[0], n - x.shape[1], *x.shape[2:], dtype=x.dtype)], 1)
