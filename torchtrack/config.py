@@ -281,6 +281,7 @@ class PipelineConfig:
     keep_survivors: bool = True  # improvement (false = paper): a re-selection keeps the features still tracked
     min_separation_px: float = 8.0  # ... and adds new ones only this far from a survivor
     predict_init: bool = True  # improvement (false = paper): LK starts at the constant-velocity prediction
+    track_from_model: bool = False  # improvement (false = paper): LK from the model frame, not the previous one
     ransac_threshold_m: float | None = None  # improvement (null = off): RANSAC (Horn) inliers within this x max(1,z^2)
     ransac_min_motion_px: float = 0.0  # ... in frames whose median tracked displacement exceeds this
     record: bool = False  # compute every frame's per-feature cues (torchtrack-record)

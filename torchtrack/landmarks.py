@@ -228,12 +228,17 @@ class LandmarkMap:
                 sim = None if self.sim is None else self.sim[s]
                 self.pyramids[s] = prepare_frame(self.gray[s], sim, cur.flow.pyramid.levels)
             kf = self.pyramids[s]
-            tr = flow(kf, cur.flow, kf_pix, sel, with_residual=True, init=proj)  # eq. (10), from the keyframe
-            probe = flow(kf, cur.flow, kf_pix, sel, init=proj + self.probe_px)  # a second start must converge there too
-            same = torch.linalg.vector_norm(tr.points.float() - probe.points.float(), dim=-1) <= self.converge_px
-            pixels = torch.where(sel[..., None], tr.points.float(), pixels)
-            good = torch.where(sel, tr.valid & probe.valid & same, good)
-            residual = torch.where(sel, tr.residual, residual)
+            # eq. (10), from the keyframe, started at the projection and (second half) probe_px away from it: a second
+            # start must converge there too. One call for both (every point's track is independent of the others).
+            n = kf_pix.shape[1]
+            both = flow(kf, cur.flow, kf_pix.repeat(1, 2, 1), sel.repeat(1, 2), with_residual=True,
+                        init=torch.cat([proj, proj + self.probe_px], 1))  # fmt: skip
+            tr_points, probe_points = both.points.float().split(n, 1)
+            tr_valid, probe_valid = both.valid.split(n, 1)
+            same = torch.linalg.vector_norm(tr_points - probe_points, dim=-1) <= self.converge_px
+            pixels = torch.where(sel[..., None], tr_points, pixels)
+            good = torch.where(sel, tr_valid & probe_valid & same, good)
+            residual = torch.where(sel, both.residual[:, :n], residual)
         X_meas, has_depth = measure_points(cur.depth, K, T_color_depth, pixels)
         z = X_pred[..., 2]
         offset = torch.linalg.vector_norm(X_meas.double() - X_pred, dim=-1)
