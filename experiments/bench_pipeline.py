@@ -77,7 +77,7 @@ STAGES = {
     "weighting": ("weighting (eqs. 11-14)", 0),
     "backend": ("backend: EKF (total)", 0),
     "backend/predict": ("predict (eqs. 3-4)", 1),
-    "backend/linearize": ("linearise h (eqs. 6-7, autograd)", 1),
+    "backend/linearize": ("linearise h (eqs. 6-7; filter.jacobian)", 1),
     "region": ("selection: region", 0),
     "select": ("selection: features (eq. 9)", 0),
     "record": ("run loop: per-frame recording (run.py)", 0),

@@ -180,7 +180,9 @@ class FilterConfig:
     init_sigma_lin_vel: float = 0.5  # m/s
     iterations: int = 1  # 1 = the paper's EKF; > 1 = iterated EKF
     form: str = "information"  # information (fast) | gain (the paper's eq. 15, slow)
-    jacobian: str = "forward"  # forward (torch.func.jacfwd) | reverse | analytic
+    # analytic (closed form, ~10x faster; equal to autograd to 1e-10, same trajectories) | forward (torch.func.jacfwd)
+    # | reverse (jacrev)
+    jacobian: str = "analytic"
 
 
 @dataclass
