@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torchtrack.data.batching import frame_gray
 from torchtrack.data.frame import FrameBatch
 from torchtrack.geometry import warp_depth
 from torchtrack.image.flow import FlowFrame, prepare_frame
@@ -56,7 +57,7 @@ class FrontEnd:
         self.sim_kwargs = dict(sim_kwargs or {})
 
     def __call__(self, frame: FrameBatch) -> PreparedFrame:
-        gray = frame.gray
+        gray = frame_gray(frame)  # computed by the loader threads when the frame came from iterate_batched
         depth = depth_in_colour(frame)
         sim = compute_sim(depth, frame.K, **self.sim_kwargs) if self.use_sim else None  # eq. (8)
         flow = prepare_frame(gray, sim.image if sim is not None else None, self.levels)
