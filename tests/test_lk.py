@@ -266,35 +266,6 @@ def test_chunks_track_as_one_call():
         lk_track_flat(p0, p1, pts, img, pts, chunk=0)
 
 
-def test_templates_reused_across_calls_equal_fresh_ones(monkeypatch):
-    """A template depends on its point, image and pyramid only, so a call whose start points an earlier call on the
-    same pyramid already templated (the next frame's forward pass after this frame's backward pass) reuses them:
-    the tracks equal those on fresh pyramids bit for bit, for full, partial and no reuse, with two images and points
-    shared between them, and only the new points are templated."""
-    import torchtrack.image.lk as lk
-
-    i0, i1, pts, _ = warped_pair(np.eye(2), np.array([1.1, -0.4]), n=24)
-    j0, j1, _, _ = warped_pair(np.eye(2), np.array([-0.8, 0.5]), n=24, seed=3)
-    a, b = torch.cat([i0, j0]), torch.cat([i1, j1])
-    pts = torch.cat([pts[0], pts[0, :8]])  # 8 points in both images
-    img = torch.cat([torch.zeros(24, dtype=torch.long), torch.ones(8, dtype=torch.long)])
-    templated = []
-    real = lk._template_levels
-    monkeypatch.setattr(lk, "_template_levels", lambda s, x0, *r: templated.append(len(x0)) or real(s, x0, *r))
-    pa, pb = build_pyramid(a, 3), build_pyramid(b, 3)
-    back = lk_track_flat(pb, pa, pts, img, pts)  # templates on pb, as a backward pass
-    calls = [(pts, img), (pts[4:20], img[4:20]), (torch.cat([pts[:6] + 0.25, pts[6:]]), img), (pts + 0.5, img)]
-    new = []
-    for x0, im in calls:
-        templated.clear()
-        got = lk_track_flat(pb, pa, x0, im, x0 - 0.3)
-        new.append(sum(templated))
-        want = lk_track_flat(build_pyramid(b, 3), build_pyramid(a, 3), x0, im, x0 - 0.3)
-        assert all(torch.equal(u, v) for u, v in zip(got, want, strict=True))
-    assert new == [0, 0, 6, 32]  # reused all, all, all but the 6 moved points, none
-    assert back[1].sum() >= 28 and got[1].sum() >= 28
-
-
 # ---------------------------------------------------------------------------------------------- OpenCV on real frames
 @pytest.mark.skipif(not DATA.exists(), reason="needs ../shared/data")
 @pytest.mark.parametrize("seq", ["sun3d_fragment1", "visp_rbt_sequence"])

@@ -68,7 +68,6 @@ class _Sampler:
         self.stride = torch.tensor([1.0, float(pyr.stride)], dtype=self.dtype)
         self.base_table = ((pyr.row_start + pyr.pad) * pyr.stride + pyr.pad).to(self.dtype)  # L,B: level px (0, 0)
         self._rows: dict[int, tuple[Tensor, Tensor]] = {}
-        self._templates: list[_TemplateCache] = []  # the latest calls' templates on this pyramid, newest first
 
     @staticmethod
     def of(pyr: Pyramid, window: int) -> _Sampler:
@@ -158,82 +157,6 @@ def _template(sampler: _Sampler, x: Tensor, base: Tensor, min_eig: float):
     h_inv, det = _inverse_2x2(h, 1.0 / _GRAD_SCALE)
     degenerate |= ~(det > 0.0)
     return g, a[:, :, 2].reshape(n, 1, 2), h_inv, det, degenerate
-
-
-_CACHED_CALLS = 4  # template sets kept per pyramid: its frame's two backward calls, then the next frame's two forward
-
-
-class _TemplateCache(NamedTuple):
-    """The templates of one LK call on a pyramid: points x0 (n, 2) (level 0) in images img (n,), their sort keys,
-    and the level-major template rows (L * n, ...) of :func:`_template` for ``levels`` and ``min_eig``."""
-
-    x0: Tensor
-    img: Tensor
-    keys: Tensor  # (n,) int64 sorted
-    order: Tensor  # (n,) int64: keys = key(x0)[order]
-    levels: int
-    min_eig: float
-    rows: tuple[Tensor, ...]  # g, tg, h_inv, h_det, degenerate
-
-
-def _point_keys(x0: Tensor, img: Tensor) -> Tensor:
-    """(n,) int64 from the float32 bits of x and y and the image index (equal points, equal keys; collisions are
-    resolved by comparing the points themselves)."""
-    bits = x0.contiguous().view(torch.int32).long()
-    return ((bits[:, 0] << 32) | (bits[:, 1] & 0xFFFFFFFF)) ^ (img * 0x5851F42D4C957F2D)
-
-
-def _templates(sampler: _Sampler, x0: Tensor, img: Tensor, levels: int, min_eig: float) -> tuple[Tensor, ...]:
-    """:func:`_template` of points x0 (n, 2) (level 0) in images img (n,) at every level, level-major rows (L * n).
-
-    A template depends on its point, image and pyramid only: a point that an earlier call on this pyramid already
-    templated reuses those rows (the same numbers). It happens every frame: the backward pass of frame t tracks
-    its results from frame t's pyramid, and the forward pass of frame t + 1 starts from the same points there.
-    """
-    n = x0.shape[0]
-    keys = _point_keys(x0, img)
-    src_entry, src_row = torch.full((n,), -1), torch.zeros(n, dtype=torch.int64)
-    for e, cache in enumerate(sampler._templates):
-        if cache.levels != levels or cache.min_eig != min_eig:
-            continue
-        miss = (src_entry < 0).nonzero().squeeze(1)
-        if miss.numel() == 0:
-            break
-        pos = torch.searchsorted(cache.keys, keys[miss]).clamp_max(cache.keys.numel() - 1)
-        cand = cache.order[pos]
-        hit = (cache.keys[pos] == keys[miss]) & (cache.img[cand] == img[miss]) & (cache.x0[cand] == x0[miss]).all(-1)
-        src_entry[miss[hit]], src_row[miss[hit]] = e, cand[hit]
-    new = (src_entry < 0).nonzero().squeeze(1)
-    if new.numel() == n:  # nothing cached: one call
-        rows = _template_levels(sampler, x0, img, levels, min_eig)
-    else:
-        lv = torch.arange(levels)[:, None]
-        rows = None
-        for e in src_entry.unique().tolist():
-            at = (src_entry == e).nonzero().squeeze(1)
-            if e < 0:
-                part = _template_levels(sampler, x0[at], img[at], levels, min_eig)
-            else:
-                cache = sampler._templates[e]
-                m = cache.x0.shape[0]
-                part = tuple(t.index_select(0, (lv * m + src_row[at]).view(-1)) for t in cache.rows)
-            if rows is None:
-                rows = tuple(t.new_empty(levels * n, *t.shape[1:]) for t in part)
-            dst = (lv * n + at).view(-1)
-            for out, t in zip(rows, part, strict=True):
-                out.index_copy_(0, dst, t)
-    order = keys.argsort()
-    sampler._templates.insert(0, _TemplateCache(x0, img, keys[order], order, levels, min_eig, rows))
-    del sampler._templates[_CACHED_CALLS:]
-    return rows
-
-
-def _template_levels(sampler: _Sampler, x0: Tensor, img: Tensor, levels: int, min_eig: float) -> tuple[Tensor, ...]:
-    """:func:`_template` of points x0 (n, 2) at every level in one call: rows level-major (L * n)."""
-    scale = 0.5 ** torch.arange(levels, dtype=x0.dtype)
-    x_levels = (scale.view(-1, 1, 1) * x0).reshape(-1, 2)
-    base = sampler.base_table[:levels].index_select(1, img).reshape(-1)
-    return _template(sampler, x_levels, base, min_eig)
 
 
 def _newton(r: Tensor, step: Tensor, g_t: Tensor, h_det: Tensor, jy: Tensor, patch: Tensor, fx: Tensor) -> Tensor:
@@ -364,7 +287,11 @@ def _track_chunk(
         status[:] = False
         if sel.numel():
             x0, img = points[sel], image_index[sel]
-            *template, degenerate = _templates(s_prev, x0, img, levels, min_eig)  # every level's, level-major rows
+            # The templates of all levels in one call (rows level-major): they depend on x0 only.
+            scale = 0.5 ** torch.arange(levels, dtype=x0.dtype)
+            x_levels = (scale.view(-1, 1, 1) * x0).reshape(-1, 2)
+            base = s_prev.base_table[:levels].index_select(1, img).reshape(-1)
+            *template, degenerate = _template(s_prev, x_levels, base, min_eig)
             degenerate = degenerate.view(levels, -1)
             # A point degenerate at the finest level fails whatever the coarse levels find, so it is not tracked
             # at all (OpenCV tracks it through the coarse levels, then reports it as failed).
