@@ -67,11 +67,11 @@ TARGET_FPS, TARGET_BATCH, TARGET_STARTUP_S = 30.0, 3.0, 2.0  # issue 15
 
 # (row label, indent) in print order; the keys are the timer names used below.
 STAGES = {
-    "data_wait": ("data: waiting for the next frame", 0),
-    "frontend": ("frontend (total)", 0),
-    "frontend/depth": ("depth registered to colour", 1),
-    "frontend/sim": ("SIM (shape index, eq. 8)", 1),
-    "frontend/pyramids": ("LK pyramids", 1),
+    "data_wait": ("data: waiting for the next frame (decoded; prepared when frontend.ahead)", 0),
+    "frontend": ("frontend (main thread)", 0),
+    "frontend/depth": ("depth registered to colour (*)", 1),
+    "frontend/sim": ("SIM (shape index, eq. 8) (*)", 1),
+    "frontend/pyramids": ("LK pyramids (*)", 1),
     "flow": ("flow: LK + TIM (eq. 10)", 0),
     "measure": ("depth read at features (eq. 6)", 0),
     "weighting": ("weighting (eqs. 11-14)", 0),
@@ -193,10 +193,10 @@ def instrument(tracker, timer: StageTimer) -> contextlib.ExitStack:
         original = getattr(run_module.Recorder, method)
         stack.callback(setattr, run_module.Recorder, method, original)
         setattr(run_module.Recorder, method, timer.wrap(stage, original))
-    iterate = run_module.iterate_batched
+    ahead = run_module._prepared_ahead  # the frames the tracker gets: decoded, and prepared when frontend.ahead
 
     def timed_frames(*args, **kwargs):
-        frames = iterate(*args, **kwargs)
+        frames = ahead(*args, **kwargs)
         while True:
             t0 = time.perf_counter()
             frame = next(frames, None)
@@ -205,8 +205,8 @@ def instrument(tracker, timer: StageTimer) -> contextlib.ExitStack:
                 return
             yield frame
 
-    stack.callback(setattr, run_module, "iterate_batched", iterate)
-    run_module.iterate_batched = timed_frames
+    stack.callback(setattr, run_module, "_prepared_ahead", ahead)
+    run_module._prepared_ahead = timed_frames
     stack.enter_context(patched(tracker_module, "measure_points", timer, "measure"))
     stack.enter_context(patched(frontend_module, "depth_in_colour", timer, "frontend/depth"))
     for name in ("compute_sim", "shape_index", "sim_image"):  # whichever the front end calls
@@ -304,6 +304,10 @@ def stage_table(runs: list[dict], ops: dict | None = None) -> str:
     lines.append(row("**wall**", "total", [r["wall_s"] for r in runs]))
     lines.append(
         row("decode in the loader thread (overlaps the above)", None, [r["stages"].get("decode", 0.0) for r in runs])
+    )
+    lines.append(
+        "\n(*) in the front end's thread, overlapping the main thread, when ``frontend.ahead`` (the default); aten "
+        "operators are counted on the main thread only."
     )
     return "\n".join(lines)
 
