@@ -79,6 +79,7 @@ class FrontEnd:
         return ready[1]
 
     def prepare(self, frame: FrameBatch) -> PreparedFrame:
+        """Prepare ``frame`` now, in the calling thread."""
         gray = frame_gray(frame)  # computed by the loader threads when the frame came from iterate_batched
         depth = depth_in_colour(frame)
         sim = compute_sim(depth, frame.K, **self.sim_kwargs) if self.use_sim else None  # eq. (8)
