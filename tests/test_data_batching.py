@@ -18,6 +18,7 @@ from torchtrack.data import (
     iterate_batched,
     write_tum_trajectory,
 )
+from torchtrack.data.batching import frame_gray
 from torchtrack.geometry import make_T, so3_exp
 
 
@@ -65,6 +66,19 @@ def test_lockstep_equals_per_sequence_frames(three_sequences, prefetch):
             assert torch.equal(b.K[k], s.K) and torch.equal(b.K_depth[k], s.K_depth)
             assert torch.equal(b.T_color_depth[k], s.T_color_depth)
     assert batches[0].K[:, 0, 0].tolist() == [102.0, 104.0, 103.0]
+
+
+@pytest.mark.parametrize("prefetch", [True, False])
+def test_loader_luminance_equals_frame_gray(three_sequences, prefetch):
+    """The luminance the loader threads compute is FrameBatch.gray bit for bit (ended sequences included); a batch that
+    did not come from the loader, or a sliced one, falls back to computing it."""
+    for b in iterate_batched(three_sequences, prefetch=prefetch):
+        got = frame_gray(b)
+        assert frame_gray(b) is got and torch.equal(got, b.gray) and got.shape == (3, 1, 6, 8)  # the loader's copy
+    sliced = FrameBatch(**{k: v[1:2] for k, v in vars(b).items()})
+    assert frame_gray(sliced) is not frame_gray(sliced) and torch.equal(frame_gray(sliced), b.gray[1:2])  # computed
+    single = list(iterate_batched(three_sequences[1:2], prefetch=prefetch))
+    assert all(torch.equal(frame_gray(x), x.gray) and frame_gray(x).shape == (1, 1, 6, 8) for x in single)
 
 
 def test_ended_sequence_is_not_reloaded(three_sequences, monkeypatch):

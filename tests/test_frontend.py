@@ -1,12 +1,16 @@
-"""Per-frame preparation helpers (torchtrack.frontend): the occlusion-boundary mask of the selection."""
+"""Per-frame preparation (torchtrack.frontend): the occlusion-boundary mask of the selection, preparing ahead in a
+thread."""
 
 from __future__ import annotations
+
+import threading
 
 import pytest
 import torch
 import torch.nn.functional as F
 
-from torchtrack.frontend import _window_max, smooth_depth_mask
+from torchtrack.data.frame import FrameBatch
+from torchtrack.frontend import FrontEnd, PreparedFrame, _window_max, smooth_depth_mask
 
 
 @pytest.mark.parametrize("shape", [(2, 1, 7, 9), (1, 1, 1, 5), (1, 1, 3, 3), (3, 1, 40, 33)])
@@ -30,3 +34,73 @@ def test_smooth_depth_mask_against_max_pool_oracle():
     assert mask.shape == depth.shape and mask.dtype == torch.bool
     assert torch.equal(mask, expected)
     assert not mask[:, :, 18:32, 28:32].any() and mask[:, :, 24, 40:].float().mean() > 0.5
+
+
+def _frames(n: int, H: int = 48, W: int = 64) -> list[FrameBatch]:
+    """n FrameBatches (B=2) of random colour and a smooth bowl of depth (a defined SIM)."""
+    g = torch.Generator().manual_seed(n)
+    yy, xx = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    bowl = 1.0 + 1e-4 * ((xx - W / 2) ** 2 + (yy - H / 2) ** 2)
+    K = torch.tensor([[60.0, 0, W / 2], [0, 60.0, H / 2], [0, 0, 1]]).expand(2, 3, 3)
+    return [
+        FrameBatch(rgb=torch.rand(2, 3, H, W, generator=g), depth=(bowl + 0.01 * t).expand(2, 1, H, W).clone(), K=K,
+                   K_depth=K, T_color_depth=torch.eye(4).expand(2, 4, 4), timestamp=torch.full((2,), t / 30.0,
+                   dtype=torch.float64), T_world_cam_gt=torch.eye(4, dtype=torch.float64).expand(2, 4, 4),
+                   gt_valid=torch.ones(2, dtype=torch.bool), active=torch.ones(2, dtype=torch.bool),
+                   index=torch.full((2,), t))
+        for t in range(n)
+    ]  # fmt: skip
+
+
+def _same(a: PreparedFrame, b: PreparedFrame) -> bool:
+    pairs = [
+        (a.gray, b.gray),
+        (a.depth, b.depth),
+        (a.flow.pyramid.flat, b.flow.pyramid.flat),
+        *zip(a.sim, b.sim, strict=True),
+    ]
+    return all(torch.equal(x, y) for x, y in pairs)
+
+
+@pytest.mark.parametrize("ahead", [True, False])
+def test_prepared_ahead_yields_the_frames_prepared_as_now(ahead):
+    """The frames come through in order, and the front end returns for each what preparing it now gives (made in the
+    front end's thread when ``ahead``), in the caller's inference mode."""
+    frames, front = _frames(5), FrontEnd(levels=2, ahead=ahead)
+    threads = []
+    prepare = front.prepare
+    front.prepare = lambda f: threads.append(threading.current_thread().name) or prepare(f)
+    with torch.inference_mode():
+        got = [(f, front(f)) for f in front.prepared_ahead(iter(frames))]
+    assert [f for f, _ in got] == frames
+    assert all(_same(p, prepare(f)) and p.sim.si.is_inference() for f, p in got)
+    assert threads == (["torchtrack-frontend"] * 5 if ahead else ["MainThread"] * 5)
+    assert not any(t.name == "torchtrack-frontend" for t in threading.enumerate())
+
+
+def test_prepared_ahead_errors_arrive_at_their_frame():
+    """A preparation error is raised when the front end is called on that frame (the tracker's step fails, as without
+    the thread); an error of the frame source is raised by the iteration after the frames before it; stopping early
+    ends the thread."""
+    frames, front = _frames(4), FrontEnd(levels=2)
+    frames[2].depth = torch.zeros(2, 1, 3)  # not (B, 1, H, W): its preparation fails
+
+    def source():
+        yield from frames
+        raise RuntimeError("decoder gone")
+
+    it, seen = front.prepared_ahead(source()), []
+    for f in it:
+        if f is frames[2]:
+            with pytest.raises(ValueError):
+                front(f)
+        else:
+            seen.append(front(f))
+        if len(seen) == 3:
+            break
+    with pytest.raises(RuntimeError, match="decoder gone"):
+        list(front.prepared_ahead(source()))
+    it = front.prepared_ahead(iter(frames))
+    next(it)
+    it.close()
+    assert len(seen) == 3 and not any(t.name == "torchtrack-frontend" for t in threading.enumerate())

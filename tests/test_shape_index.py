@@ -273,3 +273,29 @@ def test_synthetic_renderer_depth():
             assert float((err <= TOL).float().mean()) >= 0.9
         checked += 1
     assert checked >= 2
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_upsample_is_edge_clamped_linear_interpolation_with_nan_propagation(d):
+    """Oracle: a pixel at (y, x) mixes the samples at floor(y / d), floor(y / d) + 1 (clamped) with weight (y mod d) / d,
+    the same along x; a NaN sample makes exactly the pixels with non-zero weight on it NaN."""
+    from torchtrack.image.shape_index import _upsample
+
+    g = torch.Generator().manual_seed(d)
+    x = torch.rand(2, 4, 5, generator=g, dtype=torch.float64)
+    x[1, 2, 3] = math.nan
+    H, W = 4 * d - 1, 5 * d - 2
+    up = _upsample(x, d, H, W)
+    assert up.shape == (2, H, W)
+    for y in range(H):
+        for xx in range(W):
+            i, j, ty, tx = y // d, xx // d, (y % d) / d, (xx % d) / d
+            i1, j1 = min(i + 1, 3), min(j + 1, 4)
+            corners = [(i, j, (1 - ty) * (1 - tx)), (i, j1, (1 - ty) * tx), (i1, j, ty * (1 - tx)), (i1, j1, ty * tx)]
+            for b in range(2):
+                used = [x[b, r, c] for r, c, w in corners if w > 0]
+                want = sum(w * x[b, r, c] for r, c, w in corners if w > 0)
+                if any(math.isnan(v) for v in used):
+                    assert math.isnan(up[b, y, xx])
+                else:
+                    assert up[b, y, xx].item() == pytest.approx(want.item(), abs=1e-12)

@@ -7,11 +7,15 @@ pixel grid: a feature tracked at colour pixel x reads its depth and its SIM at x
 
 from __future__ import annotations
 
+import queue
+import threading
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from torchtrack.data.batching import frame_gray
 from torchtrack.data.frame import FrameBatch
 from torchtrack.geometry import warp_depth
 from torchtrack.image.flow import FlowFrame, prepare_frame
@@ -44,23 +48,100 @@ def depth_in_colour(frame: FrameBatch) -> Tensor:
 class FrontEnd:
     """Builds a :class:`PreparedFrame`: gray, colour-registered depth, SIM (eq. 8) and LK pyramids.
 
+    The preparation depends on the frame only, not on the tracking state, so :meth:`prepared_ahead` can run it in a
+    thread of its own a step ahead of the tracker (torch releases the GIL inside its operators): at B=1 the SIM and
+    the pyramids then use the second core beside the decoder threads instead of the tracker's.
+
     Args:
         levels: pyramid levels of the LK tracker.
         use_sim: compute the SIM (needed by SIM-assisted tracking and lambda < 1 selection).
         sim_kwargs: keyword arguments of :func:`torchtrack.image.shape_index`.
+        ahead: :meth:`prepared_ahead` prepares frames in its thread (False: it passes the frames through, and each
+            is prepared when the tracker asks for it; the same results).
     """
 
-    def __init__(self, *, levels: int = 3, use_sim: bool = True, sim_kwargs: dict | None = None) -> None:
+    def __init__(
+        self, *, levels: int = 3, use_sim: bool = True, sim_kwargs: dict | None = None, ahead: bool = True
+    ) -> None:
         self.levels = levels
         self.use_sim = use_sim
         self.sim_kwargs = dict(sim_kwargs or {})
+        self.ahead = ahead
+        self._ready: dict[int, tuple[FrameBatch, PreparedFrame | BaseException]] = {}  # by id(frame)
 
     def __call__(self, frame: FrameBatch) -> PreparedFrame:
-        gray = frame.gray
+        """The frame prepared: by :meth:`prepared_ahead`'s thread when it yielded this frame, else now."""
+        ready = self._ready.pop(id(frame), None)
+        if ready is None or ready[0] is not frame:
+            return self.prepare(frame)
+        if isinstance(ready[1], BaseException):  # it fails here, at this frame's step, as without the thread
+            raise ready[1]
+        return ready[1]
+
+    def prepare(self, frame: FrameBatch) -> PreparedFrame:
+        """Prepare ``frame`` now, in the calling thread."""
+        gray = frame_gray(frame)  # computed by the loader threads when the frame came from iterate_batched
         depth = depth_in_colour(frame)
         sim = compute_sim(depth, frame.K, **self.sim_kwargs) if self.use_sim else None  # eq. (8)
         flow = prepare_frame(gray, sim.image if sim is not None else None, self.levels)
         return PreparedFrame(gray, depth, sim, flow)
+
+    def prepared_ahead(self, frames: Iterable[FrameBatch], depth: int = 1) -> Iterator[FrameBatch]:
+        """Yield ``frames`` in order while a thread takes them from ``frames`` and prepares them, at most ``depth``
+        frames beyond the one being prepared; calling this front end on a yielded frame returns its preparation.
+
+        An error raised by ``frames`` is raised here, after the frames before it; one raised by a preparation is
+        raised when the front end is called on that frame. The thread runs in the caller's inference mode.
+        """
+        if not self.ahead:
+            yield from frames
+            return
+        out: queue.Queue = queue.Queue(maxsize=depth)
+        stop = threading.Event()
+        mode = torch.is_inference_mode_enabled()
+
+        def put(item) -> bool:
+            while not stop.is_set():
+                try:
+                    out.put(item, timeout=0.05)
+                    return True
+                except queue.Full:
+                    continue
+            return False
+
+        def produce() -> None:
+            with torch.inference_mode(mode):
+                try:
+                    for frame in frames:
+                        try:
+                            prepared = self.prepare(frame)
+                        except Exception as e:  # noqa: BLE001 - handed to the step that needs this frame
+                            prepared = e
+                        if not put((frame, prepared)):
+                            return
+                    put((None, None))
+                except BaseException as e:  # noqa: BLE001 - the caller's iteration raises it
+                    put((None, e))
+                finally:
+                    close = getattr(frames, "close", None)  # a generator's clean-up runs in the thread that ran it
+                    if close is not None:
+                        close()
+
+        worker = threading.Thread(target=produce, name="torchtrack-frontend", daemon=True)
+        worker.start()
+        try:
+            while True:
+                frame, prepared = out.get()
+                if frame is None:
+                    if prepared is not None:
+                        raise prepared
+                    return
+                self._ready[id(frame)] = (frame, prepared)
+                yield frame
+        finally:
+            stop.set()
+            worker.join()
+            self._ready.clear()
 
 
 def smooth_depth_mask(depth: Tensor, max_rel_step: float = 0.03, radius: int = 2) -> Tensor:

@@ -184,6 +184,12 @@ def unique_names(sequences: list[TumSequence]) -> list[str]:
     return names
 
 
+def _prepared_ahead(tracker: Tracker, frames):
+    """The frames, prepared a step ahead in the front end's thread (``frontend.ahead``; the same results)."""
+    ahead = getattr(getattr(tracker, "frontend", None), "prepared_ahead", None)
+    return ahead(frames) if ahead is not None else frames
+
+
 def run_tracker(
     tracker: Tracker, sequences: list[TumSequence], out_dir: Path, *, plots: bool = True, mapper=None
 ) -> list[dict]:
@@ -217,7 +223,12 @@ def run_tracker(
 
     with torch.inference_mode(), logging_redirect_tqdm():  # log lines above the bar, not glued onto it
         for t, frame in enumerate(
-            tqdm(iterate_batched(sequences, cursors=cursors), total=max(lengths), desc="tracking", unit="frame")
+            tqdm(
+                _prepared_ahead(tracker, iterate_batched(sequences, cursors=cursors)),
+                total=max(lengths),
+                desc="tracking",
+                unit="frame",
+            )  # fmt: skip
         ):
             try:
                 res = tracker.step(frame)

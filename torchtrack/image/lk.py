@@ -91,7 +91,7 @@ class _Sampler:
         """Window centres q (level px) can be sampled, gradients included, iff lo <= floor(q) <= hi."""
         h, w = self.pyr.size(level)
         lo, hi = self.r + 1 - self.pyr.pad, self.pyr.pad - self.r - 3
-        return torch.tensor(float(lo)), torch.tensor([w + hi, h + hi], dtype=torch.float32)
+        return torch.tensor([float(lo)] * 2), torch.tensor([w + hi, h + hi], dtype=torch.float32)  # (2,): fast clamp
 
     def base(self, level: int, image_index: Tensor) -> Tensor:
         return self.base_table[level].index_select(0, image_index)
@@ -215,7 +215,7 @@ def _iterate(sampler, level, q, g, tg, h_inv, h_det, base, *, iters, eps, ic_ite
         stop &= live
         conv_all |= stop & conv
         live &= ~stop
-        n_live = int(live.sum())
+        n_live = int(live.count_nonzero())
         if n_live == 0 or j == iters - 1:
             break
         if 2 * n_live <= n:
@@ -223,7 +223,7 @@ def _iterate(sampler, level, q, g, tg, h_inv, h_det, base, *, iters, eps, ic_ite
             conv_out[ids] = conv_all
             keep = live.nonzero().squeeze(1)
             ids, q, base, d2_prev, h_det = ids[keep], q[keep], base[keep], d2[keep], h_det[keep]
-            live, conv_all = live[keep], conv_all[keep]
+            live, conv_all = torch.ones_like(keep, dtype=torch.bool), torch.zeros_like(keep, dtype=torch.bool)
             g, tg, h_inv = g.index_select(0, keep), tg.index_select(0, keep), h_inv.index_select(0, keep)
             g_t = g.mT
     q_out[ids] = q

@@ -123,17 +123,23 @@ def _depth_edges(z: Tensor, has: Tensor, max_step: float) -> Tensor:
 def _upsample(x: Tensor, d: int, H: int, W: int) -> Tensor:
     """Linear upsampling of samples taken at pixels (d i, d j) to the (H, W) grid (edge-clamped).
 
-    A NaN sample makes every pixel that mixes it NaN; a pixel on a sample takes only that sample.
+    A NaN sample makes every pixel that mixes it NaN; a pixel on a sample takes only that sample. Each axis writes
+    its d phases into one output (no concatenated neighbour copies; lerp(a, a, t) = a at the clamped edge).
     """
     if d == 1:
         return x
-    t = [k / d for k in range(1, d)]
-    nxt = torch.cat([x[..., 1:], x[..., -1:]], dim=-1)
-    x = torch.stack([x] + [torch.lerp(x, nxt, tk) for tk in t], dim=-1)  # ..., h, w, d
-    x = x.reshape(*x.shape[:-2], -1)
-    nxt = torch.cat([x[..., 1:, :], x[..., -1:, :]], dim=-2)
-    x = torch.stack([x] + [torch.lerp(x, nxt, tk) for tk in t], dim=-2)  # ..., h, d, W
-    return x.reshape(*x.shape[:-3], -1, x.shape[-1])[..., :H, :W]
+    for axis in (-1, -2):
+        n = x.shape[axis]
+        # the phases of the interleaved output: ..., h, w, d (columns) or ..., h, d, W (rows)
+        out = x.new_empty(*x.shape, d) if axis == -1 else x.new_empty(*x.shape[:-1], d, x.shape[-1])
+        phases = out.unbind(-1) if axis == -1 else out.unbind(-2)
+        phases[0].copy_(x)
+        for k in range(1, d):
+            dst = phases[k]
+            torch.lerp(x.narrow(axis, 0, n - 1), x.narrow(axis, 1, n - 1), k / d, out=dst.narrow(axis, 0, n - 1))
+            dst.narrow(axis, n - 1, 1).copy_(x.narrow(axis, n - 1, 1))
+        x = out.reshape(*x.shape[:-1], -1) if axis == -1 else out.reshape(*x.shape[:-2], -1, x.shape[-1])
+    return x[..., :H, :W]
 
 
 def _curvatures(ws: Tensor, K: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -146,15 +152,17 @@ def _curvatures(ws: Tensor, K: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     fx, fy = K[:, 0, 0].view(B, 1, 1), K[:, 1, 1].view(B, 1, 1)
     cx, cy = K[:, 0, 2].view(B, 1, 1), K[:, 1, 2].view(B, 1, 1)
     w_s, w_t = 0.5 * fx * (r - l), 0.5 * fy * (dn - up)  # d/ds = fx d/du
-    w_ss, w_tt = fx * fx * (r + l - 2 * c), fy * fy * (dn + up - 2 * c)
+    c2x = 2 * c
+    w_ss, w_tt = fx * fx * (r + l - c2x), fy * fy * (dn + up - c2x)
     w_st = 0.25 * fx * fy * (p[:, 2:, 2:] - p[:, 2:, :-2] - p[:, :-2, 2:] + p[:, :-2, :-2])
     x = (torch.arange(w, dtype=ws.dtype, device=ws.device).view(1, 1, w) - cx) / fx
     y = (torch.arange(h, dtype=ws.dtype, device=ws.device).view(1, h, 1) - cy) / fy
     xs, ys, xt, yt = x * w_s, y * w_s, x * w_t, y * w_t
     ax, by = c - xs, c - yt
-    q2 = w_s * w_s + w_t * w_t + (ax - yt) ** 2
-    aa = ax * ax + ys * ys + w_s * w_s
-    bb = xt * xt + by * by + w_t * w_t
+    ws2, wt2 = w_s * w_s, w_t * w_t
+    q2 = ws2 + wt2 + (ax - yt) ** 2
+    aa = ax * ax + ys * ys + ws2
+    bb = xt * xt + by * by + wt2
     ab = w_s * w_t - ax * xt - ys * by
     q = q2.sqrt()
     mean_c = c * (aa * w_tt - 2.0 * ab * w_st + bb * w_ss) / (2.0 * q2 * q)
@@ -208,32 +216,33 @@ def shape_index(
     z = depth[:, 0, ::d, ::d].float().contiguous()  # B,h,w samples at input pixels (d i, d j)
     Kd = K.to(z).clone()
     Kd[:, :2] /= d
-    has = (z > 0).to(z.dtype)
+    has_b = z > 0
+    has = has_b.to(z.dtype)
     w = has / (z + (1.0 - has))  # inverse depth, 0 where missing
 
     passes = round(2.0 * (smooth_sigma / d) ** 2)
     support, ws = _binomial(torch.stack([has, w], dim=1), passes).unbind(1) if passes else (has, w)
-    ws = ws / support.clamp_min(1e-6)
-    ws = ws + (ws <= 0).to(z.dtype)  # 1 where nothing is known (masked anyway): no 0/0 and no sqrt(0) below
+    ws = ws / support.clamp_min(1e-6)  # >= 0
+    ws.masked_fill_(ws <= 0, 1.0)  # 1 where nothing is known (masked anyway): no 0/0 and no sqrt(0) below
     edges = _grow(_depth_edges(z, has, max_step * d), passes + 1)  # the whole smoothing window
-    ok = has * (support >= min_support).to(z.dtype) * (1.0 - edges)
-    ok = F.pad(ok[:, 1:-1, 1:-1], (1, 1, 1, 1))  # the derivative stencils need both neighbours
+    ok = torch.zeros_like(has_b)  # boolean masks; False on the outer ring: the derivative stencils need both neighbours
+    inner = (slice(None), slice(1, -1), slice(1, -1))
+    ok[inner] = has_b[inner] & (support[inner] >= min_support) & (edges[inner] < 0.5)
 
     mean_c, gauss_c, cos_inc = _curvatures(ws, Kd)
     # (sqrt of exact 0 is a slow path of the vectorised CPU sqrt: clamp at 1e-30 instead)
     disc = (mean_c * mean_c - gauss_c).clamp_min(1e-30).sqrt()  # (k1 - k2) / 2
     si = 0.5 - torch.atan2(mean_c, disc) / math.pi  # eq. (8)
-    curv = (2.0 * mean_c * mean_c - gauss_c).clamp_min(1e-30).sqrt() * ok
-    ok = ok * (curv >= min_curvature).to(z.dtype) * (cos_inc >= math.cos(math.radians(max_incidence))).to(z.dtype)
-    si = torch.where(ok > 0, si, torch.full_like(si, math.nan))  # NaN marks masked samples through the upsampling
+    curv = (2.0 * mean_c * mean_c - gauss_c).clamp_min(1e-30).sqrt()
+    si_ok = ok & (curv >= min_curvature) & (cos_inc >= math.cos(math.radians(max_incidence)))
+    curv = curv * ok if curvedness else None  # 0 where depth or support is missing
+    si = torch.where(si_ok, si, math.nan)  # NaN marks masked samples through the upsampling
 
     si = _upsample(si, d, H, W)  # a pixel between samples is valid when all the samples it mixes are
-    if not curvedness:
-        curv = None
-    elif d > 1:
+    if curv is not None and d > 1:
         h, w = curv.shape[-2:]
         curv = curv[:, :, None, :, None].expand(B, h, d, w, d).reshape(B, h * d, w * d)[:, :H, :W]  # nearest
-    valid = ~torch.isnan(si)
+    valid = si == si  # not NaN
     curv = curv.unsqueeze(1) if curv is not None else None
     return ShapeIndex(si=si.nan_to_num(fill).unsqueeze(1), valid=valid.unsqueeze(1), curvedness=curv)
 
