@@ -15,6 +15,7 @@ from torchtrack.geometry import (
     make_T,
     matrix_to_euler,
     matrix_to_quat_xyzw,
+    point_jacobian,
     project,
     quat_xyzw_to_matrix,
     rotation_angle,
@@ -161,3 +162,14 @@ def test_sample_depth_bilinear_on_a_plane_and_nearest_across_edges():
     depth[..., :, 4:] = 3.0  # a depth edge between x = 3 and x = 4: nearest pixel, nothing in between
     z = sample_depth_bilinear(depth, torch.tensor([[[3.4, 2.0], [3.6, 2.0]]]))
     torch.testing.assert_close(z, torch.tensor([[1.0 + 0.03 + 0.004, 3.0]]))
+
+
+def test_point_jacobian_is_the_derivative_of_the_exponential_at_zero():
+    """point_jacobian(p) = d(exp(xi) p)/dxi at xi = 0, against autograd through se3_exp."""
+    p = torch.tensor([[0.3, -1.2, 2.5], [1.0, 0.5, -0.7]], dtype=torch.float64)
+    for q in p:
+        auto = torch.func.jacfwd(lambda xi, q=q: transform_points(se3_exp(xi), q[None])[0])(
+            torch.zeros(6, dtype=torch.float64)
+        )
+        torch.testing.assert_close(point_jacobian(q), auto, atol=1e-12, rtol=0)
+    assert point_jacobian(p).shape == (2, 3, 6)

@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torchtrack.geometry import T_inv, backproject_depth, hat, rotation_angle, se3_exp, se3_log
+from torchtrack.geometry import T_inv, backproject_depth, point_jacobian, rotation_angle, se3_exp, se3_log
 
 
 class AlignResult(NamedTuple):
@@ -81,12 +81,6 @@ def _huber(r: Tensor, k: float) -> Tensor:
     """Huber weights of normalised residuals r: 1 inside k, k/|r| outside."""
     a = r.abs()
     return torch.where(a <= k, torch.ones_like(a), k / a.clamp_min(1e-12))
-
-
-def _dp_dxi(p: Tensor) -> Tensor:
-    """(B, P, 3, 6) derivative of exp(xi) p at xi = 0: [I, -[p]x]."""
-    eye = torch.eye(3, dtype=p.dtype).expand(*p.shape[:-1], 3, 3)
-    return torch.cat([eye, -hat(p)], -1)
 
 
 def align_to_keyframe(
@@ -149,7 +143,7 @@ def align_to_keyframe(
         J_proj = torch.zeros(*p.shape[:-1], 2, 3, dtype=f64)  # d pi / d p
         J_proj[..., 0, 0], J_proj[..., 0, 2] = fx / z, -fx * p[..., 0] / z**2
         J_proj[..., 1, 1], J_proj[..., 1, 2] = fy / z, -fy * p[..., 1] / z**2
-        dp = _dp_dxi(p)  # B,P,3,6
+        dp = point_jacobian(p)  # B,P,3,6
         Js, rs, ws = [], [], []
         if use_photometric:
             r = (s[..., 0] - i_cur) / sigma_gray

@@ -25,7 +25,16 @@ from torch import Tensor
 
 from torchtrack.filter.models import measure_points
 from torchtrack.frontend import PreparedFrame
-from torchtrack.geometry import T_inv, hat, project, sample_depth, se3_exp, se3_log, transform_points
+from torchtrack.geometry import (
+    T_inv,
+    point_jacobian,
+    project,
+    rotation_angle,
+    sample_depth,
+    se3_exp,
+    se3_log,
+    transform_points,
+)
 from torchtrack.image.flow import FlowFrame, prepare_frame
 
 
@@ -175,7 +184,7 @@ class LandmarkMap:
         d = sample_depth(cur.depth, proj).double()
         visible = (z > 0.1) & inside & (d > 0) & (d >= z * (1 - self.occlusion))  # nothing nearer in front of it
         ok = self.valid.reshape(B, S * P) & visible & mask[:, None] & self._similar_view(T_world_cam, world, X_cam)
-        ok &= _far_from(proj, tracked.float(), tracked_valid, self.min_separation_px)
+        ok &= far_from(proj, tracked.float(), tracked_valid, self.min_separation_px)
         age = self.stamp[:, :, None].expand(B, S, P).reshape(B, S * P)  # smaller = older keyframe
         key = torch.where(ok, age, torch.iinfo(torch.long).max)
         C = min(self.C, S * P)
@@ -194,8 +203,7 @@ class LandmarkMap:
         depth by at most the ``max_scale`` ratio, so its window looks about the same."""
         B, S, P = self.valid.shape
         R_rel = T_world_cam[:, None, :3, :3].double().transpose(-1, -2) @ self.T_world_kf[..., :3, :3]  # B,S,3,3
-        cos = ((R_rel.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
-        near = torch.rad2deg(torch.acos(cos)) <= self.max_angle_deg  # B,S
+        near = torch.rad2deg(rotation_angle(R_rel)) <= self.max_angle_deg  # B,S
         X_kf = transform_points(T_inv(self.T_world_kf).reshape(B * S, 4, 4), world.reshape(B * S, P, 3))
         ratio = X_cam[..., 2] / X_kf.reshape(B, S * P, 3)[..., 2].clamp_min(1e-6)
         scale_ok = (ratio <= self.max_scale) & (ratio >= 1 / self.max_scale)
@@ -245,7 +253,7 @@ class LandmarkMap:
         shift = torch.linalg.vector_norm(pixels - proj, dim=-1)
         good &= has_depth & (residual <= self.max_residual) & (shift <= self.max_shift_px)
         good &= offset <= self.max_offset_m * z.square().clamp_min(1.0)
-        good &= _far_from(pixels, tracked.float(), tracked_valid, self.min_separation_px)
+        good &= far_from(pixels, tracked.float(), tracked_valid, self.min_separation_px)
         world = self.world.reshape(B, S * P, 3).gather(1, index[..., None].expand(-1, -1, 3))
         corner = self.cornerness.reshape(B, S * P, 2).gather(1, index[..., None].expand(-1, -1, 2))
         T_world_cam = T_world_cam.double()
@@ -325,7 +333,7 @@ def refine_pose(K: Tensor, T_color_world: Tensor, world: Tensor, pixels: Tensor,
         zero = torch.zeros_like(z)
         Jp = torch.stack([torch.stack([fx / z, zero, -fx * x / z**2], -1),
                           torch.stack([zero, fy / z, -fy * y / z**2], -1)], -2)  # fmt: skip  # B,C,2,3
-        Jxi = torch.cat([torch.eye(3, dtype=torch.float64).expand(*p.shape[:2], 3, 3), -hat(p)], -1)  # B,C,3,6
+        Jxi = point_jacobian(p)  # B,C,3,6
         J = torch.cat([Jp @ Jxi / sigma_px, Jxi / sig3[..., None, None]], -2)  # B,C,5,6
         hw = torch.where(err <= huber, 1.0, huber / err.clamp_min(1e-12)) * w
         H = torch.einsum("bcki,bckj,bc->bij", J, J, hw) + 1e-6 * eye
@@ -334,7 +342,7 @@ def refine_pose(K: Tensor, T_color_world: Tensor, world: Tensor, pixels: Tensor,
     return PoseFit(T, valid & (err <= inlier))
 
 
-def _far_from(points: Tensor, others: Tensor, others_valid: Tensor, gap: float) -> Tensor:
+def far_from(points: Tensor, others: Tensor, others_valid: Tensor, gap: float) -> Tensor:
     """(B, C) bool: each of points (B, C, 2) is at least ``gap`` px from every valid one of others (B, N, 2)."""
     if others.shape[1] == 0:
         return torch.ones(points.shape[:2], dtype=torch.bool)

@@ -33,7 +33,7 @@ from torchtrack.frontend import FrontEnd, PreparedFrame, smooth_depth_mask
 from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, se3_log, transform_points
 from torchtrack.image.flow import FlowFrame, TrackResult, prepare_frame
 from torchtrack.keyframes import KeyframeAligner, set_backend_pose
-from torchtrack.landmarks import LandmarkMap
+from torchtrack.landmarks import LandmarkMap, far_from
 from torchtrack.learn.cues import stack_cues
 from torchtrack.metrics import reprojection_errors
 
@@ -558,8 +558,8 @@ class Tracker:
         ``n_found`` (B,) re-acquired landmarks among the kept, up to the larger of M and the survivors, plus those.
         Kept features keep their age and cornerness (B, M, 2 for the new ones).
         Returns (pixels (B, W, 2), points in the camera (B, W, 3), valid (B, W), age (B, W), cornerness (B, W, 2))."""
-        gap = torch.cdist(pixels, kept.pixels.to(pixels.dtype)).masked_fill(~kept.valid[:, None, :], float("inf"))
-        ok = torch.cat([kept.valid, valid & (gap.amin(2) >= self.min_separation_px)], 1)
+        apart = far_from(pixels, kept.pixels.to(pixels.dtype), kept.valid, self.min_separation_px)
+        ok = torch.cat([kept.valid, valid & apart], 1)
         if n_found is None:
             width = max(valid.shape[1], self.state.pixels.shape[1])
         else:  # per sequence: the survivors or the new selection's count, plus the re-acquired (batched equals looped)

@@ -62,3 +62,9 @@ def pose_from_euler(angles_t: Tensor) -> Tensor:
     from torchtrack.geometry.rotation import euler_to_matrix
 
     return make_T(euler_to_matrix(angles_t[..., :3]), angles_t[..., 3:])
+
+
+def point_jacobian(p: Tensor) -> Tensor:
+    """(..., 3, 6) derivative of ``exp(xi) p`` at xi = 0 for points p (..., 3), xi = (v, omega): ``[I, -[p]x]``."""
+    eye = torch.eye(3, dtype=p.dtype).expand(*p.shape[:-1], 3, 3)
+    return torch.cat([eye, -hat(p)], -1)
