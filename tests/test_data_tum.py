@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import cv2
@@ -19,6 +20,7 @@ from torchtrack.data import (
     read_tum_trajectory,
     write_tum_trajectory,
 )
+from torchtrack.data.batching import FrameCursor
 from torchtrack.geometry import T_inv, backproject, make_T, project, sample_depth, so3_exp, transform_points
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -257,11 +259,29 @@ def test_error_malformed_list_and_groundtruth(tmp_path):
 
 
 def test_error_missing_image(tmp_path):
+    """One missing file of 3 frames is more than max_bad_fraction (0.25): an error at load, naming the file."""
     root = write_sequence(tmp_path / "s", np.arange(3) / 30.0)
     missing = root / "depth" / f"{1 / 30:.6f}.png"
     missing.unlink()
     with _raises_naming(missing, "listed in depth.txt not found"):
         TumSequence(root)
+
+
+def test_missing_image_is_a_dropped_frame(tmp_path, caplog):
+    """A listed frame whose file is missing loads (one warning naming it) and is dropped when reached."""
+    root = write_sequence(tmp_path / "s", np.arange(8) / 30.0)
+    missing = root / "rgb" / f"{2 / 30:.6f}.png"
+    missing.unlink()
+    with caplog.at_level(logging.WARNING):
+        seq = TumSequence(root)
+    assert len(seq) == 8 and any(str(missing) in r.getMessage() and "1 of 8" in r.getMessage() for r in caplog.records)
+    with _raises_naming(missing, "colour image not found"):
+        seq[2]
+    cursor = FrameCursor(seq)
+    read = [f.index for f in iter(cursor.read, None)]
+    assert read == [0, 1, 3, 4, 5, 6, 7] and [d.index for d in cursor.dropped] == [2]
+    with _raises_naming(missing, "listed in rgb.txt not found"):
+        TumSequence(root, on_bad_frame="error")
 
 
 def test_error_corrupt_images(tmp_path):

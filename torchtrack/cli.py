@@ -20,7 +20,7 @@ from omegaconf import DictConfig
 
 from torchtrack.config import CONF_DIR, exit_on_bad_overrides, validate
 from torchtrack.data.errors import DataError
-from torchtrack.factory import build_mapper, build_sequences, build_tracker
+from torchtrack.factory import build_mapper, build_tracker, load_sequences
 from torchtrack.run import run_tracker
 from torchtrack.runtime import configure
 
@@ -33,10 +33,12 @@ def app(cfg: DictConfig) -> None:
     configure(cfg.threads)
     try:
         validate(cfg)
-        sequences = build_sequences(cfg.data)
-        tracker = build_tracker(cfg)
-        log.info("tracking %d sequence(s) into %s", len(sequences), out)
-        results = run_tracker(tracker, sequences, out, plots=cfg.plots, mapper=build_mapper(cfg))
+        sequences, load_failed = load_sequences(cfg.data)  # a batch-mate that fails to load costs only itself
+        results = []
+        if sequences:
+            tracker = build_tracker(cfg)
+            log.info("tracking %d sequence(s) into %s", len(sequences), out)
+            results = run_tracker(tracker, sequences, out, plots=cfg.plots, mapper=build_mapper(cfg))
     except (DataError, OSError) as e:  # bad input or an unwritable output folder, found before tracking
         if HydraConfig.get().mode == RunMode.MULTIRUN:
             raise  # let the launcher record this job's failure and run the others
@@ -45,10 +47,12 @@ def app(cfg: DictConfig) -> None:
     for r in results:
         keys = ("frames", "fps", "ate_rmse_m", "rpe_trans_m", "rpe_rot_deg", "reselections")
         log.info("%s: %s", r["sequence"], "  ".join(f"{k}={r[k]:.4g}" for k in keys if k in r))
+    for f in load_failed:  # written nowhere
+        log.error("FAILED %s at load: %s", f.name, f.error)
     failed = [r for r in results if not r["complete"]]
     for r in failed:  # one summary line each; their outputs up to the last good frame are written
         log.error("FAILED %s after %d frames: %s", r["sequence"], r.get("frames", 0), r["error"])
-    if failed:
+    if failed or load_failed:
         raise SystemExit(1)
 
 

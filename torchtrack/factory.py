@@ -7,6 +7,7 @@ is the front end's pyramid levels, which are the LK tracker's (``flow.levels``).
 from __future__ import annotations
 
 from pathlib import Path
+from typing import NamedTuple
 
 from hydra.utils import instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf
@@ -16,8 +17,33 @@ from torchtrack.data.tum import TumSequence
 from torchtrack.tracker import Tracker
 
 
+class LoadFailure(NamedTuple):
+    """A sequence of a batch that failed its load checks: its name (the folder's) and the one-line reason."""
+
+    name: str
+    error: str
+
+
+class Sequences(NamedTuple):
+    """The sequences of ``data`` that loaded, in order, and the batch-mates that failed to load."""
+
+    loaded: list[TumSequence]
+    failed: list[LoadFailure]
+
+
 def build_sequences(data: DictConfig) -> list[TumSequence]:
-    """TUM-layout sequences from ``data`` (kind tum: one or several roots; kind synthetic: rendered and cached)."""
+    """TUM-layout sequences from ``data`` (kind tum: one or several roots; kind synthetic: rendered and cached).
+    Raises DataError (one line) when any of them fails its load checks; :func:`load_sequences` keeps the others."""
+    seqs = load_sequences(data)
+    if seqs.failed:
+        raise DataError(seqs.failed[0].error)
+    return seqs.loaded
+
+
+def load_sequences(data: DictConfig) -> Sequences:
+    """The sequences of ``data``; in a batch of several roots, one that fails its load checks (DataError: a broken
+    groundtruth.txt or intrinsics.txt, an empty list, a missing folder) is a :class:`LoadFailure` and the others
+    load. A single sequence's failure, and a bad ``data`` node, raise DataError."""
     opts = dict(
         max_frames=data.max_frames, stride=data.stride, on_bad_frame=data.on_bad_frame,
         min_depth_fraction=data.min_depth_fraction, max_bad_fraction=data.max_bad_fraction,
@@ -28,7 +54,7 @@ def build_sequences(data: DictConfig) -> list[TumSequence]:
         scene = SyntheticConfig(**OmegaConf.to_container(data.scene, resolve=True))
         seq = TumSequence(ensure_sequence(scene, Path(data.cache_dir).expanduser()), **opts)  # registered
         seq.name = display_name(scene)  # the run folder's name; the cache folder's carries the digest
-        return [seq]
+        return Sequences([seq], [])
     if data.kind != "tum":
         raise DataError(f"data.kind must be 'tum' or 'synthetic', got {data.kind!r}")
     if data.root is None:
@@ -42,7 +68,15 @@ def build_sequences(data: DictConfig) -> list[TumSequence]:
         intrinsics_depth=None if data.depth_intrinsics is None else tuple(data.depth_intrinsics),
         T_color_depth=None if data.T_color_depth is None else OmegaConf.to_container(data.T_color_depth),
     )  # fmt: skip
-    return [TumSequence(Path(r).expanduser(), **opts, **extra) for r in roots]
+    if len(roots) == 1:
+        return Sequences([TumSequence(Path(roots[0]).expanduser(), **opts, **extra)], [])
+    loaded, failed = [], []
+    for r in roots:
+        try:
+            loaded.append(TumSequence(Path(r).expanduser(), **opts, **extra))
+        except DataError as e:
+            failed.append(LoadFailure(Path(r).expanduser().resolve().name, str(e)))
+    return Sequences(loaded, failed)
 
 
 def build_tracker(cfg: DictConfig, *, record: bool = False) -> Tracker:

@@ -185,10 +185,24 @@ class TumSequence:
         self.depth_timestamps = t_d[ib]
         self.rgb_paths = [self.root / f_rgb[i] for i in ia]
         self.depth_paths = [self.root / f_d[i] for i in ib]
-        for listing, paths in ((rgb_txt, self.rgb_paths), (depth_txt, self.depth_paths)):
-            missing = next((p for p in paths if not p.is_file()), None)
-            if missing is not None:
-                raise DataError(f"{missing}: image listed in {listing.name} not found")
+        self._check_listed_files(rgb_txt, depth_txt)
+
+    def _check_listed_files(self, rgb_txt: Path, depth_txt: Path) -> None:
+        """A listed image whose file is missing is a dropped frame, like an unreadable one (one warning line here,
+        one per frame when it is reached); it is an error with ``on_bad_frame="error"`` or when more than
+        ``max_bad_fraction`` of the frames miss a file, or all of them do."""
+        missing = [i for i, (a, b) in enumerate(zip(self.rgb_paths, self.depth_paths, strict=True))
+                   if not (a.is_file() and b.is_file())]  # fmt: skip
+        if not missing:
+            return
+        i = missing[0]
+        listing, first = (rgb_txt, self.rgb_paths[i]) if not self.rgb_paths[i].is_file() else (depth_txt, self.depth_paths[i])
+        what = f"{first}: image listed in {listing.name} not found"
+        n = len(self.rgb_paths)
+        if self.on_bad_frame == "error" or len(missing) == n or len(missing) > self.max_bad_fraction * n:
+            extra = "" if len(missing) == 1 else f" ({len(missing)} of {n} frames miss a file)"
+            raise DataError(what + extra)
+        log.warning("%s (%d of %d frames miss a file: they will be dropped)", what, len(missing), n)
 
     def _attach_groundtruth(self, max_dt: float) -> None:
         F = len(self.timestamps)

@@ -195,11 +195,17 @@ def nearest_within(t_query: np.ndarray, t_ref: np.ndarray, max_dt: float) -> tup
 # ----------------------------------------------------------------------------------------------- images
 
 
+def _unreadable(path: PathLike, kind: str) -> DataError:
+    """Why OpenCV could not decode ``path`` (checked only after it failed: no extra system call per frame)."""
+    why = f"{kind} image not found" if not Path(path).is_file() else f"unreadable or corrupt {kind} image"
+    return DataError(f"{path}: {why}")
+
+
 def load_rgb(path: PathLike) -> Tensor:
     """Colour image (PNG/JPEG, 8 or 16 bit, colour or grayscale) -> (3, H, W) float32 RGB in [0, 1]."""
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
-        raise DataError(f"{path}: missing, unreadable or corrupt colour image")
+        raise _unreadable(path, "colour")
     if img.dtype not in (np.uint8, np.uint16):
         raise DataError(f"{path}: colour image must be 8- or 16-bit, got {img.dtype}")
     if img.ndim == 2:
@@ -216,7 +222,7 @@ def load_depth(path: PathLike, depth_scale: float) -> Tensor:
     """16-bit depth PNG -> (1, H, W) float32 metres (value / depth_scale), 0 = no measurement."""
     d = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if d is None:
-        raise DataError(f"{path}: missing, unreadable or corrupt depth image")
+        raise _unreadable(path, "depth")
     if d.dtype != np.uint16 or d.ndim != 2:
         bits = 8 * d.dtype.itemsize
         raise DataError(f"{path}: depth must be single-channel 16-bit, got {bits}-bit with shape {d.shape}")
