@@ -182,13 +182,13 @@ class Relocaliser:
             if not self._agrees(T, result.T_world_cam[b]):
                 T_new[b], relocalised[b] = T, True
         self.interrupted |= retry & (inliers < self.min_inliers)
-        if relocalised.any():
-            tracker.relocalise(frame, T_new, relocalised)
-            s = tracker.state
+        if relocalised.any():  # a new model at the found pose; T_cam_obj stays the frame as tracked (old model)
+            T_model = tracker.relocalise(frame, T_new, relocalised)
             m3 = relocalised[:, None, None]
+            model = T_model if result.model_T_cam_obj is None else torch.where(m3, T_model, result.model_T_cam_obj)
             result = replace(
-                result, T_world_cam=torch.where(m3, s.T_world_cam, result.T_world_cam),
-                T_cam_obj=torch.where(m3, s.T_cam_obj, result.T_cam_obj), reselected=result.reselected | relocalised,
+                result, T_world_cam=torch.where(m3, tracker.state.T_world_cam, result.T_world_cam),
+                reselected=result.reselected | relocalised, model_T_cam_obj=model,
             )  # fmt: skip
         self.since_stored += frame.active.long()
         due = result.reselected | (self.since_stored >= self.store_every)

@@ -580,16 +580,17 @@ class Tracker:
             torch.where(ok3, cornerness, 0.0),
         )  # fmt: skip
 
-    def relocalise(self, frame: FrameBatch, T_world_cam: Tensor, mask: Tensor) -> None:
+    def relocalise(self, frame: FrameBatch, T_world_cam: Tensor, mask: Tensor) -> Tensor:
         """After a tracking loss: the sequences in ``mask`` (B,) take the current frame as a new model at the camera
         pose ``T_world_cam`` (B, 4, 4, the tracker's world) found by relocalisation; their features are dropped
-        first (they followed the wrong motion), so no survivor carries over."""
+        first (they followed the wrong motion), so no survivor carries over. Returns the pose (B, 4, 4) the back
+        end was reset to (meaningful where ``mask``), as :attr:`StepResult.model_T_cam_obj`."""
         s = self.state
         T_world_obj = torch.where(mask[:, None, None], T_world_cam.double() @ s.T_cam_obj, s.T_world_obj)
         self.state = replace(s, valid=s.valid & ~mask[:, None], T_world_obj=T_world_obj)
         if self.landmarks is not None:  # a model taken this frame, at the lost pose, is no keyframe
             self.landmarks.forget(frame.timestamp, mask)
-        self._new_model(frame, s.prev, mask)
+        return self._new_model(frame, s.prev, mask)
 
     # ---------------------------------------------------------------------------------------------- outputs
     @staticmethod

@@ -22,7 +22,7 @@ from torch import Tensor
 from tqdm import tqdm
 
 from torchtrack.config import CONF_DIR, exit_on_bad_overrides
-from torchtrack.data.batching import RGBDSequence, iterate_batched
+from torchtrack.data.batching import FrameCursor, RGBDSequence, iterate_batched
 from torchtrack.data.errors import DataError
 from torchtrack.data.frame import FrameBatch
 from torchtrack.factory import build_sequences, build_tracker
@@ -62,11 +62,14 @@ class ObservationLog:
         self.meta = dict(sequence=sequence, source=source, config=config, weighting=weighting)
         self.rows: list[dict[str, Tensor]] = []
         self.camera: dict[str, Tensor] = {}
+        self.last_index = -1
 
     def add(self, b: int, frame: FrameBatch, res: StepResult) -> None:
         """Frame ``frame.index[b]`` of this sequence: row b of the batch."""
-        if int(frame.index[b]) != len(self.rows):
-            raise ValueError(f"{self.meta['sequence']}: frame {int(frame.index[b])} recorded after {len(self.rows)}")
+        i = int(frame.index[b])  # dropped frames leave gaps; dt spans them, as in the tracker
+        if self.rows and i <= self.last_index:
+            raise ValueError(f"{self.meta['sequence']}: frame {i} recorded after frame {self.last_index}")
+        self.last_index = i
         if not self.camera:
             self.camera = {k: getattr(frame, k)[b].double() for k in ("K", "K_depth", "T_color_depth")}
         eye = torch.eye(4, dtype=torch.float64)
@@ -171,18 +174,27 @@ def _record_batch(cfg, sequences, names, paths, config: str, progress: bool) -> 
     w = type(tracker.weighting)
     weighting = f"{w.__module__}.{w.__qualname__}"
     logs = [ObservationLog(n, source_of(s), config, weighting) for n, s in zip(names, sequences, strict=True)]
-    lengths = [len(s) for s in sequences]
+    cursors = [FrameCursor(s) for s in sequences]  # bad or missing frames are dropped, as in a run; a failure raises
+    saved = [False] * len(sequences)
     desc = f"recording {names[0]}" + (f" (+{len(names) - 1})" if len(names) > 1 else "")
     with torch.inference_mode():
-        frames = iterate_batched(sequences)
-        for frame in tqdm(frames, total=max(lengths), desc=desc, unit="frame", disable=not progress):
+        frames = iterate_batched(sequences, cursors=cursors)
+        for frame in tqdm(frames, total=max(len(s) for s in sequences), desc=desc, unit="frame", disable=not progress):
             res = tracker.step(frame)
             for b, rec in enumerate(logs):
                 if bool(frame.active[b]):
                     rec.add(b, frame, res)
-                    if int(frame.index[b]) == lengths[b] - 1:
-                        save_observations(rec.finish(), paths[b])
-                        log.info("%s: %d frames recorded into %s", names[b], lengths[b], paths[b])
+                elif not saved[b]:  # the sequence has ended: written while the others go on
+                    saved[b] = _save(rec, paths[b])
+    for rec, path, done in zip(logs, paths, saved, strict=True):
+        if not done:
+            _save(rec, path)
+
+
+def _save(rec: ObservationLog, path: Path) -> bool:
+    save_observations(rec.finish(), path)
+    log.info("%s: %d frames recorded into %s", rec.meta["sequence"], len(rec.rows), path)
+    return True
 
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="record")
