@@ -31,7 +31,6 @@ from torchtrack.data.batching import iterate_batched
 from torchtrack.data.tum import TumSequence
 from torchtrack.geometry import T_inv
 from torchtrack.mapping import PanoramaMapper
-from torchtrack.run import world_anchor  # noqa: F401  (imported by the mapper's first add: not timed)
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from test_cli import read_tum_strict, run_cli
+
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 
 FRAMES = 8
@@ -100,7 +100,11 @@ def test_batch_loses_only_what_failed_at_load(runs):
     ]
     failed = _failed_lines(proc)
     assert len(failed) == 3, failed
-    for name, what in (("broken_gt", "groundtruth.txt"), ("bad_intrinsics", "intrinsics.txt"), ("empty_list", "rgb.txt")):
+    for name, what in (
+        ("broken_gt", "groundtruth.txt"),
+        ("bad_intrinsics", "intrinsics.txt"),
+        ("empty_list", "rgb.txt"),
+    ):
         (line,) = [ln for ln in failed if f"FAILED {name} at load" in ln]
         assert what in line
     assert "Traceback" not in proc.stderr

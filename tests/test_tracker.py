@@ -13,7 +13,7 @@ from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 from torchtrack.factory import build_tracker
 from torchtrack.filter import state_to_pose
 from torchtrack.geometry import T_inv, rotation_angle
-from torchtrack.run import world_anchor
+from torchtrack.geometry.rig import color_poses, tracker_world
 
 CONF = CONF_DIR
 
@@ -40,8 +40,9 @@ def track(tracker, sequences):
     poses, results, anchor = [], [], None
     for frame in iterate_batched(sequences, prefetch=False):
         res = tracker.step(frame)
-        anchor = world_anchor(frame.T_world_cam_gt, frame.gt_valid) if anchor is None else anchor
-        poses.append(anchor @ res.T_world_cam)
+        if anchor is None:
+            anchor = tracker_world(frame.T_world_cam_gt, frame.gt_valid, frame.T_color_depth)
+        poses.append(color_poses(anchor, res.T_world_cam, frame.T_color_depth))
         results.append(res)
     return torch.stack(poses, 1), results  # B,F,4,4
 

@@ -13,7 +13,7 @@ from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 from torchtrack.factory import build_tracker
 from torchtrack.filter import state_to_pose
 from torchtrack.geometry import T_inv
-from torchtrack.run import world_anchor
+from torchtrack.geometry.rig import color_poses, tracker_world
 
 ON = ("pipeline.keyframe_align=true", "pipeline.keyframe_factor=2")
 
@@ -39,8 +39,9 @@ def track(tracker, sequences, check_backend=False):
     poses, anchor = [], None
     for frame in iterate_batched(sequences, prefetch=False):
         res = tracker.step(frame)
-        anchor = world_anchor(frame.T_world_cam_gt, frame.gt_valid) if anchor is None else anchor
-        poses.append(anchor @ res.T_world_cam)
+        if anchor is None:
+            anchor = tracker_world(frame.T_world_cam_gt, frame.gt_valid, frame.T_color_depth)
+        poses.append(color_poses(anchor, res.T_world_cam, frame.T_color_depth))
         if check_backend:  # the filter's mean was moved to the corrected pose (or reset there at a re-selection)
             backend_pose = state_to_pose(tracker.backend.state.mean)
             torch.testing.assert_close(backend_pose, tracker.state.T_cam_obj, atol=1e-9, rtol=0)

@@ -1,6 +1,7 @@
 """Run a tracker over B sequences in lockstep and write each sequence's outputs as soon as it ends.
 
-Per sequence, in ``out_dir/<name>/``: ``trajectory.txt`` (TUM, camera-to-world), ``metrics.json``,
+Per sequence, in ``out_dir/<name>/``: ``trajectory.txt`` (TUM, the colour camera's pose camera-to-world, as ground
+truth; :mod:`torchtrack.geometry.rig` converts the tracker's depth-camera poses), ``metrics.json``,
 ``frames.csv`` (per-frame diagnostics), ``trajectory.png`` and ``features.png`` (the paper's Figs.
 6/7 as an image strip). Every file is written atomically (:func:`torchtrack.io.write_atomic`), so a
 sequence that finished is never lost when a later one fails.
@@ -26,19 +27,12 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 from torchtrack.data.batching import DroppedFrame, FrameCursor, iterate_batched
 from torchtrack.data.tum import TumSequence
 from torchtrack.data.tum_io import write_tum_trajectory
+from torchtrack.geometry.rig import color_poses, tracker_world
 from torchtrack.io import check_writable, write_json, write_text
 from torchtrack.tracker import StepResult, Tracker
 from torchtrack.viz.overlay import TRAIL, draw_frame, save_strip, snapshot_indices
 
 log = logging.getLogger(__name__)
-
-
-def world_anchor(T_world_cam_gt: torch.Tensor, gt_valid: torch.Tensor) -> torch.Tensor:
-    """(..., 4, 4) float64 the tracker's world (its first camera) in ground truth's world: the first frame's
-    ground-truth camera pose ``T_world_cam_gt`` (..., 4, 4) where ``gt_valid`` (...,), else the identity. The
-    written trajectory is ``T_world_cam = anchor @ T_world_cam_tracker``, comparable with ground truth unaligned."""
-    eye = torch.eye(4, dtype=torch.float64).expand_as(T_world_cam_gt)
-    return torch.where(gt_valid[..., None, None], T_world_cam_gt.double(), eye)
 
 
 @dataclass
@@ -56,9 +50,10 @@ class Recorder:
 
     def add(self, b: int, frame, res: StepResult) -> None:
         i = int(frame.index[b])
-        if self.T_world_tracker is None:
-            self.T_world_tracker = world_anchor(frame.T_world_cam_gt[b], frame.gt_valid[b])
-        self.poses.append((self.T_world_tracker @ res.T_world_cam[b]).numpy())
+        T_cd = frame.T_color_depth[b]
+        if self.T_world_tracker is None:  # the tracker's world is its first depth camera
+            self.T_world_tracker = tracker_world(frame.T_world_cam_gt[b], frame.gt_valid[b], T_cd)
+        self.poses.append(color_poses(self.T_world_tracker, res.T_world_cam[b], T_cd).numpy())  # as ground truth
         win = res.winner[b][res.valid[b]]
         self.rows.append(
             {

@@ -196,7 +196,9 @@ class TumSequence:
         if not missing:
             return
         i = missing[0]
-        listing, first = (rgb_txt, self.rgb_paths[i]) if not self.rgb_paths[i].is_file() else (depth_txt, self.depth_paths[i])
+        listing, first = (
+            (rgb_txt, self.rgb_paths[i]) if not self.rgb_paths[i].is_file() else (depth_txt, self.depth_paths[i])
+        )
         what = f"{first}: image listed in {listing.name} not found"
         n = len(self.rgb_paths)
         if self.on_bad_frame == "error" or len(missing) == n or len(missing) > self.max_bad_fraction * n:

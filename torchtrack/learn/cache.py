@@ -30,9 +30,10 @@ var_pix, var_xyz       (T, N)        float32   the recording weighting's varianc
 reselected             (T,)          bool      a new model was taken at the END of frame t (row 0: the first model)
 model_T_cam_obj        (T, 4, 4)     float64   the pose the back end was reset to then (identity where not reselected)
 model_frame            (T,)          int64     the frame whose model is in use during frame t (row 0: 0)
-T_world_cam_gt         (T, 4, 4)     float64   ground-truth camera-to-world (identity where absent)
+T_world_color_gt       (T, 4, 4)     float64   ground-truth colour-camera-to-world (TUM; identity where absent)
 gt_valid               (T,)          bool      ground truth present
-T_cam_obj_gt           (T, 4, 4)     float64   inv(T_world_cam_gt[t]) @ T_world_cam_gt[m] @ model_T_cam_obj[m],
+T_cam_obj_gt           (T, 4, 4)     float64   inv(G[t]) @ G[m] @ model_T_cam_obj[m], G the DEPTH camera's
+                                               ground truth T_world_color_gt @ T_color_depth (geometry.rig),
                                                m = model_frame[t]: the current model's true pose (identity where
                                                not valid)
 T_cam_obj_gt_valid     (T,)          bool      gt_valid[t] & gt_valid[m]
@@ -62,11 +63,12 @@ from torch import Tensor
 from torchtrack.estimators.backends import Observation
 from torchtrack.filter.weighting import Variances
 from torchtrack.geometry import T_inv
+from torchtrack.geometry.rig import T_world_depth_from_color
 from torchtrack.io import write_atomic
 from torchtrack.learn.cues import CUE_NAMES, CUE_VERSION, check_cue_names
 
 FORMAT = "torchtrack-observations"
-VERSION = 1
+VERSION = 2  # 2: T_world_color_gt (was T_world_cam_gt); T_cam_obj_gt from the depth camera's ground truth
 _META = ("sequence", "source", "config", "weighting")
 
 
@@ -93,7 +95,7 @@ class SequenceObservations:
     reselected: Tensor
     model_T_cam_obj: Tensor
     model_frame: Tensor
-    T_world_cam_gt: Tensor
+    T_world_color_gt: Tensor
     gt_valid: Tensor
     T_cam_obj_gt: Tensor
     T_cam_obj_gt_valid: Tensor
@@ -139,19 +141,20 @@ class SequenceObservations:
 
 
 def object_poses_gt(
-    T_world_cam_gt: Tensor, gt_valid: Tensor, reselected: Tensor, model_T_cam_obj: Tensor
+    T_world_color_gt: Tensor, gt_valid: Tensor, reselected: Tensor, model_T_cam_obj: Tensor, T_color_depth: Tensor
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Ground-truth pose of the model in use in each frame's camera.
+    """Ground-truth pose of the model in use in each frame's DEPTH camera (the tracker's ``cam``).
 
     Args:
-        T_world_cam_gt: (T, 4, 4) camera-to-world; gt_valid (T,) bool.
+        T_world_color_gt: (T, 4, 4) the colour camera's ground truth, camera-to-world; gt_valid (T,) bool.
         reselected: (T,) bool, a model taken at the end of frame t (reselected[0] must be True).
-        model_T_cam_obj: (T, 4, 4) the model's pose in its own frame's camera (where reselected).
+        model_T_cam_obj: (T, 4, 4) the model's pose in its own frame's depth camera (where reselected).
+        T_color_depth: (4, 4) the depth-to-colour extrinsic.
 
     Returns:
         model_frame (T,) int64 (the last s < t with reselected[s]; 0 for t = 0), T_cam_obj_gt (T, 4, 4) float64 =
-        inv(T_world_cam_gt[t]) @ T_world_cam_gt[m] @ model_T_cam_obj[m] (identity where not valid), and its valid
-        mask (T,) = gt_valid[t] & gt_valid[m].
+        inv(G[t]) @ G[m] @ model_T_cam_obj[m] with G the depth camera's ground truth (identity where not valid), and
+        its valid mask (T,) = gt_valid[t] & gt_valid[m].
     """
     T = reselected.shape[0]
     if T == 0 or not bool(reselected[0]):
@@ -159,7 +162,7 @@ def object_poses_gt(
     idx = torch.arange(T)
     taken = torch.where(reselected, idx, torch.zeros_like(idx))
     model_frame = torch.cat([idx[:1] * 0, taken[:-1]]).cummax(0).values
-    G = T_world_cam_gt.double()
+    G = T_world_depth_from_color(T_world_color_gt, T_color_depth)
     pose = T_inv(G) @ G[model_frame] @ model_T_cam_obj.double()[model_frame]
     valid = gt_valid & gt_valid[model_frame]
     eye = torch.eye(4, dtype=torch.float64).expand(T, 4, 4)
@@ -171,7 +174,7 @@ def _shapes(T: int, N: int) -> dict[str, tuple[tuple[int, ...], str]]:
     C = len(CUE_NAMES)
     per_frame = {k: ((T,), "f") for k in ("timestamp", "dt")}
     per_frame |= {k: ((T,), "b") for k in ("reselected", "gt_valid", "T_cam_obj_gt_valid")}
-    per_frame |= {k: ((T, 4, 4), "f") for k in ("model_T_cam_obj", "T_world_cam_gt", "T_cam_obj_gt", "T_cam_obj_est")}
+    per_frame |= {k: ((T, 4, 4), "f") for k in ("model_T_cam_obj", "T_world_color_gt", "T_cam_obj_gt", "T_cam_obj_est")}
     features = {"points_obj": ((T, N, 3), "f"), "points_d": ((T, N, 3), "f"), "pixels": ((T, N, 2), "f")}
     features |= {"valid": ((T, N), "b"), "cues": ((T, N, C), "f"), "var_pix": ((T, N), "f"), "var_xyz": ((T, N), "f")}
     const = {"K": ((3, 3), "f"), "K_depth": ((3, 3), "f"), "T_color_depth": ((4, 4), "f")}

@@ -39,7 +39,7 @@ log = logging.getLogger("torchtrack.record")
 # from (the file's ``source`` names them).
 RECORDED_GROUPS = ("data", "frontend", "region", "select", "flow", "filter", "weighting", "tracker")
 _DATA_LOCATION = ("root", "cache_dir")
-_PER_FRAME = ("timestamp", "T_world_cam_gt", "gt_valid", "reselected", "T_cam_obj_est", "model_T_cam_obj")
+_PER_FRAME = ("timestamp", "T_world_color_gt", "gt_valid", "reselected", "T_cam_obj_est", "model_T_cam_obj")
 
 
 def recording_config(cfg: DictConfig) -> str:
@@ -74,7 +74,7 @@ class ObservationLog:
             self.camera = {k: getattr(frame, k)[b].double() for k in ("K", "K_depth", "T_color_depth")}
         eye = torch.eye(4, dtype=torch.float64)
         row = dict(
-            timestamp=frame.timestamp[b].double(), T_world_cam_gt=frame.T_world_cam_gt[b].double(),
+            timestamp=frame.timestamp[b].double(), T_world_color_gt=frame.T_world_cam_gt[b].double(),
             gt_valid=frame.gt_valid[b], reselected=res.reselected[b], T_cam_obj_est=res.T_cam_obj[b].double(),
             model_T_cam_obj=res.model_T_cam_obj[b].double() if bool(res.reselected[b]) else eye,
         )  # fmt: skip
@@ -107,7 +107,11 @@ class ObservationLog:
         per_frame = {k: torch.stack([r[k] for r in rows]) for k in rows[0] if k in _PER_FRAME}
         per_frame["dt"] = torch.stack([r.get("dt", torch.zeros((), dtype=torch.float64)) for r in rows])
         model_frame, T_cam_obj_gt, gt_ok = object_poses_gt(
-            per_frame["T_world_cam_gt"], per_frame["gt_valid"], per_frame["reselected"], per_frame["model_T_cam_obj"]
+            per_frame["T_world_color_gt"],
+            per_frame["gt_valid"],
+            per_frame["reselected"],
+            per_frame["model_T_cam_obj"],
+            self.camera["T_color_depth"],
         )
         return SequenceObservations(
             **self.meta, **self.camera, **per_frame, **features,

@@ -3,11 +3,9 @@ estimated pose and accumulated, here into a voxel grid so that memory stays boun
 
 Frames. Points are placed with the colour camera's pose ``T_world_color``: the colour image's pixels are
 back-projected through the depth registered to the colour camera (:func:`torchtrack.frontend.depth_in_colour`), and
-ground truth (TUM) is the colour camera's. The tracker estimates the depth camera's motion ``T_track_cam`` in its
-own world (its first depth camera); the mapper turns it into the colour camera's pose in the world of
-``trajectory.txt`` (:func:`torchtrack.run.world_anchor`: the first frame's ground-truth pose, else the identity):
-``T_world_color(t) = anchor @ T_color_depth @ T_track_cam(t) @ inv(T_color_depth)`` — equal to the written
-trajectory's pose when depth is registered (``T_color_depth`` = I, every shared sequence).
+ground truth (TUM) is the colour camera's. The tracker estimates the depth camera's motion in its own world (its
+first depth camera); the mapper turns it into the colour camera's pose in the world of ``trajectory.txt`` with the
+same helpers as the runner (:mod:`torchtrack.geometry.rig`), so the map and the written trajectory agree.
 """
 
 from __future__ import annotations
@@ -22,7 +20,8 @@ from torch import Tensor
 
 from torchtrack.data.frame import FrameBatch
 from torchtrack.frontend import depth_in_colour, smooth_depth_mask
-from torchtrack.geometry import T_inv, backproject, transform_points
+from torchtrack.geometry import backproject, transform_points
+from torchtrack.geometry.rig import color_poses, tracker_world
 from torchtrack.io import write_atomic, write_json
 from torchtrack.mapping.render import perspective_view, top_down_view
 from torchtrack.mapping.tsdf import TsdfFusion
@@ -101,7 +100,8 @@ class PanoramaMapper:
         self.points_kw = dict(pixel_stride=pixel_stride, min_depth=min_depth, max_depth=max_depth, edge_step=edge_step)
         self.tsdf = TsdfFusion(voxel_size=tsdf_voxel_size, trunc=tsdf_trunc, max_depth=max_depth) if tsdf else None
         self.map: VoxelPointMap | None = None
-        self.anchor: Tensor | None = None  # (B, 4, 4) the tracker's world in the written trajectory's
+        self.anchor: Tensor | None = None  # (B, 4, 4) T_world_tracker: the tracker's world in the written trajectory's
+        self.started: Tensor | None = None  # (B,) the sequence's anchor is set
         self.first: Tensor | None = None  # (B, 4, 4) the first colour camera's pose, for the perspective view
         self.K: Tensor | None = None  # (B, 3, 3) colour intrinsics
         self.fused: Tensor | None = None  # (B,) frames fused
@@ -115,18 +115,19 @@ class PanoramaMapper:
 
     def add(self, frame: FrameBatch, res) -> None:
         """Fuse this frame where it is a key frame; ``res`` a :class:`torchtrack.tracker.StepResult`."""
-        from torchtrack.run import world_anchor
-
         B = frame.rgb.shape[0]
         if self.map is None:
             self.map = VoxelPointMap(voxel_size=self.voxel_size, batch_size=B)
             self.anchor = torch.eye(4, dtype=torch.float64).repeat(B, 1, 1)
             self.first, self.K, self.fused = self.anchor.clone(), frame.K.clone(), torch.zeros(B, dtype=torch.int64)
-        start = (frame.index == 0) & frame.active
+            self.started = torch.zeros(B, dtype=torch.bool)
+        start = frame.active & ~self.started  # each sequence's first tracked frame (frame 0 may have been dropped)
         if start.any():
-            self.anchor[start] = world_anchor(frame.T_world_cam_gt[start], frame.gt_valid[start])
-        T_cd = frame.T_color_depth.double()
-        T_world_color = self.anchor @ T_cd @ res.T_world_cam.double() @ T_inv(T_cd)
+            self.anchor[start] = tracker_world(
+                frame.T_world_cam_gt[start], frame.gt_valid[start], frame.T_color_depth[start]
+            )
+            self.started |= start
+        T_world_color = color_poses(self.anchor, res.T_world_cam, frame.T_color_depth)
         if start.any():
             self.first[start] = T_world_color[start]
         self.fuse(frame, T_world_color, self.keyframes(frame, res.reselected))
