@@ -135,7 +135,11 @@ def _write_layout(out, t_rgb, rgb, t_depth, depth, poses, K, source: str) -> Pat
 
 
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(prog="python -m torchtrack.data.convert", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(
+        prog="python -m torchtrack.data.convert",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("kind", choices=["frames", "sun3d"], help="frames: 7-Scenes / 3DMatch frame-XXXXXX files; sun3d")
     p.add_argument("src", type=Path, help="the source sequence folder")
     p.add_argument("out", type=Path, help="the TUM-layout folder to write")
