@@ -22,6 +22,10 @@ from torchtrack.io import write_text
 
 log = logging.getLogger(__name__)
 
+# A corrupt image makes OpenCV's decoder print its own "[ERROR...] readHeader ..." line on stderr beside our warning,
+# which already names the file and the reason (a missing, unreadable or corrupt image is a dropped frame).
+cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+
 PathLike = str | os.PathLike
 
 
