@@ -37,7 +37,7 @@ log = logging.getLogger("torchtrack.record")
 # The config groups that build the tracker and read the sequences (conf/config.yaml): what a recording depends on.
 # Other keys (out, threads, plots, a trainer's settings) do not change it; nor do the folders the sequences come
 # from (the file's ``source`` names them).
-RECORDED_GROUPS = ("data", "frontend", "region", "select", "flow", "filter", "weighting", "tracker")
+RECORDED_GROUPS = ("data", "frontend", "region", "select", "flow", "filter", "weighting", "tracker", "pipeline", "relocalise")
 _DATA_LOCATION = ("root", "cache_dir")
 _PER_FRAME = ("timestamp", "T_world_color_gt", "gt_valid", "reselected", "T_cam_obj_est", "model_T_cam_obj")
 
