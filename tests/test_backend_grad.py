@@ -1,17 +1,19 @@
 """The pure fusion-EKF back end (estimation.ekf_frame): gradients with respect to the per-feature variances,
-the innovation likelihood against a dense oracle, and equality with the stateful filter it replaced."""
+the innovation likelihood against a dense oracle, the gate and the refit against chi-square tests written out here
+(scipy's quantiles, per feature), and equality with the stateful filter it replaced."""
 
 import dataclasses
 import math
 
 import pytest
 import torch
+from scipy.stats import chi2
 from test_fusion import DT, body, measurements, true_pose
 
 from torchtrack.estimators.backends import EKFBackend, Observation, ekf_frame, innovation_nll
 from torchtrack.filter import FusionEKF, PaperWeighting, Variances, WeightingInputs
 from torchtrack.filter.fusion import FilterState
-from torchtrack.filter.models import measure
+from torchtrack.filter.models import measure, state_to_pose
 
 F64 = torch.float64
 
@@ -151,11 +153,26 @@ def test_batched_equals_looped():
         torch.testing.assert_close(out.T_cam_obj[0], both[-1, b], rtol=0, atol=1e-12)
 
 
+def chi2_gate(z, h, s, valid, p):
+    """The gate's decisions by its definition (ekf_frame's docstring), one feature at a time: the 3D point is kept
+    when ``sum_xyz (z - h)^2 / s`` is below the chi-square quantile ``p`` with 3 dof, the pixel when its 2-dof sum
+    is below that quantile with 2 dof OR its 3D point is kept (a pixel is dropped only together with its 3D point).
+    Quantiles from scipy. z, h, s (B, N, 5); valid (B, N) -> (keep_xyz, keep_pix) (B, N) bool."""
+    q3, q2 = float(chi2.ppf(p, 3)), float(chi2.ppf(p, 2))
+    keep_xyz, keep_pix = torch.zeros_like(valid), torch.zeros_like(valid)
+    for b in range(valid.shape[0]):
+        for n in range(valid.shape[1]):
+            if valid[b, n]:
+                d2 = ((z[b, n] - h[b, n]) ** 2 / s[b, n]).tolist()
+                keep_xyz[b, n] = sum(d2[:3]) < q3
+                keep_pix[b, n] = sum(d2[3:]) < q2 or bool(keep_xyz[b, n])
+    return keep_xyz, keep_pix
+
+
 def reference_backend_step(ekf: FusionEKF, obs, var, gate, refit):
     """The stateful back end as it was before the pure function (FusionEKF.reset/predict/update, gate and refit
-    written out): the oracle that EKFBackend reproduces."""
-    from torchtrack.estimators.backends import _chi2_tests, _keep
-
+    written out with :func:`chi2_gate`): the oracle that EKFBackend reproduces. Returns the pose and how many
+    measurements the gate and the refit dropped."""
     ekf.predict(obs.dt)
     prior = (ekf.mean, ekf.cov)
     h, H = ekf.linearize(obs.points_obj, obs.K, obs.T_color_depth)
@@ -163,33 +180,127 @@ def reference_backend_step(ekf: FusionEKF, obs, var, gate, refit):
     var5 = torch.cat([var.var_xyz[..., None].expand(-1, -1, 3), var.var_pix[..., None].expand(-1, -1, 2)], -1).double()
     xyz = pix = obs.valid
     if gate is not None:
-        s = var5 + torch.einsum("bnms,bst,bnmt->bnm", H, ekf.cov, H)
-        xyz, pix = _keep(xyz, pix, *_chi2_tests(z, h, s, gate))
+        s = var5 + torch.diagonal(H @ ekf.cov[:, None] @ H.transpose(-1, -2), dim1=-2, dim2=-1)  # diag(H P- H^T) + R
+        xyz, pix = chi2_gate(z, h, s, obs.valid, gate)
+    gated = int((obs.valid & ~xyz).sum())
 
     def update(xyz, pix):
         ekf.update(obs.points_obj, obs.points_d, obs.pixels, xyz | pix, var.var_xyz, var.var_pix, obs.K,
                    obs.T_color_depth, valid_xyz=xyz, valid_pix=pix, linearization=(h, H))  # fmt: skip
 
     update(xyz, pix)
+    refitted = 0
     if refit is not None:
         h_post = measure(ekf.mean, obs.points_obj.double(), obs.K.double(), obs.T_color_depth.double())
-        xyz_new, pix_new = _keep(xyz, pix, *_chi2_tests(z, h_post, var5, refit))
+        ok_xyz, ok_pix = chi2_gate(z, h_post, var5, xyz | pix, refit)
+        xyz_new, pix_new = xyz & ok_xyz, pix & ok_pix
         if bool(((xyz_new != xyz) | (pix_new != pix)).any()):
+            refitted = int((xyz & ~xyz_new).sum())
             ekf.mean, ekf.cov = prior
             update(xyz_new, pix_new)
-    return ekf.T_cam_obj
+    return ekf.T_cam_obj, gated, refitted
+
+
+def test_gate_keeps_what_the_chi_square_test_keeps():
+    """ekf_frame's gate (refit off) against :func:`chi2_gate` on the innovation at the prediction: h from eqs. (6)-(7)
+    written out (test_fusion.measurements) at the prior pose, S's diagonal from H P- H^T formed per feature. Known
+    answers by construction: a 30 cm 3D outlier loses its 3D point but keeps its pixel; a 40 px pixel outlier with
+    a good 3D point keeps both; a feature wrong in both loses both; every other feature is kept."""
+    obs = noisy_observations(frames=1, outlier=False)[0]
+    obs.points_d[:, 0] += 0.3
+    obs.pixels[:, 1] += 40.0
+    obs.points_d[:, 2] += 0.3
+    obs.pixels[:, 2] += 40.0
+    var_xyz, var_pix = variances(1, *obs.valid.shape)
+    var = Variances(var_pix[0], var_xyz[0])
+    ekf = FusionEKF(jacobian="analytic")
+    out = ekf_frame(ekf, ekf.initial_state(true_pose(0.0)), obs, var, gate=0.999)
+    T_prior = state_to_pose(out.prior.mean)
+    points_d, pixels = measurements(T_prior, obs.points_obj, obs.K, obs.T_color_depth)
+    h = torch.cat([points_d, pixels], -1)
+    _, H = ekf.linearize_at(out.prior.mean, obs.points_obj, obs.K, obs.T_color_depth)
+    var5 = torch.cat([var_xyz[0][..., None].expand(-1, -1, 3), var_pix[0][..., None].expand(-1, -1, 2)], -1)
+    s = torch.stack([
+        torch.stack([torch.diagonal(H[b, n] @ out.prior.cov[b] @ H[b, n].T) for n in range(H.shape[1])])
+        for b in range(H.shape[0])
+    ]) + var5  # fmt: skip
+    z = torch.cat([obs.points_d, obs.pixels], -1)
+    keep_xyz, keep_pix = chi2_gate(z, h, s, obs.valid, 0.999)
+    assert torch.equal(out.used_xyz, keep_xyz) and torch.equal(out.used_pix, keep_pix)
+    expected_xyz, expected_pix = obs.valid.clone(), obs.valid.clone()
+    expected_xyz[:, [0, 2]] = False
+    expected_pix[:, 2] = False
+    assert torch.equal(keep_xyz, expected_xyz) and torch.equal(keep_pix, expected_pix)
+
+
+def test_gate_threshold_is_the_chi_square_quantile():
+    """Known answers at the threshold: each feature's measurement is placed at the prediction h plus an offset whose
+    normalised square sum (under S's diagonal) is a chosen fraction of scipy's quantile (3 dof for the 3D point, 2
+    for the pixel), 1-10 % either side of it. The float64 sums are exact to ~1e-15: a quantile or a dof off by a
+    percent flips a decision."""
+    obs = noisy_observations(frames=1, outlier=False)[0]
+    var_xyz, var_pix = variances(1, *obs.valid.shape)
+    var = Variances(var_pix[0], var_xyz[0])
+    ekf = FusionEKF(jacobian="analytic")
+    start = ekf.initial_state(true_pose(0.0))
+    prior = ekf_frame(ekf, start, obs, var).prior  # the prediction does not depend on the measurements
+    points_d, pixels = measurements(state_to_pose(prior.mean), obs.points_obj, obs.K, obs.T_color_depth)
+    _, H = ekf.linearize_at(prior.mean, obs.points_obj, obs.K, obs.T_color_depth)
+    var5 = torch.cat([var_xyz[0][..., None].expand(-1, -1, 3), var_pix[0][..., None].expand(-1, -1, 2)], -1)
+    s = var5 + torch.diagonal(H @ prior.cov[:, None] @ H.transpose(-1, -2), dim1=-2, dim2=-1)
+    r3 = torch.tensor([0.9, 0.97, 0.99, 1.01, 1.03, 1.1, 0.5, 2.0, 0.95, 1.05, 1.2, 2.0], dtype=F64)  # of q(3 dof)
+    r2 = torch.tensor([0.5, 2.0, 1.01, 1.01, 0.99, 1.02, 1.02, 0.98, 2.0, 1.05, 0.95, 0.2], dtype=F64)  # of q(2 dof)
+    q3, q2 = float(chi2.ppf(0.999, 3)), float(chi2.ppf(0.999, 2))
+    sign = torch.tensor([1.0, -1.0, 1.0, -1.0, 1.0], dtype=F64)
+    offset = sign * torch.cat([(r3 * q3 / 3)[:, None].expand(-1, 3), (r2 * q2 / 2)[:, None].expand(-1, 2)], -1)
+    offset = (offset.abs() * s).sqrt() * offset.sign()  # each component's share of the normalised square sum
+    obs = dataclasses.replace(obs, points_d=points_d + offset[..., :3], pixels=pixels + offset[..., 3:])
+    out = ekf_frame(ekf, start, obs, var, gate=0.999)
+    keep_xyz, keep_pix = r3 < 1, (r2 < 1) | (r3 < 1)  # a pixel is dropped only together with its 3D point
+    assert torch.equal(out.used_xyz, obs.valid & keep_xyz) and torch.equal(out.used_pix, obs.valid & keep_pix)
+
+
+def test_refit_drops_what_fails_the_chi_square_test_at_the_updated_pose():
+    """The refit (gate off): the update with every valid measurement, then each 3D point's and pixel's residual at
+    the UPDATED pose (eqs. (6)-(7) written out) tested against R alone with :func:`chi2_gate` restricted to the used
+    measurements; ekf_frame's final masks are those, and its pose is the update without the dropped ones. Known
+    answer: a 2 cm 3D outlier (~7 sigma of R; the first update used it) loses its 3D point and nothing else does."""
+    obs = noisy_observations(frames=1, outlier=False)[0]
+    obs.points_d[:, 0] += 0.02
+    var_xyz, var_pix = variances(1, *obs.valid.shape)
+    var = Variances(var_pix[0], var_xyz[0])
+    ekf = FusionEKF(jacobian="analytic")
+    start = ekf.initial_state(true_pose(0.0))
+    first = ekf_frame(ekf, start, obs, var)  # neither gate nor refit: every valid measurement
+    assert torch.equal(first.used_xyz, obs.valid) and torch.equal(first.used_pix, obs.valid)
+    points_d, pixels = measurements(first.T_cam_obj, obs.points_obj, obs.K, obs.T_color_depth)
+    var5 = torch.cat([var_xyz[0][..., None].expand(-1, -1, 3), var_pix[0][..., None].expand(-1, -1, 2)], -1)
+    z, h_post = torch.cat([obs.points_d, obs.pixels], -1), torch.cat([points_d, pixels], -1)
+    ok_xyz, ok_pix = chi2_gate(z, h_post, var5, obs.valid, 0.999)
+    out = ekf_frame(ekf, start, obs, var, refit=0.999)
+    assert torch.equal(out.used_xyz, obs.valid & ok_xyz) and torch.equal(out.used_pix, obs.valid & ok_pix)
+    expected_xyz = obs.valid.clone()
+    expected_xyz[:, 0] = False
+    assert torch.equal(out.used_xyz, expected_xyz) and torch.equal(out.used_pix, obs.valid)
+    masked = ekf.updated(out.prior, obs.points_obj, obs.points_d, obs.pixels, out.used_xyz, out.used_pix, var.var_xyz,
+                         var.var_pix, obs.K, obs.T_color_depth)  # fmt: skip
+    torch.testing.assert_close(out.mean, masked.mean, rtol=0, atol=0)  # the same call: bit for bit
 
 
 def test_backend_equals_the_stateful_filter_over_a_rollout():
+    """EKFBackend against :func:`reference_backend_step` over four frames in which the gate drops the outlier. The
+    two take the same arithmetic in other orders (einsum vs matmul): within 1e-12 on poses of order 1 (float64)."""
     obs = noisy_observations(frames=4)
     var_xyz, var_pix = variances(4, *obs[0].valid.shape)
     backend, ref = EKFBackend(FusionEKF(), gate=0.999, refit=0.999), FusionEKF()
     everyone = torch.ones(2, dtype=torch.bool)
     backend.reset(true_pose(0.0), everyone)
     ref.reset(true_pose(0.0))
+    gated = 0
     for k, o in enumerate(obs):
         var = Variances(var_pix[k], var_xyz[k])
-        torch.testing.assert_close(
-            backend.step(o, var).T_cam_obj, reference_backend_step(ref, o, var, 0.999, 0.999), rtol=0, atol=0
-        )
+        T_ref, n_gated, _ = reference_backend_step(ref, o, var, 0.999, 0.999)
+        torch.testing.assert_close(backend.step(o, var).T_cam_obj, T_ref, rtol=0, atol=1e-12)
+        gated += n_gated
+    assert gated >= 4  # the outlier, in both sequences, at least from the second frame on: the gate was exercised
     assert math.isfinite(float(backend.state.cov.sum()))

@@ -1,15 +1,32 @@
-"""The shipped default model: loads by ``weighting=learned``, was trained on synthetic data only, and was produced
-by the documented recipe (conf/train/default.yaml)."""
+"""The shipped default model: loads by ``weighting=learned``, was trained on synthetic data only, by the documented
+recipe (conf/train/default.yaml), is the best epoch of its recorded run, and keeps its recorded validation gain over
+eqs. (11)-(14) on held-out synthetic sequences.
+
+Oracle for the weights: the checkpoint records its validation numbers (meta ``history``, ``val_paper``,
+``val_fixed``: the innovation NLL per measurement it was selected on). Sequences of the training set's family with a
+seed it never saw (seeds 0 and 1 were trained and validated on) are rendered, recorded and replayed here in the
+recipe's windows: the shipped model's NLL must beat the paper weighting's and the untrained model's by at least a
+third of the recorded validation gain. Weights re-initialised, corrupted, or from another run fail it."""
 
 from __future__ import annotations
 
+import pytest
 import torch
 import yaml
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
 
-from torchtrack.config import CONF_DIR
+from torchtrack.config import CONF_DIR, load_option
+from torchtrack.data import TumSequence
+from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 from torchtrack.filter import WeightingInputs
+from torchtrack.learn.cache import load_observations
 from torchtrack.learn.checkpoint import DEFAULT_CHECKPOINT, learned_weighting, load_checkpoint
 from torchtrack.learn.cues import CUE_NAMES
+from torchtrack.learn.model import LearnedWeighting
+from torchtrack.learn.record import record_sequences
+from torchtrack.learn.rollout import rollout
+from torchtrack.learn.train import sequence_windows
 
 SHARED = ("visp_castle_simu", "visp_rbt_sequence", "sun3d_fragment1", "sun3d_fragment2", "7scenes_redkitchen")
 
@@ -37,3 +54,70 @@ def test_default_model_was_trained_on_synthetic_sequences_only_with_the_document
     recipe = yaml.safe_load((CONF_DIR / "train" / "default.yaml").read_text())
     for key in ("window", "stride", "batch", "epochs", "lr", "loss", "gate", "refit", "seed", "model"):
         assert trained[key] == recipe[key], key
+
+
+def test_default_model_is_the_best_epoch_of_its_recorded_run():
+    """The recorded run: the shipped epoch has the lowest validation loss of the history (the selection rule), and
+    that loss (the NLL per measurement, the recipe's loss) beats the recorded baselines on the same windows."""
+    _, meta = load_checkpoint(DEFAULT_CHECKPOINT)
+    history = meta["history"]
+    assert [h["epoch"] for h in history] == list(range(1, len(history) + 1))
+    best = min(history, key=lambda h: h["val_loss"])
+    assert meta["epoch"] == best["epoch"] and best["val_nll"] == best["val_loss"] == best["select"]
+    assert best["val_loss"] < meta["val_paper"]["loss"] < meta["val_fixed"]["loss"]
+
+
+# Held out: the training set's family (conf/dataset/synthetic.yaml: 640 x 480, Kinect noise, medium speed), seed 2.
+HELD_OUT = {
+    "scene": SyntheticConfig(width=640, height=480, frames=21, seed=2, mode="scene", noise="kinect"),
+    "object": SyntheticConfig(width=640, height=480, frames=21, seed=2, mode="object", noise="kinect",
+                              trans_step_m=0.004),
+}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def held_out(tmp_path_factory):
+    """The held-out sequences recorded with the default pipeline (each with its mode's region), as the training set
+    was: [(region, SequenceObservations, composed config)]."""
+    root = tmp_path_factory.mktemp("held_out")
+    out = []
+    for region, synth in HELD_OUT.items():
+        seq = TumSequence(ensure_sequence(synth, root / "render"))
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = compose("config", overrides=[f"region={region}"])
+        (path,) = record_sequences(cfg, [seq], root / "obs", names=[region], progress=False)
+        out.append((region, load_observations(path), cfg))
+    return out
+
+
+def nll_per_measurement(weighting, obs, cfg, recipe) -> float:
+    """The innovation NLL per used measurement over the recipe's windows (from ground truth, gate and refit)."""
+    win = sequence_windows(obs, recipe["window"], recipe["stride"])
+    ekf = instantiate(cfg.filter, jacobian=recipe["jacobian"])
+    with torch.no_grad():
+        out = rollout(ekf, weighting, win, gate=recipe["gate"], refit=recipe["refit"], with_nll=True)
+    return float(out.nll.sum() / out.n_used.sum())
+
+
+def test_default_model_keeps_its_validation_gain_on_held_out_sequences(held_out):
+    """Recorded: validation NLL per measurement -2.013 (the shipped epoch) vs -1.709 for eqs. (11)-(14), a gain of
+    0.30. Required here: a gain of at least a third of that over the paper weighting and over the untrained model
+    (zero last layer: constant nominal variances with the depth prior). Measured (seed 2): scene -1.551 vs paper
+    -1.349, untrained -1.309; object -2.784 vs -2.478, -2.454; held-out scenes of seeds 3 and 4 and the bare object
+    gain 0.16-0.31 likewise. Checked to fail (scene): weights not loaded -1.309, every layer re-initialised -1.273,
+    cue columns permuted -0.710, last layer negated -0.450, the 2-epoch model of test_train_app (gain -0.007)."""
+    model = learned_weighting()
+    _, meta = load_checkpoint(DEFAULT_CHECKPOINT)
+    seen = meta["train_sequences"] + meta["val_sequences"]
+    assert not any("seed2" in s for s in seen), "the held-out seed was trained on"
+    recipe = yaml.safe_load(meta["config"])["train"]
+    best = min(meta["history"], key=lambda h: h["val_loss"])
+    required = (meta["val_paper"]["loss"] - best["val_loss"]) / 3
+    assert required > 0.09
+    untrained = LearnedWeighting(**model.config)
+    paper = instantiate(load_option("weighting", "paper"))
+    for name, obs, cfg in held_out:
+        ours = nll_per_measurement(model, obs, cfg, recipe)
+        for base_name, base in (("paper", paper), ("untrained", untrained)):
+            theirs = nll_per_measurement(base, obs, cfg, recipe)
+            assert ours < theirs - required, f"{name}: shipped {ours:.4f} vs {base_name} {theirs:.4f}"
