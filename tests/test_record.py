@@ -347,9 +347,13 @@ def test_resume_skips_an_up_to_date_file_and_re_records_another_config(seq, tmp_
     assert calls == []
     record_sequences(config("weighting.sigma2_pix=2.0"), [seq], tmp_path, progress=False)
     assert calls == [[seq.name]]
+    record_sequences(config("pipeline.landmarks=false"), [seq], tmp_path, progress=False)  # the policy changes it too
+    assert calls == [[seq.name]] * 2
+    record_sequences(config("relocalise.recover=false"), [seq], tmp_path, progress=False)
+    assert calls == [[seq.name]] * 3
     path.write_bytes(b"corrupt")
     record_sequences(config(), [seq], tmp_path, progress=False)
-    assert calls == [[seq.name], [seq.name]]
+    assert calls == [[seq.name]] * 4
 
 
 def test_synthetic_set_definition():

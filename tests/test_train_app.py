@@ -140,3 +140,18 @@ def test_replay_of_a_recording_equals_the_tracker(tmp_path):
 
     out = rollout(ekf, recorded, win, gate=cfg.tracker.gate, refit=cfg.tracker.refit)
     torch.testing.assert_close(out.T_cam_obj[:, 0], seq.T_cam_obj_est[1:], rtol=0, atol=1e-9)
+
+
+def test_training_on_recorded_caches_alone_composes(tmp_path):
+    """``~dataset`` with ``extra_observations``: the config resolves (``observations`` used to interpolate the removed
+    group) and only the extra caches are listed."""
+    from hydra import compose, initialize_config_dir
+
+    from torchtrack.config import CONF_DIR
+    from torchtrack.learn.train_app import observation_files
+
+    (tmp_path / "a.pt").write_bytes(b"")
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose("learn", overrides=["~dataset", f"extra_observations=[{tmp_path}]"])
+    OmegaConf.to_container(cfg, resolve=True)
+    assert observation_files(cfg) == [tmp_path / "a.pt"]
