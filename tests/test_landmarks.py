@@ -56,6 +56,7 @@ def test_refine_pose_rejects_outliers_and_ignores_invalid():
     torch.testing.assert_close(fit.T_color_world, T, atol=1e-9, rtol=0)
 
 
+@pytest.mark.equivalence
 def test_refine_pose_batched_equals_looped():
     K, T, world, pix, p_cam = random_scene(3, 30, seed=2)
     start = se3_exp(torch.full((3, 6), 0.01, dtype=torch.float64)) @ T

@@ -33,10 +33,10 @@ LK_RESIDUAL = 1e-5
 # d_TIM = |x - x'| of a forward and a backward track, each within LK_PX per coordinate: 2 sqrt(2) LK_PX.
 TIM_PX = 3e-4
 
-# Camera poses of a tracked trajectory (m, and rotation-matrix entries ~ rad), short sequences (<= ~10 frames):
-# the front end's float32 differences (LK_PX per feature, ~1e-7 m at 2 m and f = 525 px, averaged over ~100
-# features) pass through the filter frame after frame, and a re-selection or stop decision may flip. Measured
-# <= 2e-7 (synthetic, 9 frames of 3 cm / 2.5 deg) and 1e-8 (visp_castle_simu, 10 frames), AVX2 and default;
-# 20 frames of sun3d_fragment1 reach 3e-6 (LK on real images amplifies them), so keep these sequences short.
+# Camera poses of a tracked trajectory (m, and rotation-matrix entries ~ rad), on short sequences: the front end's
+# float32 differences (LK_PX per feature: ~4e-7 m at 2 m and f = 525 px, averaged over ~100 features) pass through
+# the filter frame after frame, and a re-selection or stop decision may flip. Measured, batch vs alone, AVX2 and
+# default: <= 2e-7 on the synthetic tracker tests (6-24 frames), 1e-8 on 10 frames of visp_castle_simu; but 3e-6 on
+# 20 frames of sun3d_fragment1 (LK on real images amplifies them): keep real sequences at ~10 frames.
 # A batch that mixes sequences is off by millimetres at least.
 TRAJ = 1e-5
