@@ -96,6 +96,7 @@ def rendered():
 # ----------------------------------------------------------------------------------------------- masked NCC
 
 
+@pytest.mark.equivalence
 def test_masked_ncc_equals_brute_force_and_batched_equals_looped():
     g = torch.Generator().manual_seed(0)
     N, H, W, m = 3, 20, 24, 3

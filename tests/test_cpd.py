@@ -145,6 +145,7 @@ def test_noise_matches_horn_level_and_outlier_weight_helps():
     assert r0.mean() > 5 * level_r and t0.mean() > 5 * level_t
 
 
+@pytest.mark.equivalence
 def test_masked_garbage_changes_nothing_and_batched_equals_looped():
     src, dst, _ = noisy_partial_problem(B=4, seed=60)
     B, N, M = 4, src.shape[1], dst.shape[1]

@@ -205,6 +205,7 @@ def test_no_valid_feature_keeps_prediction_exactly():
     assert not torch.equal(out.mean[0], mean[0])
 
 
+@pytest.mark.equivalence
 def test_batched_equals_looped():
     mean, cov, z, var, fi, si = fusion_problem(B=3)
     valid = torch.rand(3, 20, generator=torch.Generator().manual_seed(5)) > 0.2

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from tolerances import TIM_PX
 
 from torchtrack.data.tum_io import write_tum_trajectory
 from torchtrack.geometry import T_inv, euler_to_matrix, make_T
@@ -317,6 +318,7 @@ def test_table1_subsets_grow_in_spread():
 table2 = _load("table2_tim")
 
 
+@pytest.mark.equivalence
 def test_table2_combined_tracker_takes_the_smaller_tim_per_feature():
     """Intensity moved by a known integer shift (LK exact, d_TIM ~ 0); a static SIM, flat on its left half
     (LK loses the feature there) and textured on its right half (zero motion: d_TIM = 0 exactly). The combined
@@ -332,9 +334,10 @@ def test_table2_combined_tracker_takes_the_smaller_tim_per_feature():
 
     prev, next = prepare_frame(tex, sim, 2), prepare_frame(nxt, sim, 2)
     d = table2.tim_by_tracker(prev, next, pixels, valid, levels=2, window=11)
-    for mode in ("intensity", "sim"):  # one combined call == the single-tracker modes
+    for mode in ("intensity", "sim"):  # one combined call (both channels at once) == the single-tracker modes
         single = combined_track(prev, next, pixels, valid, mode=mode, levels=2, window=11).d_tim
-        assert torch.equal(torch.where(valid, single, torch.full_like(single, float("inf"))), d[mode])
+        single = torch.where(valid, single, torch.full_like(single, float("inf")))
+        torch.testing.assert_close(single, d[mode], atol=TIM_PX, rtol=0)  # other batch shapes: other roundings
     assert d["intensity"][0, :2].max() < 0.05
     assert torch.isinf(d["sim"][0, 0]) and d["sim"][0, 1] < 1e-6
     assert d["combined"][0, 0] == d["intensity"][0, 0] and d["combined"][0, 1] == d["sim"][0, 1]

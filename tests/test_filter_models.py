@@ -91,6 +91,7 @@ def test_autograd_and_analytic_jacobians_equal_finite_differences(skew):
     assert torch.equal(lin.H[..., 6:], torch.zeros_like(lin.H[..., 6:]))  # velocities do not enter h
 
 
+@pytest.mark.equivalence
 def test_analytic_batched_equals_looped():
     x, X, K, T = scene(B=3)
     lin = measure_analytic(x, X, K, T)

@@ -2,7 +2,7 @@
 
 Oracles: images where one channel is blank (uniform) and the other textured, so that the tracker must
 pick the textured one, with exact ground truth from an analytic texture; the OpenCV backend on real
-frames; batched == looped; the class equals the function.
+frames; batched equals looped (within tests/tolerances.py); the class equals the function.
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 from test_lk import texture
+from tolerances import LK_PX, TIM_PX
 
 from torchtrack.image.flow import CombinedTracker, FlowFrame, TrackResult, combined_track, prepare_frame
 
@@ -161,6 +162,7 @@ def test_no_features_and_no_valid_features():
 
 
 # ---------------------------------------------------------------------------------------------- batching, class
+@pytest.mark.equivalence
 def test_batched_equals_looped_and_class_equals_function():
     scenes = [split_scene(t, seed=s) for s, t in enumerate([(1.2, 0.4), (-0.6, 2.1)])]
     f0 = prepare_frame(torch.cat([s[0].images[0] for s in scenes]), torch.cat([s[0].images[1] for s in scenes]))
@@ -172,8 +174,8 @@ def test_batched_equals_looped_and_class_equals_function():
     assert tracker.prepare(scenes[0][0].images[0], scenes[0][0].images[1]).pyramid.batch == 2
     for b, (s0, s1, p, _) in enumerate(scenes):
         one = combined_track(s0, s1, p, tim_threshold=0.5)
-        torch.testing.assert_close(batched.points[b], one.points[0], atol=1e-4, rtol=0)
-        torch.testing.assert_close(batched.d_tim[b], one.d_tim[0], atol=1e-4, rtol=0)
+        torch.testing.assert_close(batched.points[b], one.points[0], atol=LK_PX, rtol=0)
+        torch.testing.assert_close(batched.d_tim[b], one.d_tim[0], atol=TIM_PX, rtol=0)
         assert (batched.valid[b] == one.valid[0]).all() and (batched.winner[b] == one.winner[0]).all()
 
 

@@ -166,6 +166,7 @@ def test_reset_with_mask_touches_only_masked_sequences():
     torch.testing.assert_close(filt.T_cam_obj[1], new[1])
 
 
+@pytest.mark.equivalence
 def test_batched_equals_looped():
     X, K, T_cd = body(N=25)
     est, _ = run(FusionEKF(), 4, X, K, T_cd)

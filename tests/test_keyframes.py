@@ -77,6 +77,7 @@ def test_identity_when_frames_identical():
     assert torch.allclose(res.T_ref_cur[0], torch.eye(4, dtype=torch.float64), atol=1e-9)
 
 
+@pytest.mark.equivalence
 def test_batched_equals_looped():
     poses = [pose([0.02, 0.0, 0.01], [0.0, 0.01, 0.0]), pose([-0.01, 0.02, 0.0], [0.015, 0.0, -0.01])]
     refs = [torch.eye(4, dtype=torch.float64), pose([0.0, 0.01, 0.0], [0.0, 0.0, 0.01])]

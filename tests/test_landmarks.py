@@ -56,6 +56,7 @@ def test_refine_pose_rejects_outliers_and_ignores_invalid():
     torch.testing.assert_close(fit.T_color_world, T, atol=1e-9, rtol=0)
 
 
+@pytest.mark.equivalence
 def test_refine_pose_batched_equals_looped():
     K, T, world, pix, p_cam = random_scene(3, 30, seed=2)
     start = se3_exp(torch.full((3, 6), 0.01, dtype=torch.float64)) @ T
@@ -66,7 +67,7 @@ def test_refine_pose_batched_equals_looped():
         one = refine_pose(K[b : b + 1], start[b : b + 1], world[b : b + 1], pix[b : b + 1], p_cam[b : b + 1],
                           valid[b : b + 1])  # fmt: skip
         torch.testing.assert_close(batched.T_color_world[b], one.T_color_world[0], atol=1e-10, rtol=0)
-        assert torch.equal(batched.inliers[b], one.inliers[0])
+        assert torch.equal(batched.inliers[b], one.inliers[0])  # decisions: none within rounding of the threshold
 
 
 # ------------------------------------------------------------------------------------------------ the keyframe ring

@@ -140,6 +140,7 @@ def test_garbage_in_invalid_slots_changes_nothing(mode):
     assert all(torch.isfinite(g).all() for g in grads)
 
 
+@pytest.mark.equivalence
 @pytest.mark.parametrize("mode", MODES)
 def test_batched_equals_looped_and_permutation_equivariant(mode):
     valid = torch.rand(3, 15, generator=torch.Generator().manual_seed(5)) > 0.3

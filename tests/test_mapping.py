@@ -138,6 +138,7 @@ def numpy_voxels(p: np.ndarray, c: np.ndarray, b: np.ndarray, voxel: float, seq:
     return count, xyz / count[:, None], rgb / count[:, None]
 
 
+@pytest.mark.equivalence
 def test_voxel_map_equals_a_direct_numpy_computation():
     gen = torch.Generator().manual_seed(0)
     chunks, runs = [], []
@@ -267,6 +268,7 @@ def test_rigidly_perturbed_trajectory_gives_the_transformed_map(synthetic):
         assert nn.max() < math.sqrt(3) * VOXEL
 
 
+@pytest.mark.equivalence
 def test_batched_equals_looped(synthetic):
     scene, _, poses, frames = synthetic
     batched = fused(frames, poses, pixel_stride=2, edge_step=0.05)

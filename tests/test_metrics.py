@@ -129,6 +129,7 @@ def test_umeyama_recovers_known_se3_and_sim3():
     torch.testing.assert_close(res.t, t, rtol=0, atol=1e-12)
 
 
+@pytest.mark.equivalence
 def test_umeyama_reflection_is_excluded_and_batched_equals_looped():
     g = torch.Generator().manual_seed(4)
     src = torch.randn(4, 30, 3, generator=g, dtype=F64)
@@ -306,6 +307,7 @@ def test_reprojection_error_zero_for_exact_projection_and_known_offset():
     torch.testing.assert_close(reprojection_error(K, T, X, x + offset), torch.full((3,), 5.0, dtype=F64))
 
 
+@pytest.mark.equivalence
 def test_reprojection_error_mask_and_batched_equals_looped():
     K, T, X, x = _scene()
     shift = torch.zeros_like(x)

@@ -72,6 +72,7 @@ def test_automatic_range_ignores_a_small_near_speck():
     assert torch.equal(object_mask(depth)[0, 0], obj)
 
 
+@pytest.mark.equivalence
 def test_batched_range_equals_looped():
     a, _ = layered_depth(0)
     b = torch.linspace(0.8, 3.0, W).expand(1, 1, H, W).clone()
@@ -96,6 +97,7 @@ def test_largest_component_against_opencv():
     assert np.array_equal(m[0, 0].numpy(), labels == biggest)
 
 
+@pytest.mark.equivalence
 def test_largest_component_batched_equals_looped():
     g = torch.Generator().manual_seed(3)
     masks = torch.rand(3, 1, 40, 50, generator=g) > 0.55

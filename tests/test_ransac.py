@@ -34,6 +34,7 @@ def test_recovers_the_transform_and_the_inliers_exactly():
     assert torch.equal(fit.inliers, inlier)
 
 
+@pytest.mark.equivalence
 def test_batched_equals_looped_and_invalid_pairs_are_ignored():
     src, dst, T, inlier = problem(B=2, seed=1)
     valid = torch.rand(src.shape[:2], generator=torch.Generator().manual_seed(2)) < 0.8

@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from tolerances import F32_UNIT
 
 from torchtrack.image.shape_index import SIM, ShapeIndex, ShapeIndexMap, compute_sim, shape_index, sim_image
 
@@ -89,6 +90,7 @@ def as_depth(z: torch.Tensor) -> torch.Tensor:
 
 
 # ---------------------------------------------------------------------------------------------- smoke/shape
+@pytest.mark.equivalence
 def test_shapes_dtypes_and_range():
     d = torch.stack([as_depth(sphere(0.8, 0.15))[0], as_depth(cylinder(0.8, 0.1))[0]])
     K = K1().expand(2, 3, 3)
@@ -98,13 +100,14 @@ def test_shapes_dtypes_and_range():
     assert s.si.dtype == torch.float32 and s.valid.dtype == torch.bool
     assert float(s.si.min()) >= 0.0 and float(s.si.max()) <= 1.0
     assert torch.all(s.si[~s.valid] == 0.5)  # masked pixels carry the fill
-    out = compute_sim(d, K)
+    out = compute_sim(d, K)  # one image at a time: other shapes, so within float32 rounding
     assert isinstance(out, SIM)
-    assert torch.equal(out.si, s.si) and torch.equal(out.valid, s.valid)
+    torch.testing.assert_close(out.si, s.si, atol=F32_UNIT, rtol=0)
+    assert torch.equal(out.valid, s.valid)  # thresholds: a flip needs a value within rounding of one (none here)
     odd = shape_index(d[..., :301, :457], K)  # sizes not divisible by the decimation
     assert odd.si.shape == odd.valid.shape == odd.curvedness.shape == (2, 1, 301, 457)
     lean = shape_index(d, K, curvedness=False)  # as compute_sim calls it
-    assert lean.curvedness is None and torch.equal(lean.si, s.si) and torch.equal(lean.valid, s.valid)
+    assert lean.curvedness is None and torch.equal(lean.si, s.si) and torch.equal(lean.valid, s.valid)  # same shapes
 
 
 @pytest.mark.parametrize(
@@ -226,6 +229,7 @@ def test_sim_image_is_quantised_and_masked():
 
 
 # ---------------------------------------------------------------------------------------------- batching
+@pytest.mark.equivalence
 def test_batched_equals_looped():
     zs = [sphere(0.8, 0.15), cylinder(0.8, 0.1, far=True), saddle(0.8, 0.15)[0]]
     Ks = torch.cat([K1(), K1(f=500.0), K1(f=550.0, cx=310.0)])
@@ -233,12 +237,13 @@ def test_batched_equals_looped():
     batched = shape_index(d, Ks)
     for b in range(3):
         one = shape_index(d[b : b + 1], Ks[b : b + 1])
-        assert torch.equal(one.valid, batched.valid[b : b + 1])
-        assert torch.allclose(one.si, batched.si[b : b + 1], atol=1e-6)
-    sim = compute_sim(d, Ks)  # one image at a time (cache-sized temporaries): the same values as the batched map
+        assert torch.equal(one.valid, batched.valid[b : b + 1])  # thresholds: no value within rounding of one here
+        torch.testing.assert_close(one.si, batched.si[b : b + 1], atol=F32_UNIT, rtol=0)
+    sim = compute_sim(d, Ks)  # one image at a time (cache-sized temporaries): the batched map's values within rounding
     lean = shape_index(d, Ks, curvedness=False)
-    assert torch.equal(sim.si, lean.si) and torch.equal(sim.valid, lean.valid)
-    assert torch.equal(sim.image, sim_image(lean.si))
+    torch.testing.assert_close(sim.si, lean.si, atol=F32_UNIT, rtol=0)
+    assert torch.equal(sim.valid, lean.valid)
+    assert torch.equal(sim.image, sim_image(sim.si))  # the quantised image of its own SI: the same arithmetic
     with pytest.raises(ValueError, match="K must be"):
         compute_sim(d, Ks[:2])
 

@@ -92,6 +92,7 @@ def test_fixed_weighting_ablation():
     assert (out.var_pix == 0.7).all() and (out.var_xyz == 2e-4).all() and out.var_pix.shape == (2, 7)
 
 
+@pytest.mark.equivalence
 def test_batched_equals_looped_and_module_equals_function():
     valid = torch.rand(3, 9, generator=torch.Generator().manual_seed(2)) > 0.2
     inp = inputs(3, 9, valid=valid)

@@ -1,0 +1,42 @@
+"""The one table of equivalence tolerances (STYLE.md item 8).
+
+Two computations of one quantity that differ only in shape (batch size, chunking, padding, channels), thread count
+or order run other kernels and sum in other orders, and which ones depends on the CPU (AVX-512, AVX2, none: torch's
+``ATEN_CPU_CAPABILITY``). They agree within float error, not bit for bit. Each entry says where its size comes from
+and what it still catches. The same computation run twice (determinism, resume, caching) is compared exactly.
+
+The tests that use these are marked ``equivalence``; CI runs them again under ``ATEN_CPU_CAPABILITY=default`` and
+``=avx2`` (``.ci/run``).
+"""
+
+from __future__ import annotations
+
+# float32 quantities of order one (normalised cornerness, shape index, colour in [0, 1], points within ~10 m): a few
+# stages of sums over windows of up to ~1e3 terms, each off by ~sqrt(n) eps (float32 eps 1.2e-7) in another order:
+# ~100 eps. Mixing two images or sequences changes them by ~0.1 or more.
+F32_UNIT = 1e-5
+
+# float64 poses and states on unit-scale data (metres ~1, radians): a closed form or a contracting iteration (Horn,
+# ICP, an EKF update), ~1e4 eps (2.2e-16). Another sequence's data moves a pose by their difference (~1e-2 here).
+F64_UNIT = 1e-12
+
+# LK end points (float32), pixels: coordinates up to ~500 px round at 2^-15 = 3e-5 px, and an iteration's window sums
+# of ~400 products in another order move the step by ~1e-7 of its size; a few roundings: 1e-4 px, 3 ulps of a 500 px
+# coordinate (measured: 4e-6 px on AVX2 and AVX-512, 8e-6 px with ATEN_CPU_CAPABILITY=default: one ulp of a ~100 px
+# coordinate). A track that took another point's start or another image is off by pixels (a start one point off in
+# test_chunks_track_as_one_call: 169 px).
+LK_PX = 1e-4
+
+# LK's mean |residual| (intensity in [0, 1]): end points within LK_PX over image gradients of <= ~0.1 per px.
+LK_RESIDUAL = 1e-5
+
+# d_TIM = |x - x'| of a forward and a backward track, each within LK_PX per coordinate: 2 sqrt(2) LK_PX.
+TIM_PX = 3e-4
+
+# Camera poses of a tracked trajectory (m, and rotation-matrix entries ~ rad), on short sequences: the front end's
+# float32 differences (LK_PX per feature: ~4e-7 m at 2 m and f = 525 px, averaged over ~100 features) pass through
+# the filter frame after frame. Measured, batch vs alone, AVX2 and default: <= 2e-7 on the synthetic tracker tests
+# (6-24 frames), 1e-8 on 10 frames of visp_castle_simu; but 3e-6 on 20 frames of sun3d_fragment1 (LK on real images
+# amplifies them, and a re-selection or LK stop decision that flips would not stay within this): keep real sequences
+# at ~10 frames. A batch that mixes sequences' frames, features or filter states is off by their difference: mm to cm.
+TRAJ = 1e-5
