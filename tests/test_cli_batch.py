@@ -15,16 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from test_cli import read_tum_strict, run_cli
+from tolerances import TRAJ
 
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 
 FRAMES = 8
 MISSING = 3  # the frame whose depth file is deleted
-# The healthy sequence tracked alone and in a batch: the same arithmetic on other batch shapes (B=1 vs B=2 sums in
-# other orders, ~1e-7 relative in float32) over 8 frames of ~1 cm motion; 1e-6 m bounds that and is 10^4 below
-# what mixing up two sequences' frames would cause.
-BATCH_TRANSLATION_TOL_M = 1e-6
-BATCH_ROTATION_TOL = 1e-6  # rotation-matrix entries, same reasoning
 
 
 def _listed(root: Path, listing: str) -> list[str]:
@@ -113,11 +109,13 @@ def test_batch_loses_only_what_failed_at_load(runs):
     assert m["complete"] and m["frames"] == FRAMES - 1 and m["dropped_frames"] == 1
 
 
+@pytest.mark.equivalence
 def test_batch_trajectory_equals_the_single_run_within_float_error(runs):
+    """B=2 (the healthy and the missing-depth copies) vs B=1: other shapes, other summation orders (tolerances.TRAJ)."""
     (_, batch), (proc, alone) = runs["batch"], runs["healthy"]
     assert proc.returncode == 0
     t_b, T_b = read_tum_strict(batch / "healthy" / "trajectory.txt")
     t_a, T_a = read_tum_strict(alone / "healthy" / "trajectory.txt")
     np.testing.assert_array_equal(t_b, t_a)
-    np.testing.assert_allclose(T_b[:, :3, 3], T_a[:, :3, 3], rtol=0, atol=BATCH_TRANSLATION_TOL_M)
-    np.testing.assert_allclose(T_b[:, :3, :3], T_a[:, :3, :3], rtol=0, atol=BATCH_ROTATION_TOL)
+    np.testing.assert_allclose(T_b[:, :3, 3], T_a[:, :3, 3], rtol=0, atol=TRAJ)
+    np.testing.assert_allclose(T_b[:, :3, :3], T_a[:, :3, :3], rtol=0, atol=TRAJ)
