@@ -53,7 +53,7 @@ class PingPong:
         F = len(self.frames)
         k = i % (2 * (F - 1))
         f = self.frames[k if k < F else 2 * (F - 1) - k]
-        return RGBDFrame(f.rgb, f.depth, i * self.dt, f.T_world_cam_gt, f.gt_valid, i)
+        return RGBDFrame(f.rgb, f.depth, i * self.dt, f.T_world_color_gt, f.gt_valid, i)
 
 
 def rss_mib() -> float:

@@ -38,8 +38,8 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 class StepStub:
     """What the mapper reads from a :class:`torchtrack.tracker.StepResult`."""
 
-    def __init__(self, T_world_cam: torch.Tensor, reselected: torch.Tensor):
-        self.T_world_cam, self.reselected = T_world_cam, reselected
+    def __init__(self, T_world_depth: torch.Tensor, reselected: torch.Tensor):
+        self.T_world_depth, self.reselected = T_world_depth, reselected
 
 
 def key_frames(n: int, frames_csv: Path | None, every: int) -> np.ndarray:

@@ -56,13 +56,13 @@ def test_lockstep_equals_per_sequence_frames(three_sequences, prefetch):
     for t, b in enumerate(batches):
         assert b.rgb.shape == (3, 3, 6, 8) and b.depth.shape == (3, 1, 6, 8) and b.K.shape == (3, 3, 3)
         assert b.rgb.dtype == b.depth.dtype == b.K.dtype == b.T_color_depth.dtype == torch.float32
-        assert b.timestamp.dtype == b.T_world_cam_gt.dtype == torch.float64 and b.index.dtype == torch.int64
+        assert b.timestamp.dtype == b.T_world_color_gt.dtype == torch.float64 and b.index.dtype == torch.int64
         for k, s in enumerate(seqs):
             i = min(t, len(s) - 1)  # ended sequences repeat their last frame
             f = s[i]
             assert b.index[k] == i and b.timestamp[k] == f.timestamp and bool(b.gt_valid[k]) == f.gt_valid
             assert torch.equal(b.rgb[k], f.rgb) and torch.equal(b.depth[k], f.depth)
-            assert torch.equal(b.T_world_cam_gt[k], f.T_world_cam_gt)
+            assert torch.equal(b.T_world_color_gt[k], f.T_world_color_gt)
             assert torch.equal(b.K[k], s.K) and torch.equal(b.K_depth[k], s.K_depth)
             assert torch.equal(b.T_color_depth[k], s.T_color_depth)
     assert batches[0].K[:, 0, 0].tolist() == [102.0, 104.0, 103.0]

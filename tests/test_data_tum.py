@@ -125,8 +125,8 @@ def test_groundtruth_nearest_within_max_dt(tmp_path):
         j = int(np.argmin(np.abs(t_gt - seq.timestamps[i])))
         np.testing.assert_allclose(seq.groundtruth[i], T_gt[j], atol=1e-8)
         frame = seq[i]
-        assert frame.gt_valid and frame.T_world_cam_gt.dtype == torch.float64
-        np.testing.assert_allclose(frame.T_world_cam_gt.numpy(), T_gt[j], atol=1e-8)
+        assert frame.gt_valid and frame.T_world_color_gt.dtype == torch.float64
+        np.testing.assert_allclose(frame.T_world_color_gt.numpy(), T_gt[j], atol=1e-8)
     np.testing.assert_array_equal(seq.groundtruth[4:], np.tile(np.eye(4), (2, 1, 1)))
     assert not seq[4].gt_valid
 
@@ -382,7 +382,7 @@ def depth_warp_residuals(seq: TumSequence, i: int, j: int, step: int = 4) -> dic
     ys, xs = torch.nonzero(d > 0, as_tuple=True)
     K = seq.K_depth.double()
     p_i = backproject(K, torch.stack([xs, ys], -1).double() * step, d[ys, xs])
-    T_wi, T_wj = a.T_world_cam_gt, b.T_world_cam_gt
+    T_wi, T_wj = a.T_world_color_gt, b.T_world_color_gt
     motions = {
         "gt": T_inv(T_wj) @ T_wi,
         "identity": torch.eye(4, dtype=torch.float64),

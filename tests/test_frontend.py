@@ -45,7 +45,7 @@ def _frames(n: int, H: int = 48, W: int = 64) -> list[FrameBatch]:
     return [
         FrameBatch(rgb=torch.rand(2, 3, H, W, generator=g), depth=(bowl + 0.01 * t).expand(2, 1, H, W).clone(), K=K,
                    K_depth=K, T_color_depth=torch.eye(4).expand(2, 4, 4), timestamp=torch.full((2,), t / 30.0,
-                   dtype=torch.float64), T_world_cam_gt=torch.eye(4, dtype=torch.float64).expand(2, 4, 4),
+                   dtype=torch.float64), T_world_color_gt=torch.eye(4, dtype=torch.float64).expand(2, 4, 4),
                    gt_valid=torch.ones(2, dtype=torch.bool), active=torch.ones(2, dtype=torch.bool),
                    index=torch.full((2,), t))
         for t in range(n)

@@ -130,7 +130,7 @@ def rendered():
         rgbd = render_frame(scene, T)
         f = FrameBatch(rgb=rgbd.rgb[None].float(), depth=rgbd.depth[None].float(), K=K, K_depth=K,
                        T_color_depth=torch.eye(4)[None], timestamp=torch.zeros(1, dtype=torch.float64),
-                       T_world_cam_gt=T[None], gt_valid=torch.ones(1, dtype=torch.bool),
+                       T_world_color_gt=T[None], gt_valid=torch.ones(1, dtype=torch.bool),
                        active=torch.ones(1, dtype=torch.bool), index=torch.zeros(1, dtype=torch.long))  # fmt: skip
         return fe(f)
 
@@ -150,9 +150,9 @@ def landmarks_of(r, lm: LandmarkMap):
     return world
 
 
-def reacquire(r, lm: LandmarkMap, T_world_cam):
+def reacquire(r, lm: LandmarkMap, T_world_depth):
     none = torch.zeros(1, 0, 2)
-    return lm.reacquire(CombinedTracker(), r["cur"], r["K"], torch.eye(4)[None], T_world_cam, none,
+    return lm.reacquire(CombinedTracker(), r["cur"], r["K"], torch.eye(4)[None], T_world_depth, none,
                         torch.zeros(1, 0, dtype=torch.bool), torch.ones(1, dtype=torch.bool))  # fmt: skip
 
 
@@ -176,7 +176,7 @@ def test_reacquired_landmarks_are_found_where_they_project_and_correct_a_drifted
     assert float(err.median()) < 0.2 and float(err.max()) < 2.0
     stored = {tuple(p.tolist()) for p in world[0]}
     assert all(tuple(p.tolist()) in stored for p in acq.points_world[acq.valid])  # exactly the stored positions
-    step = se3_log(T_inv(r["T_cur"]) @ acq.T_world_cam[0])
+    step = se3_log(T_inv(r["T_cur"]) @ acq.T_world_depth[0])
     assert float(step[:3].norm()) < 4e-3 and float(step[3:].norm()) < math.radians(0.1)
 
 
@@ -187,7 +187,7 @@ def test_no_correction_without_enough_landmarks(rendered):
     T = (r["T_cur"] @ se3_exp(torch.tensor([0.01, 0, 0, 0, 0, 0], dtype=torch.float64)))[None]
     acq = reacquire(r, lm, T)
     assert acq.valid.any()
-    assert torch.equal(acq.T_world_cam, T)
+    assert torch.equal(acq.T_world_depth, T)
 
 
 def test_occluded_and_far_views_are_not_candidates(rendered):

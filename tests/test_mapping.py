@@ -90,7 +90,7 @@ def make_frames(scene, T_world_color: torch.Tensor, T_color_depth: torch.Tensor 
     K = scene.K.float().expand(B, 3, 3)
     return FrameBatch(
         rgb=rgb.float(), depth=depth.float(), K=K, K_depth=K, T_color_depth=T_cd.float().expand(B, 4, 4),
-        timestamp=torch.arange(B, dtype=torch.float64), T_world_cam_gt=T_world_color,
+        timestamp=torch.arange(B, dtype=torch.float64), T_world_color_gt=T_world_color,
         gt_valid=torch.ones(B, dtype=torch.bool), active=torch.ones(B, dtype=torch.bool), index=torch.arange(B),
     )  # fmt: skip
 
@@ -285,8 +285,8 @@ def test_batched_equals_looped(synthetic):
 
 
 class _Result:  # the fields of StepResult the mapper reads
-    def __init__(self, T_world_cam: torch.Tensor, reselected: torch.Tensor):
-        self.T_world_cam, self.reselected = T_world_cam, reselected
+    def __init__(self, T_world_depth: torch.Tensor, reselected: torch.Tensor):
+        self.T_world_depth, self.reselected = T_world_depth, reselected
 
 
 def test_mapper_fuses_first_and_model_frames_in_ground_truths_world(synthetic, tmp_path):
@@ -299,7 +299,7 @@ def test_mapper_fuses_first_and_model_frames_in_ground_truths_world(synthetic, t
     for t in range(len(poses)):
         one = FrameBatch(**{k: v[t : t + 1] for k, v in vars(frames).items()})
         one.index = torch.tensor([t])
-        one.T_world_cam_gt = poses[t : t + 1]
+        one.T_world_color_gt = poses[t : t + 1]
         mapper.add(one, _Result(relative[t : t + 1], torch.tensor([reselected[t]])))
     expected = accumulate(FrameBatch(**{k: v[[0, 1, 3]] for k, v in vars(frames).items()}), poses[[0, 1, 3]])
     got = mapper.points(0)

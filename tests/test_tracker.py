@@ -42,8 +42,8 @@ def track(tracker, sequences):
     for frame in iterate_batched(sequences, prefetch=False):
         res = tracker.step(frame)
         if anchor is None:
-            anchor = tracker_world(frame.T_world_cam_gt, frame.gt_valid, frame.T_color_depth)
-        poses.append(color_poses(anchor, res.T_world_cam, frame.T_color_depth))
+            anchor = tracker_world(frame.T_world_color_gt, frame.gt_valid, frame.T_color_depth)
+        poses.append(color_poses(anchor, res.T_world_depth, frame.T_color_depth))
         results.append(res)
     return torch.stack(poses, 1), results  # B,F,4,4
 
@@ -105,9 +105,9 @@ def test_reselection_keeps_trajectory_continuous(synth):
         res = tracker.step(frame)
         assert bool(res.reselected[0])
         after = tracker.state.T_world_obj @ T_inv(tracker.state.T_cam_obj.double())  # pose under the new model
-        torch.testing.assert_close(after, res.T_world_cam, atol=1e-9, rtol=0)
+        torch.testing.assert_close(after, res.T_world_depth, atol=1e-9, rtol=0)
     anchor = torch.as_tensor(seq.groundtruth[0])
-    trans, rot = pose_errors(anchor @ res.T_world_cam, seq.groundtruth[-1:])
+    trans, rot = pose_errors(anchor @ res.T_world_depth, seq.groundtruth[-1:])
     frozen_trans, frozen_rot = frozen_errors(seq)
     assert trans < 0.2 * frozen_trans and rot < 0.2 * frozen_rot  # chaining 8 models still follows the motion
 
@@ -135,7 +135,7 @@ def test_keep_survivors_keeps_their_world_points_and_the_pose(synth):
     world = lambda: s().T_world_obj[:, None, :3, :3].float() @ s().points_obj[..., None]  # noqa: E731
     keep = s().valid[0].clone()
     pixels, points = s().pixels[0][keep], (world()[..., 0] + s().T_world_obj[:, None, :3, 3].float())[0][keep]
-    pose = s().T_world_cam
+    pose = s().T_world_depth
     n_select = len(tracker.select(s().prev.gray, s().prev.depth, frames[-1].K, sim=s().prev.sim).valid[0])
     width = max(n_select, s().pixels.shape[1])  # the new model: the selector's width or the old model's
 

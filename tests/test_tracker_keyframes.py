@@ -41,8 +41,8 @@ def track(tracker, sequences, check_backend=False):
     for frame in iterate_batched(sequences, prefetch=False):
         res = tracker.step(frame)
         if anchor is None:
-            anchor = tracker_world(frame.T_world_cam_gt, frame.gt_valid, frame.T_color_depth)
-        poses.append(color_poses(anchor, res.T_world_cam, frame.T_color_depth))
+            anchor = tracker_world(frame.T_world_color_gt, frame.gt_valid, frame.T_color_depth)
+        poses.append(color_poses(anchor, res.T_world_depth, frame.T_color_depth))
         if check_backend:  # the filter's mean was moved to the corrected pose (or reset there at a re-selection)
             backend_pose = state_to_pose(tracker.backend.state.mean)
             torch.testing.assert_close(backend_pose, tracker.state.T_cam_obj, atol=1e-9, rtol=0)

@@ -53,7 +53,7 @@ def batches(trajectories: list[torch.Tensor]) -> list[FrameBatch]:
         rgbd = render_frame(scene, T)
         out.append(FrameBatch(
             rgb=rgbd.rgb.float(), depth=rgbd.depth.float(), K=K, K_depth=K, T_color_depth=torch.eye(4).expand(B, 4, 4),
-            timestamp=torch.full((B,), i / 30.0, dtype=torch.float64), T_world_cam_gt=T,
+            timestamp=torch.full((B,), i / 30.0, dtype=torch.float64), T_world_color_gt=T,
             gt_valid=torch.ones(B, dtype=torch.bool), active=torch.ones(B, dtype=torch.bool),
             index=torch.full((B,), i, dtype=torch.long),
         ))  # fmt: skip
@@ -71,7 +71,7 @@ def run(frames: list[FrameBatch], poses: torch.Tensor, *overrides: str):
     tracker, errors = build_tracker(compose_cfg(*overrides)), []
     for frame in frames:
         res = tracker.step(frame)
-        T = poses[0] @ res.T_world_cam[0]
+        T = poses[0] @ res.T_world_depth[0]
         errors.append(float((T_inv(poses[int(frame.index[0])]) @ T)[:3, 3].norm()))
     return torch.tensor(errors), tracker
 
@@ -139,9 +139,9 @@ def test_batched_equals_looped():
     a, b = out_and_back(25.0, 0.3, frames=24), out_and_back(-20.0, -0.2, frames=24)
     both = batches([a, b])
     tracker = build_tracker(compose_cfg(*ON, "pipeline.landmark_every=4"))
-    batched = torch.stack([tracker.step(f).T_world_cam for f in both])  # F,B,4,4
+    batched = torch.stack([tracker.step(f).T_world_depth for f in both])  # F,B,4,4
     for i, poses in enumerate((a, b)):
         alone = build_tracker(compose_cfg(*ON, "pipeline.landmark_every=4"))
         for f, frame in enumerate(batches([poses])):
-            torch.testing.assert_close(batched[f, i], alone.step(frame).T_world_cam[0], atol=TRAJ, rtol=0)
+            torch.testing.assert_close(batched[f, i], alone.step(frame).T_world_depth[0], atol=TRAJ, rtol=0)
     assert int(tracker.reacquired_total.min()) > 0

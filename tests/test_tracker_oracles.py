@@ -32,7 +32,7 @@ def ate(seq: TumSequence, *overrides: str) -> float:
     tracker, poses = build_tracker(config(*overrides)), []
     with torch.inference_mode():
         for frame in iterate_batched([seq], prefetch=False):
-            poses.append(tracker.step(frame).T_world_cam[0])
+            poses.append(tracker.step(frame).T_world_depth[0])
     T_cd = seq.T_color_depth
     world = tracker_world(torch.as_tensor(seq.groundtruth[0]), torch.tensor(True), T_cd)
     T = color_poses(world, torch.stack(poses), T_cd).numpy()  # the colour camera's, as ground truth

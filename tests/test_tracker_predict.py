@@ -52,14 +52,14 @@ def test_init_is_the_constant_velocity_projection(synth):  # noqa: F811
             got = spy.inits[-1][0][s.valid[0]].double().numpy()
             np.testing.assert_allclose(got, expected[:, 0], atol=1e-3)
             checked += 1
-        T_wc.append(res.T_world_cam)
+        T_wc.append(res.T_world_depth)
         reselected.append(bool(res.reselected[0]))
     assert checked == len(seq) - 2 and len(spy.inits) == len(seq) - 1
     assert any(reselected[1:-1])  # a prediction right after a re-selection was checked too
 
 
 def test_velocity_is_the_camera_motion_and_survives_reselection(synth):  # noqa: F811
-    """state.velocity = se3_log(inv(T_world_cam(t)) T_world_cam(t-1)) / dt at every frame, a re-selection included
+    """state.velocity = se3_log(inv(T_world_depth(t)) T_world_depth(t-1)) / dt at every frame, a re-selection included
     (the camera-frame motion does not depend on the model frame)."""
     seq = fast(synth, frames=8)
     tracker = make_tracker("data=tum", "pipeline.predict_init=true", "pipeline.reselect_fraction=0.95", *NO_LANDMARKS)
@@ -68,10 +68,10 @@ def test_velocity_is_the_camera_motion_and_survives_reselection(synth):  # noqa:
         res = tracker.step(frame)
         if prev is not None:
             dt = float(frame.timestamp[0] - prev[1][0])
-            expected = se3_log(T_inv(res.T_world_cam) @ prev[0]) / dt
+            expected = se3_log(T_inv(res.T_world_depth) @ prev[0]) / dt
             torch.testing.assert_close(tracker.state.velocity, expected, atol=1e-9, rtol=1e-6)
             reselections += int(res.reselected[0])
-        prev = (res.T_world_cam, frame.timestamp)
+        prev = (res.T_world_depth, frame.timestamp)
     assert reselections >= 1  # the property was checked across a re-selection
 
 

@@ -43,7 +43,7 @@ class Reacquired(NamedTuple):
 
     pixels: (B, C, 2) tracked colour pixels; points_world: (B, C, 3) float64 their stored world positions;
     points_cam: (B, C, 3) the points measured from depth at ``pixels`` (depth camera); cornerness: (B, C, 2);
-    T_world_cam: (B, 4, 4) float64 the camera pose the landmarks were verified against (re-fitted with ``correct``).
+    T_world_depth: (B, 4, 4) float64 the camera pose the landmarks were verified against (re-fitted with ``correct``).
     """
 
     pixels: Tensor
@@ -51,7 +51,7 @@ class Reacquired(NamedTuple):
     points_cam: Tensor
     cornerness: Tensor
     valid: Tensor
-    T_world_cam: Tensor
+    T_world_depth: Tensor
 
 
 class LandmarkMap:
@@ -135,9 +135,9 @@ class LandmarkMap:
         self.stamp = torch.full((B, S), -1, dtype=torch.long)  # insertion order of each slot; -1 empty
         self.count = torch.zeros(B, dtype=torch.long)
 
-    def add(self, cur: PreparedFrame, timestamp: Tensor, T_world_cam: Tensor, pixels: Tensor, points_world: Tensor,
+    def add(self, cur: PreparedFrame, timestamp: Tensor, T_world_depth: Tensor, pixels: Tensor, points_world: Tensor,
             cornerness: Tensor, valid: Tensor, mask: Tensor) -> None:  # fmt: skip
-        """Store the current frame (time stamps (B,)), its camera at ``T_world_cam`` (B, 4, 4), as a keyframe of the
+        """Store the current frame (time stamps (B,)), its camera at ``T_world_depth`` (B, 4, 4), as a keyframe of the
         sequences in ``mask`` (B,) with its model features: pixels (B, N, 2), points_world (B, N, 3) in the tracker's
         world, cornerness (B, N, 2), valid (B, N)."""
         if pixels.shape[:2] != valid.shape or points_world.shape[:2] != valid.shape or mask.shape != valid.shape[:1]:
@@ -160,12 +160,12 @@ class LandmarkMap:
         self.world[rows, slot] = _take(points_world.double(), order, self.P)[rows]
         self.cornerness[rows, slot] = _take(cornerness.float(), order, self.P)[rows]
         self.valid[rows, slot] = _take(valid, order, self.P)[rows]
-        self.T_world_kf[rows, slot] = T_world_cam.double()[rows]
+        self.T_world_kf[rows, slot] = T_world_depth.double()[rows]
         self.time[rows, slot] = timestamp.double()[rows]
         self.stamp[rows, slot] = self.count[rows]
         self.count[rows] += 1
 
-    def candidates(self, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor, T_world_cam: Tensor,
+    def candidates(self, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor, T_world_depth: Tensor,
                    tracked: Tensor, tracked_valid: Tensor, mask: Tensor):  # fmt: skip
         """The landmarks worth re-tracking, at most ``max_candidates`` per sequence, oldest keyframe first:
         in front of the camera, inside the image (LK's border), not occluded, not near a tracked feature (B, N, 2)
@@ -174,7 +174,7 @@ class LandmarkMap:
         B, S, P = self.valid.shape
         H, W = cur.gray.shape[-2:]
         world = self.world.reshape(B, S * P, 3)
-        X_cam = transform_points(T_inv(T_world_cam.double()), world)
+        X_cam = transform_points(T_inv(T_world_depth.double()), world)
         X_col = transform_points(T_color_depth.double(), X_cam)
         proj = project(K.double(), X_col).float()
         z = X_col[..., 2]
@@ -183,7 +183,7 @@ class LandmarkMap:
         inside &= (proj[..., 1] >= border) & (proj[..., 1] <= H - 1 - border)
         d = sample_depth(cur.depth, proj).double()
         visible = (z > 0.1) & inside & (d > 0) & (d >= z * (1 - self.occlusion))  # nothing nearer in front of it
-        ok = self.valid.reshape(B, S * P) & visible & mask[:, None] & self._similar_view(T_world_cam, world, X_cam)
+        ok = self.valid.reshape(B, S * P) & visible & mask[:, None] & self._similar_view(T_world_depth, world, X_cam)
         ok &= far_from(proj, tracked.float(), tracked_valid, self.min_separation_px)
         age = self.stamp[:, :, None].expand(B, S, P).reshape(B, S * P)  # smaller = older keyframe
         key = torch.where(ok, age, torch.iinfo(torch.long).max)
@@ -197,34 +197,34 @@ class LandmarkMap:
         clash = (gap < self.min_separation_px) & earlier & ok[:, None, :]
         return index, ok & ~clash.any(-1), proj, X_cam
 
-    def _similar_view(self, T_world_cam: Tensor, world: Tensor, X_cam: Tensor) -> Tensor:
+    def _similar_view(self, T_world_depth: Tensor, world: Tensor, X_cam: Tensor) -> Tensor:
         """(B, S * P) bool: the landmark's keyframe saw it from about the current viewpoint (LK tracks translations of
         a window): the cameras' rotation and the two rays to the point differ by at most ``max_angle_deg`` and its
         depth by at most the ``max_scale`` ratio, so its window looks about the same."""
         B, S, P = self.valid.shape
-        R_rel = T_world_cam[:, None, :3, :3].double().transpose(-1, -2) @ self.T_world_kf[..., :3, :3]  # B,S,3,3
+        R_rel = T_world_depth[:, None, :3, :3].double().transpose(-1, -2) @ self.T_world_kf[..., :3, :3]  # B,S,3,3
         near = torch.rad2deg(rotation_angle(R_rel)) <= self.max_angle_deg  # B,S
         X_kf = transform_points(T_inv(self.T_world_kf).reshape(B * S, 4, 4), world.reshape(B * S, P, 3))
         ratio = X_cam[..., 2] / X_kf.reshape(B, S * P, 3)[..., 2].clamp_min(1e-6)
         scale_ok = (ratio <= self.max_scale) & (ratio >= 1 / self.max_scale)
         ray_kf = world.reshape(B, S, P, 3) - self.T_world_kf[:, :, None, :3, 3]  # from each camera to the point
-        ray_cur = world - T_world_cam[:, None, :3, 3].double()
+        ray_cur = world - T_world_depth[:, None, :3, 3].double()
         cos_ray = torch.nn.functional.cosine_similarity(ray_kf.reshape(B, S * P, 3), ray_cur, dim=-1)
         parallax_ok = cos_ray >= math.cos(math.radians(self.max_angle_deg))
         return near[:, :, None].expand(B, S, P).reshape(B, S * P) & scale_ok & parallax_ok
 
-    def reacquire(self, flow: Callable, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor, T_world_cam: Tensor,
+    def reacquire(self, flow: Callable, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor, T_world_depth: Tensor,
                   tracked: Tensor, tracked_valid: Tensor, mask: Tensor, tracked_world: Tensor | None = None,
                   ) -> Reacquired:  # fmt: skip
         """Re-track the visible landmarks of the sequences in ``mask`` (B,) from their keyframes into ``cur`` with
-        ``flow`` (the combined LK + TIM tracker, started at the projection under ``T_world_cam`` (B, 4, 4) float64)
+        ``flow`` (the combined LK + TIM tracker, started at the projection under ``T_world_depth`` (B, 4, 4) float64)
         and verify them; ``tracked`` (B, N, 2) / ``tracked_valid`` (B, N): the features the model keeps, at
         ``tracked_world`` (B, N, 3) under the current pose: with ``correct`` they take part in the pose fit, so that
         the landmarks move the pose only as far as they outweigh the current model."""
-        B = T_world_cam.shape[0]
+        B = T_world_depth.shape[0]
         if self.gray is None:
             self._allocate(cur.flow.images[0], cur.flow.images[1] if cur.flow.has_sim else None)
-        index, ok, proj, X_pred = self.candidates(cur, K, T_color_depth, T_world_cam, tracked, tracked_valid, mask)
+        index, ok, proj, X_pred = self.candidates(cur, K, T_color_depth, T_world_depth, tracked, tracked_valid, mask)
         S, P = self.S, self.P
         slot = index // P
         kf_pix = self.pixels.reshape(B, S * P, 2).gather(1, index[..., None].expand(-1, -1, 2))
@@ -256,7 +256,7 @@ class LandmarkMap:
         good &= far_from(pixels, tracked.float(), tracked_valid, self.min_separation_px)
         world = self.world.reshape(B, S * P, 3).gather(1, index[..., None].expand(-1, -1, 3))
         corner = self.cornerness.reshape(B, S * P, 2).gather(1, index[..., None].expand(-1, -1, 2))
-        T_world_cam = T_world_cam.double()
+        T_world_depth = T_world_depth.double()
         if self.correct:
             n = good.shape[1]
             if tracked_world is not None:  # the current model's features: the prior of the fit
@@ -266,11 +266,11 @@ class LandmarkMap:
                 good_fit = torch.cat([good, tracked_valid & has], 1)
             else:
                 pixels_fit, X_fit, good_fit = pixels, X_meas, good
-            T_world_cam, inl = self._corrected(K, T_color_depth, T_world_cam, world, pixels_fit, X_fit, good_fit, n)
+            T_world_depth, inl = self._corrected(K, T_color_depth, T_world_depth, world, pixels_fit, X_fit, good_fit, n)
             world, good = world[:, :n], inl[:, :n]
-        return Reacquired(pixels, world, X_meas, corner, good, T_world_cam)
+        return Reacquired(pixels, world, X_meas, corner, good, T_world_depth)
 
-    def _corrected(self, K: Tensor, T_color_depth: Tensor, T_world_cam: Tensor, world: Tensor, pixels: Tensor,
+    def _corrected(self, K: Tensor, T_color_depth: Tensor, T_world_depth: Tensor, world: Tensor, pixels: Tensor,
                    X_meas: Tensor, good: Tensor, n: int) -> tuple[Tensor, Tensor]:  # fmt: skip
         """The camera pose (B, 4, 4) re-fitted to the points (world (B, C, 3), their tracked pixels and measured
         points in the depth camera; the first ``n`` are landmarks, the rest the current model's features) by
@@ -278,17 +278,17 @@ class LandmarkMap:
         landmark inliers, or a correction above ``max_correction_m`` / ``max_correction_deg``,
         keep their pose; their landmarks are still filtered by the inlier test under that pose."""
         T_cd = T_color_depth.double()
-        T_color_world = T_cd @ T_inv(T_world_cam)
+        T_color_world = T_cd @ T_inv(T_world_depth)
         meas = transform_points(T_cd, X_meas.double())
         fit = refine_pose(K, T_color_world, world, pixels, meas, good, sigma_m=self.inlier_m)
         fit = refine_pose(K, fit.T_color_world, world, pixels, meas, fit.inliers, sigma_m=self.inlier_m)
         T_new = T_inv(fit.T_color_world) @ T_cd
-        step = se3_log(T_inv(T_world_cam) @ T_new)
+        step = se3_log(T_inv(T_world_depth) @ T_new)
         small = (step[:, :3].norm(dim=-1) <= self.max_correction_m) & (
             step[:, 3:].norm(dim=-1) <= self.max_correction_rad
         )
         use = small & (fit.inliers[:, :n].sum(1) >= self.min_inliers)
-        T_out = torch.where(use[:, None, None], T_new, T_world_cam)
+        T_out = torch.where(use[:, None, None], T_new, T_world_depth)
         kept = refine_pose(K, T_cd @ T_inv(T_out), world, pixels, meas, good, sigma_m=self.inlier_m, iters=0).inliers
         return T_out, kept
 

@@ -173,13 +173,13 @@ class Relocaliser:
         )
         retry = (lost | (self.interrupted & frame.active)) & self.recover
         relocalised, inliers = torch.zeros(B, dtype=torch.bool), torch.zeros(B, dtype=torch.long)
-        T_new = result.T_world_cam.clone()
+        T_new = result.T_world_depth.clone()
         for b in retry.nonzero()[:, 0].tolist():
             T, inliers[b] = self._relocalise(tracker, frame, b)
             if T is None:
                 continue
             self.interrupted[b] = False
-            if not self._agrees(T, result.T_world_cam[b]):
+            if not self._agrees(T, result.T_world_depth[b]):
                 T_new[b], relocalised[b] = T, True
         self.interrupted |= retry & (inliers < self.min_inliers)
         if relocalised.any():  # a new model at the found pose; T_cam_obj stays the frame as tracked (old model)
@@ -187,14 +187,14 @@ class Relocaliser:
             m3 = relocalised[:, None, None]
             model = T_model if result.model_T_cam_obj is None else torch.where(m3, T_model, result.model_T_cam_obj)
             result = replace(
-                result, T_world_cam=torch.where(m3, tracker.state.T_world_cam, result.T_world_cam),
+                result, T_world_depth=torch.where(m3, tracker.state.T_world_depth, result.T_world_depth),
                 reselected=result.reselected | relocalised, model_T_cam_obj=model,
             )  # fmt: skip
         self.since_stored += frame.active.long()
         due = result.reselected | (self.since_stored >= self.store_every)
         keep = frame.active & due & ~self.interrupted & (~lost | relocalised) & self.recover
         for b in keep.nonzero()[:, 0].tolist():
-            self._store(tracker, frame, b, result.T_world_cam[b])
+            self._store(tracker, frame, b, result.T_world_depth[b])
             self.since_stored[b] = 0
         check = LossCheck(lost, relocalised, self.interrupted & frame.active, inliers, health)
         return replace(result, loss=check)
@@ -212,18 +212,18 @@ class Relocaliser:
         )
         return p[0].double(), ok[0]
 
-    def _store(self, tracker, frame, b: int, T_world_cam: Tensor) -> None:
+    def _store(self, tracker, frame, b: int, T_world_depth: Tensor) -> None:
         """Sequence b's current frame (a model frame with a trusted pose) into its store."""
         pixels, desc = orb_features(tracker.state.prev.gray[b, 0], self.n_orb)
         if desc is None:
             return
         points, ok = self._points(tracker, frame, b, pixels)
-        world = (points @ T_world_cam[:3, :3].T.double() + T_world_cam[:3, 3].double())[ok].numpy()
+        world = (points @ T_world_depth[:3, :3].T.double() + T_world_depth[:3, 3].double())[ok].numpy()
         if len(world) >= self.min_inliers:
             self.store[b].append(Keyframe(desc[ok.numpy()], world))
 
     def _relocalise(self, tracker, frame, b: int) -> tuple[Tensor | None, int]:
-        """Sequence b's camera pose T_world_cam (4, 4) from its current frame against its stored model frames, newest
+        """Sequence b's camera pose T_world_depth (4, 4) from its current frame against its stored model frames, newest
         first; (None, best inlier count) when none verifies."""
         pixels, desc = orb_features(tracker.state.prev.gray[b, 0], self.n_orb)
         if desc is None or not self.store[b]:
@@ -242,5 +242,5 @@ class Relocaliser:
             best = max(best, n)
             if T_color_world is not None and n >= self.min_inliers:
                 T_cam_world = T_depth_color @ torch.from_numpy(T_color_world)
-                return T_inv(T_cam_world).to(frame.T_world_cam_gt.dtype), n
+                return T_inv(T_cam_world).to(frame.T_world_color_gt.dtype), n
         return None, best

@@ -52,8 +52,8 @@ class Recorder:
         i = int(frame.index[b])
         T_cd = frame.T_color_depth[b]
         if self.T_world_tracker is None:  # the tracker's world is its first depth camera
-            self.T_world_tracker = tracker_world(frame.T_world_cam_gt[b], frame.gt_valid[b], T_cd)
-        self.poses.append(color_poses(self.T_world_tracker, res.T_world_cam[b], T_cd).numpy())  # as ground truth
+            self.T_world_tracker = tracker_world(frame.T_world_color_gt[b], frame.gt_valid[b], T_cd)
+        self.poses.append(color_poses(self.T_world_tracker, res.T_world_depth[b], T_cd).numpy())  # as ground truth
         win = res.winner[b][res.valid[b]]
         self.rows.append(
             {

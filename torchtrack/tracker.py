@@ -4,8 +4,9 @@ Frames. ``cam`` is the depth camera. The object frame ``obj`` is the model frame
 to the centroid of the selected features (so rotations about it stay well-conditioned); the model
 points X_o live in it. The tracker estimates ``T_cam_obj`` per frame; with the object static in the
 world (scene tracking, or a camera moving around an object), the camera pose follows as
-``T_world_cam = T_world_obj @ inv(T_cam_obj)``. The tracker's world is its first camera (identity); the
-runner maps it onto ground truth (:func:`torchtrack.run.anchor`). A re-selection makes the current frame
+``T_world_depth = T_world_obj @ inv(T_cam_obj)``. The tracker's world is its first depth camera (identity); the
+runner writes the colour camera's poses in ground truth's world (:mod:`torchtrack.geometry.rig`, the one conversion
+between the two cameras). A re-selection makes the current frame
 the new model frame and chains ``T_world_obj`` through the current estimate, so the trajectory stays
 continuous.
 
@@ -43,9 +44,12 @@ class StepResult:
     """Per-frame outputs, each batched over B.
 
     Attributes:
-        T_cam_obj: (B, 4, 4) float64 object pose in the depth camera.
-        T_world_cam: (B, 4, 4) float64 camera pose (camera-to-world) for a static object/scene, in the tracker's
-            world (the first camera is the identity; :func:`torchtrack.run.anchor` maps it onto ground truth).
+        T_cam_obj: (B, 4, 4) float64 object pose in the depth camera: the back end's estimate of the frame as
+            tracked, under the model it was tracked with (also at a re-selection or a relocalisation).
+        T_world_depth: (B, 4, 4) float64 the DEPTH camera's pose (camera-to-world) for a static object/scene, in the
+            tracker's world (its first depth camera is the identity; at a relocalisation the relocalised pose).
+            :func:`torchtrack.geometry.rig.color_poses` turns it into the colour camera's pose in ground truth's
+            world, as the runner writes it.
         pixels: (B, N, 2) tracked feature pixels in the colour image; valid (B, N).
         winner: (B, N) 0 where the intensity tracker won, 1 where the SIM tracker won, -1 unknown.
         points_obj: (B, N, 3) model points; reprojection_error (B,) eq. (16) in pixels.
@@ -63,7 +67,7 @@ class StepResult:
     """
 
     T_cam_obj: Tensor
-    T_world_cam: Tensor
+    T_world_depth: Tensor
     pixels: Tensor
     valid: Tensor
     winner: Tensor
@@ -120,8 +124,8 @@ class TrackerState:
         return self.prev is not None
 
     @property
-    def T_world_cam(self) -> Tensor:
-        """(B, 4, 4) the current camera in the tracker's world (static object/scene)."""
+    def T_world_depth(self) -> Tensor:
+        """(B, 4, 4) the current depth camera in the tracker's world (static object/scene)."""
         return self.T_world_obj @ T_inv(self.T_cam_obj)
 
 
@@ -362,14 +366,14 @@ class Tracker:
         T_cam_obj = est.T_cam_obj.double()
         T_world_color = s.T_world_obj @ T_inv(T_cam_obj) @ T_inv(T_cd)
         fix = self.keyframes.correct(cur.gray, cur.depth, T_world_color, frame.active)
-        T_world_cam = fix.T_world_color @ T_cd
+        T_world_depth = fix.T_world_color @ T_cd
         relative = {"none": fix.used, "older": fix.used & fix.latest, "all": torch.zeros_like(fix.used)}[
             self.keyframe_anchor
         ]
         anchor = fix.used & ~relative
-        T_cam_obj_new = T_inv(T_world_cam) @ s.T_world_obj
+        T_cam_obj_new = T_inv(T_world_depth) @ s.T_world_obj
         set_backend_pose(self.backend, T_cam_obj_new, relative)
-        T_world_obj = torch.where(anchor[:, None, None], T_world_cam @ T_cam_obj, s.T_world_obj)
+        T_world_obj = torch.where(anchor[:, None, None], T_world_depth @ T_cam_obj, s.T_world_obj)
         self.state = replace(s, T_world_obj=T_world_obj)
         return torch.where(relative[:, None, None], T_cam_obj_new, T_cam_obj)
 
@@ -386,11 +390,11 @@ class Tracker:
         s = self.state
         world = transform_points(s.T_world_obj, s.points_obj.double())
         acq = self.landmarks.reacquire(
-            self.flow, cur, frame.K, frame.T_color_depth, s.T_world_cam, s.pixels, s.valid, mask, tracked_world=world
+            self.flow, cur, frame.K, frame.T_color_depth, s.T_world_depth, s.pixels, s.valid, mask, tracked_world=world
         )  # fmt: skip
         found = acq.valid & mask[:, None]
         self.reacquired_total = self.reacquired_total + found.sum(1)
-        T_world_obj = torch.where(mask[:, None, None], acq.T_world_cam @ s.T_cam_obj, s.T_world_obj)
+        T_world_obj = torch.where(mask[:, None, None], acq.T_world_depth @ s.T_cam_obj, s.T_world_obj)
         points_obj = transform_points(T_inv(T_world_obj), acq.points_world).to(s.points_obj.dtype)
         new = dict(pixels=acq.pixels.to(s.pixels.dtype), valid=found, points_obj=points_obj,
                    age=torch.zeros_like(found, dtype=torch.long), cornerness=acq.cornerness.to(s.cornerness.dtype))  # fmt: skip
@@ -492,7 +496,7 @@ class Tracker:
         T_cam_obj = torch.where(m3, T_cam_obj, s.T_cam_obj)
         state = replace(
             s, prev=cur, **new, T_cam_obj=T_cam_obj,
-            T_world_obj=torch.where(m3, s.T_world_cam @ T_cam_obj, s.T_world_obj),
+            T_world_obj=torch.where(m3, s.T_world_depth @ T_cam_obj, s.T_world_obj),
             n_model=n_model if s.n_model is None else torch.where(mask, n_model, s.n_model),
         )  # fmt: skip
         residuals = self._residuals(frame, T_cam_obj, state.points_obj, state.pixels, state.valid)
@@ -501,13 +505,13 @@ class Tracker:
             self.state = replace(self.state, **self._model_reference(s, cur, mask))
         self.backend.reset(T_cam_obj, mask)
         if self.keyframes is not None:  # the model frame is a keyframe
-            T_world_color = self.state.T_world_cam @ T_inv(frame.T_color_depth.double())
+            T_world_color = self.state.T_world_depth @ T_inv(frame.T_color_depth.double())
             self.keyframes.add(cur.gray, cur.depth, frame.K, T_world_color, mask)
         if self.landmarks is not None:  # ... and its features are landmarks, at their world positions
             self.since_landmarks = torch.where(mask, 0, self.since_landmarks)
             st = self.state
             world = transform_points(st.T_world_obj, st.points_obj.double())
-            self.landmarks.add(cur, frame.timestamp, st.T_world_cam, st.pixels, world, st.cornerness, st.valid, mask)
+            self.landmarks.add(cur, frame.timestamp, st.T_world_depth, st.pixels, world, st.cornerness, st.valid, mask)
         return T_cam_obj
 
     def _model_reference(self, old: TrackerState, cur: PreparedFrame, mask: Tensor) -> dict:
@@ -539,13 +543,13 @@ class Tracker:
             return kept
         world = transform_points(s.T_world_obj, s.points_obj.double())
         acq = self.landmarks.reacquire(
-            self.flow, cur, frame.K, frame.T_color_depth, s.T_world_cam, s.pixels, keep, mask, tracked_world=world
+            self.flow, cur, frame.K, frame.T_color_depth, s.T_world_depth, s.pixels, keep, mask, tracked_world=world
         )  # fmt: skip
-        T_world_cam = torch.where(mask[:, None, None], acq.T_world_cam, s.T_world_cam)
-        self.state = replace(s, T_world_obj=T_world_cam @ s.T_cam_obj)  # the landmarks' correction, if any
+        T_world_depth = torch.where(mask[:, None, None], acq.T_world_depth, s.T_world_depth)
+        self.state = replace(s, T_world_obj=T_world_depth @ s.T_cam_obj)  # the landmarks' correction, if any
         self._found = (acq.valid & mask[:, None]).sum(1)
         self.reacquired_total = self.reacquired_total + self._found
-        points = transform_points(T_inv(T_world_cam), acq.points_world).float()  # the ORIGINAL world positions
+        points = transform_points(T_inv(T_world_depth), acq.points_world).float()  # the ORIGINAL world positions
         found = _Kept(acq.pixels, points, acq.valid & mask[:, None], torch.zeros_like(acq.valid, dtype=torch.long),
                       acq.cornerness)  # fmt: skip
         return _Kept(*(torch.cat([a, b.to(a.dtype)], 1) for a, b in zip(kept, found, strict=True)))
@@ -580,13 +584,13 @@ class Tracker:
             torch.where(ok3, cornerness, 0.0),
         )  # fmt: skip
 
-    def relocalise(self, frame: FrameBatch, T_world_cam: Tensor, mask: Tensor) -> Tensor:
+    def relocalise(self, frame: FrameBatch, T_world_depth: Tensor, mask: Tensor) -> Tensor:
         """After a tracking loss: the sequences in ``mask`` (B,) take the current frame as a new model at the camera
-        pose ``T_world_cam`` (B, 4, 4, the tracker's world) found by relocalisation; their features are dropped
+        pose ``T_world_depth`` (B, 4, 4, the tracker's world) found by relocalisation; their features are dropped
         first (they followed the wrong motion), so no survivor carries over. Returns the pose (B, 4, 4) the back
         end was reset to (meaningful where ``mask``), as :attr:`StepResult.model_T_cam_obj`."""
         s = self.state
-        T_world_obj = torch.where(mask[:, None, None], T_world_cam.double() @ s.T_cam_obj, s.T_world_obj)
+        T_world_obj = torch.where(mask[:, None, None], T_world_depth.double() @ s.T_cam_obj, s.T_world_obj)
         self.state = replace(s, valid=s.valid & ~mask[:, None], T_world_obj=T_world_obj)
         if self.landmarks is not None:  # a model taken this frame, at the lost pose, is no keyframe
             self.landmarks.forget(frame.timestamp, mask)
@@ -610,7 +614,7 @@ class Tracker:
         err = res.sum(1) / s.valid.sum(1).clamp_min(1)  # mean reprojection error, eq. (16)
         return StepResult(
             T_cam_obj=s.T_cam_obj,
-            T_world_cam=s.T_world_cam,
+            T_world_depth=s.T_world_depth,
             pixels=s.pixels,
             valid=s.valid,
             winner=winner if winner is not None else torch.full((B, N), -1, dtype=torch.long),

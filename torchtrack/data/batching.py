@@ -74,7 +74,7 @@ def _stack(frames: Sequence[RGBDFrame], seqs: Sequence[RGBDSequence], active: li
         K_depth=torch.stack([s.K_depth for s in seqs]).float(),
         T_color_depth=torch.stack([s.T_color_depth for s in seqs]).float(),
         timestamp=torch.tensor([f.timestamp for f in frames], dtype=torch.float64),
-        T_world_cam_gt=torch.stack([f.T_world_cam_gt for f in frames]).double(),
+        T_world_color_gt=torch.stack([f.T_world_color_gt for f in frames]).double(),
         gt_valid=torch.tensor([f.gt_valid for f in frames], dtype=torch.bool),
         active=torch.tensor(active, dtype=torch.bool),
         index=torch.tensor([f.index for f in frames], dtype=torch.int64),

@@ -18,7 +18,7 @@ class FrameBatch:
         K_depth: (B, 3, 3) float32 depth intrinsics (equal to K for registered depth).
         T_color_depth: (B, 4, 4) float32 depth-to-colour extrinsic (identity when registered).
         timestamp: (B,) float64 seconds.
-        T_world_cam_gt: (B, 4, 4) float64 ground-truth camera-to-world pose (identity where absent).
+        T_world_color_gt: (B, 4, 4) float64 ground truth: the colour camera's pose, camera-to-world (identity where absent).
         gt_valid: (B,) bool, ground truth present for this frame.
         active: (B,) bool, False for sequences that already ended (their tensors repeat the last frame).
         index: (B,) int64 frame index within each sequence.
@@ -30,7 +30,7 @@ class FrameBatch:
     K_depth: Tensor
     T_color_depth: Tensor
     timestamp: Tensor
-    T_world_cam_gt: Tensor
+    T_world_color_gt: Tensor
     gt_valid: Tensor
     active: Tensor
     index: Tensor

@@ -49,7 +49,7 @@ class RGBDFrame:
         rgb: (3, H, W) float32 colour in [0, 1].
         depth: (1, H, W) float32 metres in the depth camera's pixel grid, 0 = no measurement.
         timestamp: colour timestamp in seconds.
-        T_world_cam_gt: (4, 4) float64 ground-truth camera-to-world pose (identity where absent).
+        T_world_color_gt: (4, 4) float64 ground truth: the colour camera's pose, camera-to-world (identity where absent).
         gt_valid: ground truth present for this frame.
         index: frame index within the sequence.
     """
@@ -57,7 +57,7 @@ class RGBDFrame:
     rgb: Tensor
     depth: Tensor
     timestamp: float
-    T_world_cam_gt: Tensor
+    T_world_color_gt: Tensor
     gt_valid: bool
     index: int
 
@@ -258,7 +258,7 @@ class TumSequence:
         return RGBDFrame(rgb, depth, float(self.timestamps[i]), T, bool(self.gt_valid[i]), i)
 
     def _load(self, i: int) -> tuple[Tensor, Tensor, Tensor]:
-        """(rgb (3, H, W), depth (1, H, W), T_world_cam_gt (4, 4)) of frame i in [0, len); DataError when unusable."""
+        """(rgb (3, H, W), depth (1, H, W), T_world_color_gt (4, 4)) of frame i in [0, len); DataError when unusable."""
         rgb = load_rgb(self.rgb_paths[i])
         depth = load_depth(self.depth_paths[i], self.depth_scale)
         self._check_size(i, rgb, depth)

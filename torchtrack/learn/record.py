@@ -37,7 +37,18 @@ log = logging.getLogger("torchtrack.record")
 # The config groups that build the tracker and read the sequences (conf/config.yaml): what a recording depends on.
 # Other keys (out, threads, plots, a trainer's settings) do not change it; nor do the folders the sequences come
 # from (the file's ``source`` names them).
-RECORDED_GROUPS = ("data", "frontend", "region", "select", "flow", "filter", "weighting", "tracker", "pipeline", "relocalise")
+RECORDED_GROUPS = (
+    "data",
+    "frontend",
+    "region",
+    "select",
+    "flow",
+    "filter",
+    "weighting",
+    "tracker",
+    "pipeline",
+    "relocalise",
+)
 _DATA_LOCATION = ("root", "cache_dir")
 _PER_FRAME = ("timestamp", "T_world_color_gt", "gt_valid", "reselected", "T_cam_obj_est", "model_T_cam_obj")
 
@@ -74,7 +85,7 @@ class ObservationLog:
             self.camera = {k: getattr(frame, k)[b].double() for k in ("K", "K_depth", "T_color_depth")}
         eye = torch.eye(4, dtype=torch.float64)
         row = dict(
-            timestamp=frame.timestamp[b].double(), T_world_color_gt=frame.T_world_cam_gt[b].double(),
+            timestamp=frame.timestamp[b].double(), T_world_color_gt=frame.T_world_color_gt[b].double(),
             gt_valid=frame.gt_valid[b], reselected=res.reselected[b], T_cam_obj_est=res.T_cam_obj[b].double(),
             model_T_cam_obj=res.model_T_cam_obj[b].double() if bool(res.reselected[b]) else eye,
         )  # fmt: skip

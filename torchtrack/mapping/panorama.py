@@ -124,10 +124,10 @@ class PanoramaMapper:
         start = frame.active & ~self.started  # each sequence's first tracked frame (frame 0 may have been dropped)
         if start.any():
             self.anchor[start] = tracker_world(
-                frame.T_world_cam_gt[start], frame.gt_valid[start], frame.T_color_depth[start]
+                frame.T_world_color_gt[start], frame.gt_valid[start], frame.T_color_depth[start]
             )
             self.started |= start
-        T_world_color = color_poses(self.anchor, res.T_world_cam, frame.T_color_depth)
+        T_world_color = color_poses(self.anchor, res.T_world_depth, frame.T_color_depth)
         if start.any():
             self.first[start] = T_world_color[start]
         self.fuse(frame, T_world_color, self.keyframes(frame, res.reselected))
