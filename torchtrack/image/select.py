@@ -265,7 +265,8 @@ def select_features(
         sim_kwargs: keyword arguments of :func:`torchtrack.image.shape_index.shape_index` (when computed here).
         cpu_chunk: on CPU, frames go through the per-pixel maps this many at a time (None = all at once).
             A whole batch of full-frame temporaries overflows the caches and, with glibc's default malloc,
-            is page-faulted afresh on every call; per-frame chunks are faster. Results are identical.
+            is page-faulted afresh on every call; per-frame chunks are faster. Results agree within float error (other
+            shapes sum in other orders; tests/tolerances.py).
         roi_fraction: improvement (None = paper): shrink the square patches of a frame whose eligible pixels' bounding
             box covers less than this fraction of the image inside ``border``, down to ``min_patch`` (module docstring;
             :func:`roi_patch_size`).
