@@ -229,27 +229,6 @@ def test_float64_index_arithmetic_for_large_buffers(monkeypatch):
     assert (out.status == ref.status).all()
 
 
-def test_pyramid_freed_without_the_cycle_collector():
-    """A pyramid LK has sampled (its samplers cached) is freed as soon as it is dropped, not by Python's full garbage
-    collection: a per-frame reference cycle made a long run's memory grow until that collection ran."""
-    import gc
-    import weakref
-
-    i0, i1, pts, _ = warped_pair(np.eye(2), np.array([0.5, -0.25]), n=7)
-    prev, next = build_pyramid(i0, 3), build_pyramid(i1, 3)
-    pyramidal_lk(prev, next, pts)
-    assert prev.samplers and next.samplers
-    refs = [weakref.ref(prev), weakref.ref(next), weakref.ref(prev.samplers[21])]
-    enabled = gc.isenabled()
-    gc.disable()
-    try:
-        del prev, next
-        assert all(r() is None for r in refs)
-    finally:
-        if enabled:
-            gc.enable()
-
-
 def test_channels_tracked_jointly():
     """Two channels carrying the same shifted texture track like one; a blank second channel changes nothing."""
     i0, i1, pts, true = warped_pair(np.eye(2), np.array([1.25, -0.5]), n=60)

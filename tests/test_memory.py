@@ -10,6 +10,7 @@ frames before the fix. The tracker must free every frame's tensors by reference 
 from __future__ import annotations
 
 import gc
+import weakref
 
 import torch
 from hydra import compose, initialize_config_dir
@@ -18,6 +19,8 @@ from torchtrack.config import CONF_DIR
 from torchtrack.data import TumSequence, iterate_batched
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 from torchtrack.factory import build_tracker
+from torchtrack.image.lk import pyramidal_lk
+from torchtrack.image.pyramid import build_pyramid
 
 
 def cyclic_tensors() -> int:
@@ -49,6 +52,23 @@ def test_tracking_leaves_no_tensors_in_reference_cycles(tmp_path):
                 reselected += int(tracker.step(frame).reselected.sum())
         assert reselected >= 2, "the sequence must exercise re-selections (new pyramids, landmark keyframes)"
         assert cyclic_tensors() == 0
+    finally:
+        if enabled:
+            gc.enable()
+
+
+def test_pyramid_freed_without_the_cycle_collector():
+    """A pyramid LK has sampled (its samplers cached in ``Pyramid.samplers``) is freed as soon as it is dropped."""
+    img = torch.rand(2, 1, 48, 64, generator=torch.Generator().manual_seed(0))
+    prev, next = build_pyramid(img[:1], 3), build_pyramid(img[1:], 3)
+    pyramidal_lk(prev, next, torch.full((1, 5, 2), 24.0))
+    assert prev.samplers and next.samplers
+    refs = [weakref.ref(prev), weakref.ref(next), *(weakref.ref(s) for s in prev.samplers.values())]
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        del prev, next
+        assert all(r() is None for r in refs)
     finally:
         if enabled:
             gc.enable()
