@@ -60,10 +60,18 @@ class LKResult(NamedTuple):
 
 
 class _Sampler:
-    """Windows of one pyramid: (n, C, m, m) patches gathered with one 1-D index_select each."""
+    """Windows of one pyramid: (n, C, m, m) patches gathered with one 1-D index_select each.
+
+    It keeps the pyramid's buffer and layout, not the pyramid: the pyramid keeps its samplers (``Pyramid.samplers``),
+    and a reference back would make each frame's pyramid a reference cycle, freed only by Python's full garbage
+    collection, which a process with many long-lived objects runs rarely (the long run's memory grew by the
+    pyramids waiting for it: experiments/bench_long_run.py).
+    """
 
     def __init__(self, pyr: Pyramid, window: int):
-        self.pyr, self.window, self.r, self.c = pyr, window, window // 2, pyr.channels
+        self.window, self.r, self.c = window, window // 2, pyr.channels
+        self.flat, self.row_stride, self.plane, self.pad = pyr.flat, pyr.stride, pyr.plane, pyr.pad
+        self.sizes = [pyr.size(level) for level in range(pyr.levels)]
         self.dtype = torch.float32 if pyr.flat.numel() < _EXACT_F32 else torch.float64
         self.stride = torch.tensor([1.0, float(pyr.stride)], dtype=self.dtype)
         self.base_table = ((pyr.row_start + pyr.pad) * pyr.stride + pyr.pad).to(self.dtype)  # L,B: level px (0, 0)
@@ -80,17 +88,17 @@ class _Sampler:
         """A sliding view (len, size) of the flat buffer (row i = flat[i : i + size]) and the (C * size,) int32
         offsets of the rows of a size x size patch whose centre pixel is at offset 0."""
         if size not in self._rows:
-            s, h, flat = self.pyr.stride, (size - 1) // 2, self.pyr.flat
+            s, h, flat = self.row_stride, (size - 1) // 2, self.flat
             rows = torch.arange(size, dtype=torch.int32) * s - h * (s + 1)
-            chan = torch.arange(self.c, dtype=torch.int32)[:, None] * self.pyr.plane
+            chan = torch.arange(self.c, dtype=torch.int32)[:, None] * self.plane
             view = flat.as_strided((flat.numel() - size + 1, size), (1, 1))
             self._rows[size] = (view, (chan + rows[None, :]).reshape(-1))
         return self._rows[size]
 
     def bounds(self, level: int) -> tuple[Tensor, Tensor]:
         """Window centres q (level px) can be sampled, gradients included, iff lo <= floor(q) <= hi."""
-        h, w = self.pyr.size(level)
-        lo, hi = self.r + 1 - self.pyr.pad, self.pyr.pad - self.r - 3
+        h, w = self.sizes[level]
+        lo, hi = self.r + 1 - self.pad, self.pad - self.r - 3
         return torch.tensor([float(lo)] * 2), torch.tensor([w + hi, h + hi], dtype=torch.float32)  # (2,): fast clamp
 
     def base(self, level: int, image_index: Tensor) -> Tensor:
