@@ -10,7 +10,8 @@ Translation LK, per point and pyramid level (coarse to fine, the result of a lev
   bilinear weights), and the inverse-compositional step H^-1 g (T - J).
 All points of all images form one flat list, compacted as points stop (per-point early stop); there
 is no Python loop over points, and images stacked in the batch (intensity and SIM) share every call. Lists longer
-than ``chunk`` (1024) points are tracked in equal chunks, one after another: the same tracks, at a lower cost per
+than ``chunk`` (1024) points are tracked in equal chunks, one after another: the same tracks within float error (other
+shapes sum in other orders; tests/tolerances.py), at a lower cost per
 point once the working set of one call no longer fits in the CPU's cache (B >= 4).
 
 The difference from OpenCV's ``calcOpticalFlowPyrLK`` (same pyramid, gradients, window, criteria and
