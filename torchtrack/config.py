@@ -239,7 +239,7 @@ class EKFBackendConfig:
     noise_forgetting: float = 0.98  # ... its forgetting factor per frame (a window of ~50 frames)
     noise_scale_min: float = 0.01  # ... bounds of the scale
     noise_scale_max: float = 100.0
-    noise_clip: float | None = 0.999  # ... chi-square quantile winsorising each feature's residual (null: none)
+    noise_clip: float | None = 0.9  # ... chi-square quantile winsorising each feature's residual (null: none)
 
 
 @dataclass

@@ -71,7 +71,8 @@ class FrameUpdate(NamedTuple):
         prior: the prediction (:class:`FilterState`) the update started from.
         used_xyz, used_pix: (B, N) bool, the 3D points and the pixels the final update used.
         innovation: (B, N, 5) ``z - h(prior mean)``, 3D (m) then pixel (px); 0 where not used.
-        innovation_var: (B, N, 5) ``diag(H P- H^T) + R``, the predicted innovation variances; 1 where not used.
+        innovation_var: (B, N, 5) ``diag(H P- H^T) + R``, the predicted innovation variances; 1 where not used. R is
+            the variances the update used: the weighting's, times the noise scale when it is on.
         nll: (B,) negative log-likelihood of the used innovations under the full predicted innovation covariance
             ``S = H P- H^T + R`` (zeros unless asked for with ``with_nll``).
         updated: (B,) bool, False where no measurement was used (the prediction was kept).
@@ -183,9 +184,12 @@ def ekf_frame(
     noise = None
     if noise_scale is not None:
         with torch.no_grad():
-            residual = innovation - torch.einsum("bnms,bs->bnm", H, post.mean - prior.mean)  # linearised at x-
+            valid5 = obs.valid[..., None].expand_as(used)
+            residual = torch.where(valid5, z - h, torch.zeros_like(h)) - torch.einsum(
+                "bnms,bs->bnm", H, post.mean - prior.mean
+            )  # linearised at x-
             post_hph = torch.einsum("bnms,bst,bnmt->bnm", H, post.cov, H)
-            stats = residual_statistics(residual, post_hph, var5, used, scale_state.scale, noise_scale.caps())
+            stats = residual_statistics(residual, post_hph, var5, valid5, used, scale_state.scale, noise_scale.clip)
         noise = noise_scale.updated(scale_state, stats)
     updated = used.any(-1).any(-1)
     return FrameUpdate(post.mean, post.cov, prior, xyz, pix, innovation, innovation_var, nll, updated, noise)
@@ -253,7 +257,7 @@ class EKFBackend:
         noise_forgetting: float = 0.98,
         noise_scale_min: float = 0.01,
         noise_scale_max: float = 100.0,
-        noise_clip: float | None = 0.999,
+        noise_clip: float | None = 0.9,
     ) -> None:
         for name, p in (("gate", gate), ("refit", refit)):
             if p is not None and not 0.0 < p < 1.0:
