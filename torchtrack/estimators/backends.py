@@ -6,7 +6,6 @@ the same per-frame :class:`Observation` of tracked features and return ``T_cam_o
 
 from __future__ import annotations
 
-import functools
 import logging
 import math
 from dataclasses import dataclass
@@ -15,9 +14,10 @@ from typing import NamedTuple, Protocol
 import torch
 from torch import Tensor
 
-from torchtrack.filter.ekf import symmetrize
+from torchtrack.filter.ekf import chi2_quantile, symmetrize
 from torchtrack.filter.fusion import FilterState, FusionEKF
 from torchtrack.filter.models import measure, state_to_pose
+from torchtrack.filter.noise_scale import NoiseScale, ScaleState, residual_statistics, scaled
 from torchtrack.filter.weighting import Variances
 
 log = logging.getLogger(__name__)
@@ -63,29 +63,6 @@ class PoseBackend(Protocol):
         Sequences where ``active`` (B,) is False (ended) keep their state."""
 
 
-@functools.lru_cache(maxsize=64)
-def chi2_quantile(p: float, k: int) -> float:
-    """Chi-square quantile with k degrees of freedom: the x with P(k/2, x/2) = p (regularised lower incomplete
-    gamma), by bisection in float64 (exact to ~1e-12; closed form -2 log(1 - p) for k = 2)."""
-    if not 0.0 < p < 1.0 or k < 1:
-        raise ValueError(f"chi2_quantile: need 0 < p < 1 and k >= 1, got p={p}, k={k}")
-    if k == 2:
-        return -2.0 * math.log1p(-p)
-    a = torch.tensor(k / 2.0, dtype=torch.float64)
-    lo, hi = 0.0, float(k)
-    while float(torch.special.gammainc(a, torch.tensor(hi / 2.0, dtype=torch.float64))) < p:
-        hi *= 2.0
-    for _ in range(200):
-        mid = 0.5 * (lo + hi)
-        if float(torch.special.gammainc(a, torch.tensor(mid / 2.0, dtype=torch.float64))) < p:
-            lo = mid
-        else:
-            hi = mid
-        if hi - lo < 1e-12 * hi:
-            break
-    return 0.5 * (lo + hi)
-
-
 class FrameUpdate(NamedTuple):
     """One frame of the fusion EKF (:func:`ekf_frame`), batched over B.
 
@@ -94,10 +71,13 @@ class FrameUpdate(NamedTuple):
         prior: the prediction (:class:`FilterState`) the update started from.
         used_xyz, used_pix: (B, N) bool, the 3D points and the pixels the final update used.
         innovation: (B, N, 5) ``z - h(prior mean)``, 3D (m) then pixel (px); 0 where not used.
-        innovation_var: (B, N, 5) ``diag(H P- H^T) + R``, the predicted innovation variances; 1 where not used.
+        innovation_var: (B, N, 5) ``diag(H P- H^T) + R``, the predicted innovation variances; 1 where not used. R is
+            the variances the update used: the weighting's, times the noise scale when it is on.
         nll: (B,) negative log-likelihood of the used innovations under the full predicted innovation covariance
             ``S = H P- H^T + R`` (zeros unless asked for with ``with_nll``).
         updated: (B,) bool, False where no measurement was used (the prediction was kept).
+        noise: the online noise scale after this frame (:class:`~torchtrack.filter.noise_scale.ScaleState`, its
+            ``scale`` (B, 2) [pix, xyz]); None when the scale is off.
     """
 
     mean: Tensor
@@ -109,11 +89,18 @@ class FrameUpdate(NamedTuple):
     innovation_var: Tensor
     nll: Tensor
     updated: Tensor
+    noise: ScaleState | None = None
 
     @property
     def T_cam_obj(self) -> Tensor:
         """(B, 4, 4) posterior object pose in the depth camera."""
         return state_to_pose(self.mean)
+
+    @property
+    def noise_scale(self) -> Tensor | None:
+        """(B, 2) the online noise scales [pix, xyz] after this frame (the next frame's R = scale x the weighting's),
+        or None when the scale is off."""
+        return None if self.noise is None else self.noise.scale
 
 
 def ekf_frame(
@@ -125,6 +112,8 @@ def ekf_frame(
     gate: float | None = None,
     refit: float | None = None,
     with_nll: bool = False,
+    noise_scale: NoiseScale | None = None,
+    scale_state: ScaleState | None = None,
 ) -> FrameUpdate:
     """One frame of the paper's fusion EKF as a pure function: prior state, observation and variances in, posterior
     out; nothing is mutated. Differentiable in ``var``, ``state`` and the measurements; the discrete choices (gate,
@@ -135,7 +124,10 @@ def ekf_frame(
     a feature's 3D point is dropped when its innovation fails the chi-square test (quantile ``gate``, 3 dof) under
     ``diag(H P- H^T) + R``, its pixel only together with it (:func:`_keep`); the update (eq. 15); the refit
     (optional): each used 3D point's residual at the UPDATED pose is tested against R alone (quantile ``refit``),
-    and when a used measurement fails, the update is redone from the same prior without it.
+    and when a used measurement fails, the update is redone from the same prior without it. With ``noise_scale``
+    (optional, :mod:`~torchtrack.filter.noise_scale`): every step above uses ``R = k R0``, k (B, 2) the running scales
+    of ``scale_state`` (default: k = 1) and R0 the weighting's ``var``; the used measurements' post-fit residuals then
+    update the scales (:attr:`FrameUpdate.noise`), without gradient.
 
     Args:
         ekf: :class:`~torchtrack.filter.fusion.FusionEKF` (its parameters only).
@@ -143,7 +135,13 @@ def ekf_frame(
         obs: :class:`Observation` of N features.
         var: per-feature :class:`~torchtrack.filter.weighting.Variances` (B, N).
         with_nll: also compute :attr:`FrameUpdate.nll` (the self-supervised training loss).
+        noise_scale: the online noise scale's parameters (None: off, the weighting's R as it is); scale_state: its
+            running state before this frame.
     """
+    if noise_scale is not None:
+        if scale_state is None:
+            scale_state = noise_scale.initial(obs.valid.shape[0], device=obs.valid.device)
+        var = scaled(var, scale_state.scale)  # R = k R0 for every step of this frame
     prior = ekf.predicted(state, obs.dt)  # eqs. (3)-(4)
     dt = prior.mean.dtype
     points_obj, K, T_cd = obs.points_obj.to(dt), obs.K.to(dt), obs.T_color_depth.to(dt)
@@ -183,7 +181,18 @@ def ekf_frame(
     innovation = torch.where(used, z - h, torch.zeros_like(h))
     innovation_var = torch.where(used, s_prior, torch.ones_like(s_prior))
     nll = innovation_nll(prior.cov, H, innovation, var5, used) if with_nll else torch.zeros_like(prior.mean[:, 0])
-    return FrameUpdate(post.mean, post.cov, prior, xyz, pix, innovation, innovation_var, nll, used.any(-1).any(-1))
+    noise = None
+    if noise_scale is not None:
+        with torch.no_grad():
+            valid5 = obs.valid[..., None].expand_as(used)
+            residual = torch.where(valid5, z - h, torch.zeros_like(h)) - torch.einsum(
+                "bnms,bs->bnm", H, post.mean - prior.mean
+            )  # linearised at x-
+            post_hph = torch.einsum("bnms,bst,bnmt->bnm", H, post.cov, H)
+            stats = residual_statistics(residual, post_hph, var5, valid5, used, scale_state.scale, noise_scale.clip)
+        noise = noise_scale.updated(scale_state, stats)
+    updated = used.any(-1).any(-1)
+    return FrameUpdate(post.mean, post.cov, prior, xyz, pix, innovation, innovation_var, nll, updated, noise)
 
 
 def innovation_nll(prior_cov: Tensor, H: Tensor, innovation: Tensor, var5: Tensor, used: Tensor) -> Tensor:
@@ -232,23 +241,43 @@ class EKFBackend:
         refit: improvement over the paper (None = off): chi-square quantile of the refit at the updated pose (see
             :func:`ekf_frame`). The gate can only see outliers larger than the prediction's uncertainty; the refit
             catches the smaller ones that would otherwise bias this frame's pose before the tracker drops them.
+        noise_scale: improvement over the paper (False = off): the online noise scale per sequence and block
+            (:mod:`torchtrack.filter.noise_scale`): R = k R0 with k (B, 2) [pix, xyz] estimated from the residuals.
+            The back end owns k; a re-selection (:meth:`reset`) keeps it (the sensor did not change).
+        noise_forgetting, noise_scale_min, noise_scale_max, noise_clip: its forgetting factor, bounds and
+            winsorising quantile (:class:`~torchtrack.filter.noise_scale.NoiseScale`).
     """
 
-    def __init__(self, ekf: FusionEKF, gate: float | None = None, refit: float | None = None) -> None:
+    def __init__(
+        self,
+        ekf: FusionEKF,
+        gate: float | None = None,
+        refit: float | None = None,
+        noise_scale: bool = False,
+        noise_forgetting: float = 0.98,
+        noise_scale_min: float = 0.01,
+        noise_scale_max: float = 100.0,
+        noise_clip: float | None = 0.9,
+    ) -> None:
         for name, p in (("gate", gate), ("refit", refit)):
             if p is not None and not 0.0 < p < 1.0:
                 raise ValueError(f"EKFBackend: {name} is a probability in (0, 1), got {p}")
         self.ekf = ekf
         self.gate, self.refit = gate, refit
+        self.noise = NoiseScale(noise_forgetting, noise_scale_min, noise_scale_max, noise_clip) if noise_scale else None
         self.state: FilterState | None = None
+        self.scale_state: ScaleState | None = None  # the online noise scale's, (B, 2) each
 
     def reset(self, T_cam_obj: Tensor, mask: Tensor) -> None:
-        """Start the sequences in ``mask`` (B,) over at ``T_cam_obj`` (B, 4, 4), zero velocity, initial covariance."""
+        """Start the sequences in ``mask`` (B,) over at ``T_cam_obj`` (B, 4, 4), zero velocity, initial covariance.
+        The noise scales are kept (they start at 1 with the first reset or a new batch size)."""
         init = self.ekf.initial_state(T_cam_obj)
         if self.state is None or self.state.mean.shape[0] != T_cam_obj.shape[0]:
             if not bool(mask.all()):
                 raise ValueError("EKFBackend.reset: the first reset (or a new batch size) must cover every sequence")
             self.state = init
+            B = T_cam_obj.shape[0]
+            self.scale_state = None if self.noise is None else self.noise.initial(B, device=T_cam_obj.device)
             return
         self.state = FilterState(
             torch.where(mask[:, None], init.mean, self.state.mean),
@@ -257,10 +286,12 @@ class EKFBackend:
 
     def step(self, obs: Observation, var: Variances, active: Tensor | None = None) -> FrameUpdate:
         """One frame: the named result of :func:`ekf_frame`; the posterior becomes the state of the sequences where
-        ``active`` (B,) is True (default: all); ended sequences keep theirs (no prediction runs on without them)."""
+        ``active`` (B,) is True (default: all); ended sequences keep theirs (no prediction runs on without them), and
+        their noise scales (the result's ``noise`` is the back end's after the frame)."""
         if self.state is None:
             raise ValueError("EKFBackend: call reset(T_cam_obj, mask) before the first frame")
-        out = ekf_frame(self.ekf, self.state, obs, var, gate=self.gate, refit=self.refit)
+        out = ekf_frame(self.ekf, self.state, obs, var, gate=self.gate, refit=self.refit, noise_scale=self.noise,
+                        scale_state=self.scale_state)  # fmt: skip
         if active is None:
             self.state = FilterState(out.mean, out.cov)
         else:
@@ -268,6 +299,11 @@ class EKFBackend:
                 torch.where(active[:, None], out.mean, self.state.mean),
                 torch.where(active[:, None, None], out.cov, self.state.cov),
             )
+        if out.noise is not None:
+            if active is not None and self.scale_state is not None:
+                kept = (torch.where(active[:, None], n, o) for n, o in zip(out.noise, self.scale_state, strict=True))
+                out = out._replace(noise=ScaleState(*kept))
+            self.scale_state = out.noise
         if bool((out.mean[:, 1].abs() > 1.4).any()):
             log.warning("EKFBackend: |theta| > 80 deg, near the Euler singularity; re-select the model frame")
         return out

@@ -12,11 +12,12 @@ from torchtrack.filter.models import (
     pose_to_state,
     state_to_pose,
 )
+from torchtrack.filter.noise_scale import NoiseScale, ScaleState
 from torchtrack.filter.weighting import FixedWeighting, PaperWeighting, Variances, WeightingInputs, paper_variances
 
 __all__ = [
-    "FixedWeighting", "FusionEKF", "Linearization", "MotionModel", "PaperWeighting", "PoseEstimate",
-    "Prediction", "Update", "Variances", "WeightingInputs", "constant_velocity", "euler_velocity", "fuse",
+    "FixedWeighting", "FusionEKF", "Linearization", "MotionModel", "NoiseScale", "PaperWeighting", "PoseEstimate",
+    "Prediction", "ScaleState", "Update", "Variances", "WeightingInputs", "constant_velocity", "euler_velocity", "fuse",
     "linearize", "measure_analytic", "measure_single", "paper_variances", "pose_to_state", "predict",
     "state_to_pose", "symmetrize", "update",
 ]  # fmt: skip

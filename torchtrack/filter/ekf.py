@@ -35,7 +35,9 @@ References: Bar-Shalom, Li, Kirubarajan, "Estimation with Applications to Tracki
 
 from __future__ import annotations
 
+import functools
 import logging
+import math
 from collections.abc import Callable, Sequence
 from typing import Literal, NamedTuple
 
@@ -68,6 +70,29 @@ class Update(NamedTuple):
     cov: Tensor
     innovation: Tensor
     num_valid: Tensor
+
+
+@functools.lru_cache(maxsize=64)
+def chi2_quantile(p: float, k: int) -> float:
+    """Chi-square quantile with k degrees of freedom: the x with P(k/2, x/2) = p (regularised lower incomplete
+    gamma), by bisection in float64 (exact to ~1e-12; closed form -2 log(1 - p) for k = 2)."""
+    if not 0.0 < p < 1.0 or k < 1:
+        raise ValueError(f"chi2_quantile: need 0 < p < 1 and k >= 1, got p={p}, k={k}")
+    if k == 2:
+        return -2.0 * math.log1p(-p)
+    a = torch.tensor(k / 2.0, dtype=torch.float64)
+    lo, hi = 0.0, float(k)
+    while float(torch.special.gammainc(a, torch.tensor(hi / 2.0, dtype=torch.float64))) < p:
+        hi *= 2.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if float(torch.special.gammainc(a, torch.tensor(mid / 2.0, dtype=torch.float64))) < p:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo < 1e-12 * hi:
+            break
+    return 0.5 * (lo + hi)
 
 
 def symmetrize(cov: Tensor) -> Tensor:
