@@ -209,3 +209,29 @@ def test_configuration():
     assert instantiate(default.tracker).noise is None and paper.tracker.noise_scale is False
     noise = instantiate(on.tracker).noise
     assert isinstance(noise, NoiseScale) and noise.forgetting == 0.9 and noise.clip == EKFBackendConfig.noise_clip
+
+
+def test_frames_csv_reports_the_back_ends_scale(tmp_path):
+    """The runner writes the back end's scales per frame (1.0 where the scale is off): the last row equals the filter's
+    final scale state, read from the tracker itself."""
+    import csv
+
+    from torchtrack.data import TumSequence
+    from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
+    from torchtrack.factory import build_tracker
+    from torchtrack.run import run_tracker
+
+    seq = TumSequence(ensure_sequence(SyntheticConfig(width=160, height=120, frames=6, seed=1), tmp_path / "data"))
+    for on in (False, True):
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            tracker = build_tracker(compose("config", overrides=[f"tracker.noise_scale={str(on).lower()}"]))
+        run_tracker(tracker, [seq], tmp_path / str(on), plots=False)
+        with open(tmp_path / str(on) / seq.name / "frames.csv") as f:
+            rows = list(csv.DictReader(f))
+        got = [(float(r["noise_scale_pix"]), float(r["noise_scale_xyz"])) for r in rows]
+        if not on:
+            assert got == [(1.0, 1.0)] * len(rows)
+            continue
+        final = tracker.backend.scale_state.scale[0]
+        assert got[-1] == pytest.approx((float(final[PIX]), float(final[XYZ])), rel=1e-6)
+        assert got[0] == (1.0, 1.0) and got[-1] != (1.0, 1.0)  # the first frame has no update

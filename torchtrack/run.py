@@ -64,6 +64,7 @@ class Recorder:
                 "reprojection_px": float(res.reprojection_error[b]),
                 "mean_tim_px": float(res.d_tim[b][res.valid[b]].mean()) if res.valid[b].any() else 0.0,
                 "reselected": bool(res.reselected[b]),
+                **self._noise_scale(b, res),
                 **self._loss(b, i, res.loss),
             }
         )
@@ -86,6 +87,13 @@ class Recorder:
             )
         if bool(res.reselected[b]):
             self.trail = []  # the next frame tracks the new model's features
+
+    @staticmethod
+    def _noise_scale(b: int, res: StepResult) -> dict:
+        """frames.csv's online noise scale of the pixel and 3D blocks after this frame (1.0 where it is off)."""
+        scale = getattr(res.estimate, "noise_scale", None)  # (B, 2) [pix, xyz]; None when off or on the first frame
+        pix, xyz = (float(scale[b, 0]), float(scale[b, 1])) if scale is not None else (1.0, 1.0)
+        return {"noise_scale_pix": pix, "noise_scale_xyz": xyz}
 
     def _loss(self, b: int, i: int, loss) -> dict:
         """frames.csv's loss columns for sequence b at frame i (all False without a relocaliser); a warning when lost."""
