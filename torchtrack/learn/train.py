@@ -82,20 +82,27 @@ class TrainConfig:
             raise ValueError("train: window, stride, batch must be >= 1, epochs >= 0 and lr > 0")
 
 
-# -- windows ----------------------------------------------------------------------------------------------
-def sequence_windows(seq: SequenceObservations, window: int, stride: int) -> Windows | None:
+# -- windows ---------------------------------------------------------------------------------------------
+def sequence_windows(
+    seq: SequenceObservations, window: int, stride: int, *, need_ground_truth: bool = True
+) -> Windows | None:
     """All windows of ``window`` updates of one recorded sequence, starting every ``stride`` frames.
 
-    A window starting at frame s replays the updates of frames s+1..s+window from the ground-truth pose of frame s
-    (or, where a model was selected at s, the model's pose, which is exact). Windows whose start has no ground
-    truth, or with no ground truth at all, are left out. Returns None when none is left.
+    A window starting at frame s replays the updates of frames s+1..s+window from the pose of frame s: the model's
+    pose where a model was selected at s (exact), else its ground truth, else (only with ``need_ground_truth``
+    False) the tracker's recorded estimate ``T_cam_obj_est[s]`` — the pose the tracker itself had there, so an
+    unlabelled window replays what the tracker saw. With ``need_ground_truth`` (the supervised loss), windows whose
+    start has no ground truth, or with no ground truth at all, are left out; without it (the innovation NLL, which
+    needs none) every window is kept and ``gt_valid`` marks the frames a pose error can be measured on. Returns None
+    when no window is left.
     """
-    starts = [s for s in range(0, seq.frames - window, stride) if _startable(seq, s)]
+    starts = [s for s in range(0, seq.frames - window, stride) if not need_ground_truth or _startable(seq, s)]
     if not starts:
         return None
     s = torch.tensor(starts)
     rows = s[None, :] + torch.arange(1, window + 1)[:, None]  # T,B: the updates of each window
-    start_pose = torch.where(seq.reselected[s][:, None, None], seq.model_T_cam_obj[s], seq.T_cam_obj_gt[s])
+    unlabelled_start = torch.where(seq.T_cam_obj_gt_valid[s][:, None, None], seq.T_cam_obj_gt[s], seq.T_cam_obj_est[s])
+    start_pose = torch.where(seq.reselected[s][:, None, None], seq.model_T_cam_obj[s], unlabelled_start)
     B = len(starts)
     win = Windows(
         start_T_cam_obj=start_pose,
@@ -113,6 +120,8 @@ def sequence_windows(seq: SequenceObservations, window: int, stride: int) -> Win
         T_cam_obj_gt=seq.T_cam_obj_gt[rows],
         gt_valid=seq.T_cam_obj_gt_valid[rows],
     )
+    if not need_ground_truth:
+        return win
     keep = win.gt_valid.any(0)
     return select_windows(win, keep.nonzero().squeeze(1)) if bool(keep.any()) else None
 
@@ -130,43 +139,62 @@ def select_windows(win: Windows, index: Tensor) -> Windows:
     })  # fmt: skip
 
 
-def windows_of(sequences: list[SequenceObservations], window: int, stride: int) -> Windows | None:
-    parts = [w for w in (sequence_windows(s, window, stride) for s in sequences) if w is not None]
+def windows_of(
+    sequences: list[SequenceObservations], window: int, stride: int, *, need_ground_truth: bool = True
+) -> Windows | None:
+    """The windows of every sequence (:func:`sequence_windows`), concatenated; None when there are none."""
+    parts = [sequence_windows(s, window, stride, need_ground_truth=need_ground_truth) for s in sequences]
+    parts = [w for w in parts if w is not None]
     return concat_windows(parts) if parts else None
 
 
 # -- the loop ---------------------------------------------------------------------------------------------
-def window_loss(ekf: FusionEKF, model: Callable, win: Windows, cfg: TrainConfig) -> tuple[Tensor, dict[str, float]]:
-    """The configured loss of one batch of windows, and its diagnostics (pose errors, NLL)."""
-    out = rollout(ekf, model, win, gate=cfg.gate, refit=cfg.refit, with_nll=cfg.loss == "nll")
-    if cfg.loss == "nll":
-        loss = nll_loss(out)
-    else:
-        loss = supervised_loss(out, win, cfg.w_trans, cfg.w_rot)
+Sums = dict[str, tuple[float, float]]  # diagnostic -> (sum, count): batches add up, then one division (summarise)
+
+
+def window_loss(ekf: FusionEKF, model: Callable, win: Windows, cfg: TrainConfig) -> tuple[Tensor, Sums]:
+    """The configured loss of one batch of windows, and its diagnostics as (sum, count) pairs: the loss over its
+    own count (measurements for nll, frames with ground truth for supervised), the pose errors over the frames with
+    ground truth, the NLL over the used measurements. :func:`summarise` turns them into means."""
+    nll = cfg.loss == "nll"
+    out = rollout(ekf, model, win, gate=cfg.gate, refit=cfg.refit, with_nll=nll)
+    loss = nll_loss(out) if nll else supervised_loss(out, win, cfg.w_trans, cfg.w_rot)
     with torch.no_grad():
         e_t, e_r = pose_errors(out.T_cam_obj, win.T_cam_obj_gt.to(out.T_cam_obj.dtype))
         m = win.gt_valid
-        n = max(int(m.sum()), 1)
-        stats = {
-            "loss": float(loss),
-            "trans_mm": 1e3 * float(e_t[m].sum()) / n,
-            "rot_deg": math.degrees(float(e_r[m].sum()) / n),
-            "nll": float(out.nll.sum() / out.n_used.sum().clamp_min(1)) if cfg.loss == "nll" else float("nan"),
+        n_gt, n_used = float(m.sum()), float(out.n_used.sum())
+        sums = {
+            "loss": (float(loss) * (n_used if nll else n_gt), n_used if nll else n_gt),
+            "trans_mm": (1e3 * float(e_t[m].sum()), n_gt),
+            "rot_deg": (math.degrees(float(e_r[m].sum())), n_gt),
+            "nll": (float(out.nll.sum()), n_used if nll else 0.0),
         }
-    return loss, stats
+    return loss, sums
+
+
+def add_sums(total: Sums, sums: Sums) -> Sums:
+    """``total`` plus ``sums``, key by key."""
+    for k, (v, n) in sums.items():
+        v0, n0 = total.get(k, (0.0, 0.0))
+        total[k] = (v0 + v, n0 + n)
+    return total
+
+
+def summarise(total: Sums) -> dict[str, float]:
+    """Means of the summed diagnostics; NaN where nothing was counted (e.g. pose errors without ground truth)."""
+    return {k: v / n if n > 0 else float("nan") for k, (v, n) in total.items()}
 
 
 def evaluate(ekf: FusionEKF, model: Callable, win: Windows, cfg: TrainConfig) -> dict[str, float]:
-    """Mean diagnostics over all windows of ``win`` (batches of cfg.batch, no gradient), weighted by window count."""
-    totals: dict[str, float] = {}
+    """Diagnostics over all windows of ``win`` (batches of cfg.batch, no gradient): the loss and the NLL per
+    measurement, the pose errors per frame with ground truth (NaN where ``win`` has none)."""
+    total: Sums = {}
     B = win.dt.shape[1]
     with torch.no_grad():
         for i in range(0, B, cfg.batch):
             idx = torch.arange(i, min(i + cfg.batch, B))
-            _, stats = window_loss(ekf, model, select_windows(win, idx), cfg)
-            for k, v in stats.items():
-                totals[k] = totals.get(k, 0.0) + v * len(idx)
-    return {k: v / B for k, v in totals.items()}
+            add_sums(total, window_loss(ekf, model, select_windows(win, idx), cfg)[1])
+    return summarise(total)
 
 
 def fit(
@@ -199,19 +227,17 @@ def fit(
         if cfg.max_windows is not None:
             order = order[: cfg.max_windows]
         model.train()
-        sums, count = {}, 0
+        total: Sums = {}
         for i in range(0, len(order), cfg.batch):
             idx = order[i : i + cfg.batch]
-            loss, stats = window_loss(ekf, model, select_windows(train, idx), cfg)
+            loss, sums = window_loss(ekf, model, select_windows(train, idx), cfg)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.clip)
             opt.step()
-            for k, v in stats.items():
-                sums[k] = sums.get(k, 0.0) + v * len(idx)
-            count += len(idx)
+            add_sums(total, sums)
         model.eval()
-        row = {"epoch": epoch + 1, **{f"train_{k}": v / max(count, 1) for k, v in sums.items()}}
+        row = {"epoch": epoch + 1, **{f"train_{k}": v for k, v in summarise(total).items()}}
         if val is not None:
             row.update({f"val_{k}": v for k, v in evaluate(ekf, model, val, cfg).items()})
         row["select"] = row["val_loss"] if val is not None else row["train_loss"]

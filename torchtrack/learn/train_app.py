@@ -63,12 +63,19 @@ def train_from_config(cfg: DictConfig, out: Path, progress: bool = True) -> list
     sequences = [load_observations(f) for f in observation_files(cfg)]
     train_seqs, val_seqs = split(sequences, cfg)
     tc = TrainConfig(**OmegaConf.to_container(cfg.train, resolve=True))
-    train_w = windows_of(train_seqs, tc.window, tc.stride)
+    need_gt = tc.loss == "supervised"  # the NLL needs no ground truth: unlabelled windows start at the estimate
+    train_w = windows_of(train_seqs, tc.window, tc.stride, need_ground_truth=need_gt)
     if train_w is None:
-        raise DataError("no training window: the sequences are shorter than train.window or have no ground truth")
-    val_w = windows_of(val_seqs, tc.window, tc.stride)
+        raise DataError(_no_window(train_seqs, tc, "training"))
+    val_w = windows_of(val_seqs, tc.window, tc.stride, need_ground_truth=need_gt)
+    if val_w is None and val_seqs:
+        log.warning("%s", _no_window(val_seqs, tc, "validation"))
     log.info("training on %d windows of %d sequences, validating on %d windows of %d sequences",
              train_w.dt.shape[1], len(train_seqs), 0 if val_w is None else val_w.dt.shape[1], len(val_seqs))  # fmt: skip
+    for name, w in (("training", train_w), ("validation", val_w)):
+        if w is not None and (n := int((~w.gt_valid.any(0)).sum())):
+            log.info("%d of the %d %s windows have no ground truth: they start from the tracker's recorded estimate "
+                     "and report the NLL only", n, w.dt.shape[1], name)  # fmt: skip
     ekf = instantiate(cfg.filter, jacobian=tc.jacobian)
     torch.manual_seed(tc.seed)
     model = LearnedWeighting(**tc.model)
@@ -86,6 +93,15 @@ def train_from_config(cfg: DictConfig, out: Path, progress: bool = True) -> list
     if cfg.get("export"):
         export(out / "best.pt", Path(cfg.export))
     return history
+
+
+def _no_window(sequences: list[SequenceObservations], tc: TrainConfig, split: str) -> str:
+    """One line: why ``sequences`` give no window (too short, or no ground truth for the supervised loss)."""
+    names = ", ".join(s.sequence for s in sequences) or "none"
+    if tc.loss == "supervised" and all(s.frames > tc.window for s in sequences):
+        return (f"no {split} window: train.loss=supervised needs ground truth and the {split} sequences ({names}) have "
+                "none; train.loss=nll needs none (calibration on unlabelled sequences)")  # fmt: skip
+    return f"no {split} window: the {split} sequences ({names}) have at most train.window={tc.window} frames"
 
 
 def export(src: Path, dst: Path) -> None:
