@@ -6,9 +6,10 @@ runs the weighting and the fusion EKF over them exactly as the tracker does (the
 re-selection resets the filter to the recorded model pose, as the tracker's ``_new_model`` does) and returns the
 poses and the innovation likelihoods, differentiable in the weighting's parameters.
 
-Each window starts from the ground-truth pose of its first frame (zero velocity and the initial covariance, as
-after a model selection), so its error is the drift of the back end over the window: a relative pose error with
-a delta of up to T frames. Truncated backpropagation: windows are independent.
+Each window starts from the pose of its first frame (zero velocity and the initial covariance, as after a model
+selection): its ground truth, so that its error is the drift of the back end over the window (a relative pose
+error with a delta of up to T frames), or on unlabelled footage the tracker's recorded estimate
+(:func:`torchtrack.learn.train.sequence_windows`). Truncated backpropagation: windows are independent.
 """
 
 from __future__ import annotations
@@ -32,7 +33,8 @@ class Windows:
     """B windows of T frames, padded to N features; frame-major (T, B, ...) so that a frame is one slice.
 
     Attributes:
-        start_T_cam_obj: (B, 4, 4) the filter's starting pose (ground truth of the frame before the window).
+        start_T_cam_obj: (B, 4, 4) the filter's starting pose at the frame before the window (the model's pose, its
+            ground truth, or the tracker's recorded estimate where it has none).
         dt: (T, B) seconds; points_obj, points_d: (T, B, N, 3); pixels: (T, B, N, 2); valid: (T, B, N) bool;
         cues: (T, B, N, C) (:data:`torchtrack.learn.cues.CUE_NAMES`).
         K: (B, 3, 3) colour intrinsics; T_color_depth: (B, 4, 4); focal: (B,) depth focal length (eq. 12's f).

@@ -2,12 +2,15 @@
 
 Recorded observations (:mod:`torchtrack.learn.cache`) are cut into windows of T frames (:func:`sequence_windows`);
 each window is replayed through the weighting and the back end (:func:`torchtrack.learn.rollout.rollout`) from the
-ground-truth pose of its first frame, and one of two losses is backpropagated into the weighting:
+pose of its first frame (ground truth, or the tracker's recorded estimate where there is none), and one of two
+losses is backpropagated into the weighting:
 
 * ``supervised``: the pose error against ground truth over the window (translation in metres and rotation in
   radians, weighted; :func:`~torchtrack.learn.rollout.supervised_loss`);
 * ``nll``: the negative log-likelihood of the innovations under the filter's predicted innovation covariance
-  (:func:`~torchtrack.learn.rollout.nll_loss`) — needs no ground truth, so any recorded RGB-D footage serves.
+  (:func:`~torchtrack.learn.rollout.nll_loss`) — needs no ground truth, so any recorded RGB-D footage serves
+  (self-calibration on the user's sensor); the validation then reports the NLL, and pose errors only over the
+  frames that have ground truth (NaN without).
 
 Adam with gradient-norm clipping, seeded and deterministic (one thread); each epoch validates on held-out
 sequences and keeps the best checkpoint by the validation loss. A run folder holds ``metrics.csv`` (one row per

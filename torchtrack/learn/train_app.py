@@ -149,6 +149,10 @@ Usage: torchtrack-train [key=value ...]   (or: python -m torchtrack.learn.train_
       the pose-error loss against ground truth; best.pt also copied to runs/supervised.pt
   torchtrack-train 'extra_observations=[runs/obs]' 'leave_out=[sun3d_fragment1]'
       add the sequences torchtrack-record wrote into runs/obs; never train or validate on sun3d_fragment1
+  torchtrack-train '~dataset' 'extra_observations=[runs/mine]' val_fraction=0.34
+      calibrate the weighting on your sensor: train on your own sequences only, recorded first with
+      torchtrack-record data=tum 'data.root=[A,B,C]' out=runs/mine; no groundtruth.txt is needed (train.loss=nll).
+      Validation reports the held-out NLL; pose errors only where ground truth exists
 
 == Keys ==
   dataset=synthetic         the synthetic set recorded and trained on: synthetic (54 sequences: 2 seeds x scene,
@@ -170,7 +174,8 @@ Usage: torchtrack-train [key=value ...]   (or: python -m torchtrack.learn.train_
   train.loss=nll            nll (the innovations' negative log-likelihood: needs no ground truth) | supervised (pose
                             error against ground truth, weighted by train.w_trans=1.0 per m, train.w_rot=1.0 per rad)
   train.lr=0.001            Adam's learning rate; train.weight_decay=0.0, train.clip=1.0 (gradient-norm clip)
-  train.window=8            frames per window, replayed from the ground-truth pose of its first frame
+  train.window=8            frames per window, replayed from the ground-truth pose of its first frame (nll on
+                            unlabelled sequences: from the tracker's recorded estimate)
   train.stride=4            frames between window starts
   train.batch=32            windows per optimiser step
   train.max_windows=null    a random subset of this many training windows per epoch (null: all)
