@@ -304,3 +304,100 @@ def test_backend_equals_the_stateful_filter_over_a_rollout():
         gated += n_gated
     assert gated >= 4  # the outlier, in both sequences, at least from the second frame on: the gate was exercised
     assert math.isfinite(float(backend.state.cov.sum()))
+
+
+def test_innovation_nll_of_a_near_singular_prior_is_that_of_the_updates_jittered_s():
+    """A prior covariance that is not numerically positive definite (one eigenvalue pushed 1e-9 below zero): the
+    plain Cholesky fails, the update and the likelihood share one fallback (cholesky_jittered), so the NLL is finite
+    and equals the dense Gaussian's under S = H (L L^T) H^T + R with the update's L; and the update from P- equals
+    the update from L L^T (it used that covariance). float64, dense S mixing 1e-6 and 1: rtol 1e-7 as above."""
+    from torchtrack.filter.ekf import cholesky_jittered
+
+    obs = noisy_observations(frames=1, outlier=False)[0]
+    var_xyz, var_pix = variances(1, *obs.valid.shape)
+    ekf = FusionEKF(jacobian="analytic")
+    prior = ekf.predicted(ekf.initial_state(true_pose(0.0)), obs.dt)
+    v = torch.nn.functional.normalize(torch.arange(1.0, 13.0, dtype=F64), dim=0)
+    vPv = v @ torch.linalg.solve(prior.cov, v[:, None].expand(2, 12, 1))[..., 0].T  # (B,) v^T P^-1 v
+    bad = prior.cov - (1 + 1e-9) / vPv[:, None, None] * torch.outer(v, v)  # P - (1+e) v v^T / (v^T P^-1 v): indefinite
+    assert bool((torch.linalg.cholesky_ex(bad).info > 0).all())  # the plain Cholesky of the old NLL fails
+    L = cholesky_jittered(bad)
+    P_used = L @ L.transpose(-1, -2)
+    jitter = torch.diagonal(P_used - bad, dim1=-2, dim2=-1).mean(-1) / torch.diagonal(bad, dim1=-2, dim2=-1).mean(-1)
+    assert bool(((jitter > 1e-13) & (jitter < 1e-1)).all())  # one of the fallback's 1e-12 ... 1e-2
+
+    var5 = torch.cat([var_xyz[0][..., None].expand(-1, -1, 3), var_pix[0][..., None].expand(-1, -1, 2)], -1)
+    h, H = ekf.linearize_at(prior.mean, obs.points_obj, obs.K, obs.T_color_depth)
+    z = torch.cat([obs.points_d, obs.pixels], -1)
+    used = obs.valid[..., None].expand_as(z)
+    r = torch.where(used, z - h, torch.zeros_like(z))
+    nll = innovation_nll(bad, H, r, var5, used)
+    assert bool(torch.isfinite(nll).all())
+    for b in range(2):
+        m = used[b].reshape(-1)
+        Hb = H[b].reshape(-1, 12)[m]
+        S = Hb @ P_used[b] @ Hb.T + torch.diag(var5[b].reshape(-1)[m])
+        rb = r[b].reshape(-1)[m]
+        dense = torch.distributions.MultivariateNormal(torch.zeros_like(rb), covariance_matrix=S).log_prob(rb)
+        torch.testing.assert_close(nll[b], -dense, rtol=1e-7, atol=0)
+
+    def update(cov):
+        return ekf.updated(FilterState(prior.mean, cov), obs.points_obj, obs.points_d, obs.pixels, obs.valid, obs.valid,
+                           var_xyz[0], var_pix[0], obs.K, obs.T_color_depth)  # fmt: skip
+
+    a, b = update(bad), update(P_used)
+    torch.testing.assert_close(a.mean, b.mean, rtol=1e-9, atol=1e-12)  # refactoring L L^T: ~1e-13 relative
+
+
+def test_float64_in_float64_out():
+    """float64 observations and variances give float64 everywhere: the frame's outputs, a rollout of learned
+    windows (poses, NLL, the weighting's variances) and its pose errors."""
+    from torchtrack.learn.model import LearnedWeighting
+    from torchtrack.learn.oracle import oracle_windows
+    from torchtrack.learn.rollout import concat_windows, pose_errors
+    from torchtrack.learn.rollout import rollout as learn_rollout
+
+    obs = noisy_observations(frames=1)[0]
+    var_xyz, var_pix = variances(1, *obs.valid.shape)
+    ekf = FusionEKF(jacobian="analytic")
+    out = ekf_frame(ekf, ekf.initial_state(true_pose(0.0)), obs, Variances(var_pix[0], var_xyz[0]), gate=0.999,
+                    refit=0.999, with_nll=True)  # fmt: skip
+    for name in ("mean", "cov", "innovation", "innovation_var", "nll"):
+        assert getattr(out, name).dtype == F64, name
+    a, b = oracle_windows(B=2, T=2, N=6, seed=0).windows, oracle_windows(B=1, T=2, N=4, seed=1).windows
+    win = concat_windows([a, b])  # pads b's features
+    assert win.points_d.dtype == F64 and win.valid.shape == (2, 3, 6)
+    model = LearnedWeighting(mode="absolute").double()
+    res = learn_rollout(ekf, model, win, gate=0.999, refit=0.999, with_nll=True)
+    for name in ("T_cam_obj", "nll", "var_pix", "var_xyz"):
+        assert getattr(res, name).dtype == F64, name
+    assert all(e.dtype == F64 for e in pose_errors(res.T_cam_obj, win.T_cam_obj_gt))
+
+
+def test_tensors_are_created_on_the_inputs_device():
+    """Audit (no second device here to run on): every torch.zeros/ones/eye/full/empty/tensor/arange/linspace call in
+    the differentiable back end and the training code names its device, so training is not CPU-only by construction.
+    Exempt: chi2_quantile (a Python float from CPU scalars) and LearnedWeighting.__init__ (registered buffers, moved
+    with the module by .to(device)). Before the fix it listed innovation_nll, _pad_features, pose_errors and
+    sequence_windows."""
+    import ast
+    from pathlib import Path
+
+    import torchtrack
+
+    factories = {"zeros", "ones", "eye", "full", "empty", "tensor", "arange", "linspace"}
+    root = Path(torchtrack.__file__).parent
+    files = ["estimators/backends.py", "filter/ekf.py", "learn/rollout.py", "learn/train.py", "learn/model.py"]
+    bare = []
+    for rel in files:
+        tree = ast.parse((root / rel).read_text())
+        for fn in ast.walk(tree):
+            if not isinstance(fn, ast.FunctionDef) or fn.name in ("chi2_quantile", "__init__"):
+                continue
+            for node in ast.walk(fn):
+                f = getattr(node, "func", None)
+                if (isinstance(node, ast.Call) and isinstance(f, ast.Attribute) and f.attr in factories
+                        and isinstance(f.value, ast.Name) and f.value.id == "torch"
+                        and "device" not in {k.arg for k in node.keywords}):  # fmt: skip
+                    bare.append(f"{rel}:{node.lineno} {fn.name}: torch.{f.attr}")
+    assert not bare, bare

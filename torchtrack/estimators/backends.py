@@ -14,7 +14,7 @@ from typing import NamedTuple, Protocol
 import torch
 from torch import Tensor
 
-from torchtrack.filter.ekf import chi2_quantile, symmetrize
+from torchtrack.filter.ekf import chi2_quantile, cholesky_jittered, symmetrize
 from torchtrack.filter.fusion import FilterState, FusionEKF
 from torchtrack.filter.models import measure, state_to_pose
 from torchtrack.filter.noise_scale import NoiseScale, ScaleState, residual_statistics, scaled
@@ -200,15 +200,18 @@ def innovation_nll(prior_cov: Tensor, H: Tensor, innovation: Tensor, var5: Tenso
     innovation covariance ``S = H P- H^T + R`` (R = diag(var5)), without forming the (5N x 5N) S: with W = R^-1,
     ``J = H^T W H``, ``g = H^T W r`` and ``P- = L L^T``, ``C C^T = I + L^T J L``: Woodbury gives
     ``r^T S^-1 r = r^T W r - |C^-1 L^T g|^2`` and the determinant lemma ``log det S = log det R + 2 sum log diag C``.
-    Unused entries (``used`` False) contribute nothing, and no gradient."""
+    Unused entries (``used`` False) contribute nothing, and no gradient. ``P-`` is factored as the update factors it
+    (:func:`~torchtrack.filter.ekf.cholesky_jittered`): where it is not numerically positive definite, both use the
+    same jittered ``P-``, so the likelihood is that of the S the update used."""
     B, N, M, S = H.shape
     var_safe = torch.where(used, var5, torch.ones_like(var5))
     sw = torch.where(used, var_safe.rsqrt(), torch.zeros_like(var5))  # W^1/2
     Hs = (H * sw[..., None]).reshape(B, N * M, S)
     rs = (innovation * sw).reshape(B, N * M, 1)
-    L = torch.linalg.cholesky(prior_cov)
+    L = cholesky_jittered(prior_cov)
     J = Hs.transpose(-1, -2) @ Hs
-    C = torch.linalg.cholesky(symmetrize(torch.eye(S, dtype=J.dtype) + L.transpose(-1, -2) @ J @ L))
+    eye = torch.eye(S, dtype=J.dtype, device=J.device)
+    C = torch.linalg.cholesky(symmetrize(eye + L.transpose(-1, -2) @ J @ L))  # >= I: always factors
     v = torch.linalg.solve_triangular(C, L.transpose(-1, -2) @ (Hs.transpose(-1, -2) @ rs), upper=False)
     quad = (rs**2).sum((1, 2)) - (v**2).sum((1, 2))
     logdet = torch.where(used, var_safe.log(), torch.zeros_like(var5)).sum((1, 2))

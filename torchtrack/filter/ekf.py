@@ -254,7 +254,7 @@ def _information_step(mean: Tensor, cov: Tensor, Hs: Tensor, rs: Tensor) -> tupl
     HfT = Hf.transpose(-1, -2)
     J = HfT @ Hf  # B,S,S
     g = HfT @ rs.reshape(B, N * M, 1)  # B,S,1 = H^T W r
-    L = _cholesky(cov)
+    L = cholesky_jittered(cov)
     eye = torch.eye(S, dtype=cov.dtype, device=cov.device)
     C = torch.linalg.cholesky(symmetrize(eye + L.transpose(-1, -2) @ J @ L))
     At = torch.linalg.solve_triangular(C, L.transpose(-1, -2), upper=False)  # A^T = C^-1 L^T
@@ -303,8 +303,11 @@ def _zero_invalid(t: Tensor, feat_valid: Tensor) -> Tensor:
     return torch.where(m, t, torch.zeros_like(t))
 
 
-def _cholesky(cov: Tensor) -> Tensor:
-    """Cholesky factor of a covariance; adds growing diagonal jitter where it is not numerically PD."""
+def cholesky_jittered(cov: Tensor) -> Tensor:
+    """(B, S, S) Cholesky factor L of the covariances ``cov`` (B, S, S); where one is not numerically positive
+    definite, of ``cov + 10^k m I`` instead (m its mean variance, k = -12, -10, ..., -2: the first that factors).
+    The one fallback of the update (:func:`_information_step`) and of the innovation likelihood
+    (:func:`torchtrack.estimators.backends.innovation_nll`): both see the same ``P- = L L^T``."""
     L, info = torch.linalg.cholesky_ex(cov)
     bad = info > 0
     if not bool(bad.any()):
@@ -318,7 +321,7 @@ def _cholesky(cov: Tensor) -> Tensor:
         bad = bad & (info > 0)
         if not bool(bad.any()):
             return L
-    raise ValueError("update: predicted covariance is not positive definite even with jitter")
+    raise ValueError("cholesky_jittered: the predicted covariance is not positive definite even with jitter")
 
 
 def _check_state(mean: Tensor, cov: Tensor, where: str) -> None:

@@ -160,16 +160,16 @@ class LearnedWeighting(nn.Module):
         """cues (B, N, C), valid (B, N) -> (B, N, 2) clamped log-variance scores (pixel, 3D); 0 where invalid."""
         w = self.head[-1].weight
         valid3 = valid[..., None]
-        x = torch.where(valid3, cues.to(w.dtype), torch.zeros((), dtype=w.dtype))  # garbage never enters
+        x = torch.where(valid3, cues.to(w.dtype), w.new_zeros(()))  # garbage never enters
         h = self.phi(normalise_cues(x, self.cue_kinds, self.cue_scales))  # B,N,H
         n = valid.sum(-1, keepdim=True)  # B,1
         mean = (h * valid3).sum(-2) / n.clamp_min(1)
         peak = h.masked_fill(~valid3, torch.finfo(h.dtype).min).amax(-2)
-        peak = torch.where(n > 0, peak, torch.zeros((), dtype=h.dtype))  # no valid feature: empty pool = 0
+        peak = torch.where(n > 0, peak, h.new_zeros(()))  # no valid feature: empty pool = 0
         c = self.rho(torch.cat([mean, peak], -1))  # B,H
         s = self.head(torch.cat([h, c[:, None].expand_as(h)], -1))  # B,N,2
         s = soft_clamp(s, self.log_ratio_min, self.log_ratio_max)
-        return torch.where(valid3, s, torch.zeros((), dtype=s.dtype))
+        return torch.where(valid3, s, s.new_zeros(()))
 
     def forward(self, inputs: WeightingInputs) -> Variances:
         """inputs.cues (B, N, C), valid (B, N), depth (B, N) -> Variances (B, N) in the dtype of inputs.d_tim."""

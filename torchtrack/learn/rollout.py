@@ -95,7 +95,7 @@ def _pad_features(x: Tensor, n: int) -> Tensor:
     """Pad dim 2 (features) of a (T, B, N, ...) tensor to n."""
     if x.shape[2] >= n:
         return x
-    pad = torch.zeros(*x.shape[:2], n - x.shape[2], *x.shape[3:], dtype=x.dtype)
+    pad = x.new_zeros(*x.shape[:2], n - x.shape[2], *x.shape[3:])
     return torch.cat([x, pad], 2)
 
 
@@ -149,7 +149,7 @@ def pose_errors(T_est: Tensor, T_gt: Tensor) -> tuple[Tensor, Tensor]:
     """Translation (m) and rotation (rad) error of ``inv(T_gt) @ T_est``, (...,) each. The rotation error is
     ``||R_err - I||_F / sqrt(2) = 2 sin(angle / 2)`` (equal to the angle to 1e-3 relative below 5 deg): smooth at 0."""
     E = T_inv(T_gt) @ T_est
-    eye = torch.eye(3, dtype=E.dtype)
+    eye = torch.eye(3, dtype=E.dtype, device=E.device)
     return E[..., :3, 3].norm(dim=-1), (E[..., :3, :3] - eye).flatten(-2).norm(dim=-1) / 2**0.5
 
 

@@ -102,8 +102,8 @@ def sequence_windows(
     starts = [s for s in range(0, seq.frames - window, stride) if not need_ground_truth or _startable(seq, s)]
     if not starts:
         return None
-    s = torch.tensor(starts)
-    rows = s[None, :] + torch.arange(1, window + 1)[:, None]  # T,B: the updates of each window
+    s = torch.tensor(starts, device=seq.valid.device)
+    rows = s[None, :] + torch.arange(1, window + 1, device=s.device)[:, None]  # T,B: the updates of each window
     unlabelled_start = torch.where(seq.T_cam_obj_gt_valid[s][:, None, None], seq.T_cam_obj_gt[s], seq.T_cam_obj_est[s])
     start_pose = torch.where(seq.reselected[s][:, None, None], seq.model_T_cam_obj[s], unlabelled_start)
     B = len(starts)
@@ -195,7 +195,7 @@ def evaluate(ekf: FusionEKF, model: Callable, win: Windows, cfg: TrainConfig) ->
     B = win.dt.shape[1]
     with torch.no_grad():
         for i in range(0, B, cfg.batch):
-            idx = torch.arange(i, min(i + cfg.batch, B))
+            idx = torch.arange(i, min(i + cfg.batch, B), device=win.dt.device)
             add_sums(total, window_loss(ekf, model, select_windows(win, idx), cfg)[1])
     return summarise(total)
 
