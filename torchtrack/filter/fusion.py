@@ -246,7 +246,7 @@ class FusionEKF:
         B = T_cam_obj.shape[0]
         if T_cam_obj.shape != (B, 4, 4) or (mask is not None and mask.shape != (B,)):
             raise ValueError(f"reset: T_cam_obj must be (B, 4, 4) and mask (B,), got {tuple(T_cam_obj.shape)}")
-        mask = torch.ones(B, dtype=torch.bool) if mask is None else mask.to(torch.bool)
+        mask = torch.ones(B, dtype=torch.bool, device=T_cam_obj.device) if mask is None else mask.to(torch.bool)
         x0, P0 = self.initial_state(T_cam_obj, velocity)
         if self.mean is None or self.mean.shape[0] != B:
             if not bool(mask.all()):

@@ -32,7 +32,7 @@ def tracker_world(T_world_color_gt: Tensor, gt_valid: Tensor, T_color_depth: Ten
     from the first frame's ground-truth colour pose ``T_world_color_gt`` (..., 4, 4) where ``gt_valid`` (...,); where
     there is none, the first colour camera is the world. Then ``T_world_depth = T_world_tracker @ T_tracker_depth``
     and the written pose is :func:`T_world_color_from_depth` of it, comparable with ground truth unaligned."""
-    eye = torch.eye(4, dtype=torch.float64).expand_as(T_world_color_gt)
+    eye = torch.eye(4, dtype=torch.float64, device=T_world_color_gt.device).expand_as(T_world_color_gt)
     T_world_color0 = torch.where(gt_valid[..., None, None], T_world_color_gt.double(), eye)
     return T_world_depth_from_color(T_world_color0, T_color_depth)
 

@@ -66,5 +66,5 @@ def pose_from_euler(angles_t: Tensor) -> Tensor:
 
 def point_jacobian(p: Tensor) -> Tensor:
     """(..., 3, 6) derivative of ``exp(xi) p`` at xi = 0 for points p (..., 3), xi = (v, omega): ``[I, -[p]x]``."""
-    eye = torch.eye(3, dtype=p.dtype).expand(*p.shape[:-1], 3, 3)
+    eye = torch.eye(3, dtype=p.dtype, device=p.device).expand(*p.shape[:-1], 3, 3)
     return torch.cat([eye, -hat(p)], -1)
