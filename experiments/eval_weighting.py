@@ -49,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from evaluate import compose_config, find_sequences, git_describe, run_ours, split_argv  # experiments/evaluate.py
+from common import compose_config, find_sequences, git_describe, replace_section, run_ours, split_argv
 from omegaconf import OmegaConf
 
 from torchtrack.config import CONF_DIR, load_option
@@ -356,21 +356,6 @@ def footnotes(args, notes: list[str], rows: list[dict]) -> str:
 
 
 # ----------------------------------------------------------------------------------------------- results file
-
-
-def replace_section(text: str, heading: str, body: str) -> str:
-    """``text`` with the section that starts at the line ``heading`` (up to the next heading of the same or a
-    higher level) replaced by ``heading`` + ``body``; appended at the end when there is none."""
-    level = len(heading) - len(heading.lstrip("#"))
-    lines = text.splitlines(keepends=True)
-    section = [f"{heading}\n\n", body.rstrip("\n") + "\n"]
-    start = next((i for i, line in enumerate(lines) if line.rstrip() == heading), None)
-    if start is None:
-        sep = "" if not text or text.endswith("\n\n") else ("\n" if text.endswith("\n") else "\n\n")
-        return text + sep + "".join(section)
-    stop = re.compile(rf"^#{{1,{level}}}\s")
-    end = next((i for i in range(start + 1, len(lines)) if stop.match(lines[i])), len(lines))
-    return "".join(lines[:start] + section + (["\n"] if end < len(lines) else []) + lines[end:])
 
 
 def write_results(path: Path, body: str) -> None:

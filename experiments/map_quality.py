@@ -35,8 +35,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-from eval_weighting import replace_section  # experiments/eval_weighting.py
-from evaluate import compose_config, find_sequences, git_describe, run_peer, split_argv  # experiments/evaluate.py
+from common import compose_config, find_sequences, git_describe, replace_section, run_peer, split_argv
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 

@@ -30,7 +30,7 @@ import time
 from pathlib import Path
 
 import torch
-from evaluate import best_peer, check_trajectory, compose_config, git_describe, run_ours, run_peer  # experiments/
+from common import best_peer, check_trajectory, compose_config, git_describe, run_ours, run_peer
 
 from torchtrack.data.synthetic import SyntheticConfig, render_sequence
 from torchtrack.data.tum import TumSequence

@@ -57,7 +57,9 @@ def tim_by_tracker(prev: FlowFrame, next: FlowFrame, pixels: Tensor, valid: Tens
     Args: prev, next: frames t-1 and t from :func:`prepare_frame` with a SIM image; pixels (B, N, 2) and
     valid (B, N) on frame t-1; flow_kwargs: LK parameters of :func:`combined_track`.
     """
-    r = combined_track(prev, next, pixels, valid, mode="combined", **flow_kwargs)
+    r = combined_track(
+        prev, next, pixels, valid, mode="combined", policy="min_tim", **flow_kwargs
+    )  # the paper's step III
     inf = torch.full_like(r.d_tim, float("inf"))
     return {m: torch.where(valid, d, inf) for m, d in zip(MODES, (r.d_tim_int, r.d_tim_sim, r.d_tim), strict=True)}
 
@@ -71,7 +73,7 @@ def sequence_tim(seq: TumSequence, pairs: int, batch: int, levels: int, window: 
         gray, depth, K = load_frames(seq, [t - 1 for t in ts] + ts)
         sim = compute_sim(depth, K, **sim_kwargs)
         B = len(ts)
-        feats = select_features(gray[:B], depth[:B], K[:B], sim=_slice_sim(sim, B))  # eq. (9) on frame t-1
+        feats = select_features(gray[:B], depth[:B], K[:B], sim=_slice_sim(sim, B), roi_fraction=None)  # eq. (9), t-1
         prev = prepare_frame(gray[:B], sim.image[:B], levels)
         next = prepare_frame(gray[B:], sim.image[B:], levels)
         tim = tim_by_tracker(prev, next, feats.pixels, feats.valid, levels=levels, window=window)

@@ -7,26 +7,42 @@ import inspect
 from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from hydra.utils import get_object
 from omegaconf import OmegaConf
+from pointsets import random_cloud
 
 from torchtrack.config import (
     CONF_DIR,
     SCHEMAS,
+    CPDConfig,
     EKFBackendConfig,
     FlowConfig,
+    ICPConfig,
     PaperWeightingConfig,
-    PipelineConfig,
-    RelocaliseConfig,
+    RegionConfig,
+    RegistrationBackendConfig,
     SelectConfig,
     validate,
 )
 from torchtrack.data.errors import DataError
-from torchtrack.factory import build_tracker
+from torchtrack.estimators.backends import EKFBackend
+from torchtrack.estimators.cpd import CPDEstimator
+from torchtrack.estimators.horn import HornEstimator
+from torchtrack.estimators.icp import ICPEstimator
+from torchtrack.factory import build_mapper, build_tracker
+from torchtrack.filter.fusion import FusionEKF
+from torchtrack.filter.weighting import FixedWeighting, PaperWeighting, WeightingInputs
+from torchtrack.frontend import FrontEnd
+from torchtrack.image.flow import CombinedTracker, combined_track
+from torchtrack.image.object_model import ObjectRegion, object_mask
+from torchtrack.image.select import FeatureSelector, select_features
 from torchtrack.learn.checkpoint import save_checkpoint
 from torchtrack.learn.model import LearnedWeighting
+from torchtrack.mapping import PanoramaMapper
+from torchtrack.relocalise import Relocaliser
 from torchtrack.tracker import Tracker
 
 CONF = CONF_DIR
@@ -89,46 +105,66 @@ def test_paper_experiment_sets_the_paper_values():
     assert config("+experiment=paper", "weighting=fixed").weighting == config("weighting=fixed").weighting
 
 
+# The functions and classes each schema configures besides its ``_target_`` (the pure function behind a thin class, or
+# the reverse): their signatures read the schema's defaults too.
+PARTNERS = {
+    SelectConfig: ("torchtrack.image.select.FeatureSelector",),
+    FlowConfig: ("torchtrack.image.flow.combined_track",),
+    RegionConfig: ("torchtrack.image.object_model.object_mask",),
+    PaperWeightingConfig: ("torchtrack.filter.weighting.paper_variances",),
+    ICPConfig: ("torchtrack.estimators.icp.icp",),
+    CPDConfig: ("torchtrack.estimators.cpd.cpd_rigid",),
+    EKFBackendConfig: ("torchtrack.estimators.backends.ekf_frame",),
+}
+# Known disagreements, in files of another branch: torchtrack/estimators/backends.py's EKFBackend and ekf_frame still
+# default gate and refit to None (the paper's); the CLI's are 0.999. Fix: ``gate: float | None = EKFBackendConfig.gate``
+# and the same for refit, then empty this.
+KNOWN = {("EKFBackend", "gate"), ("EKFBackend", "refit"), ("ekf_frame", "gate"), ("ekf_frame", "refit")}
+# Not the schema's knob under the same name: ekf_frame takes the NoiseScale object itself (None: off, as false).
+OTHER_MEANING = {("ekf_frame", "noise_scale")}
+
+
 def differences(schema: type) -> dict[str, tuple]:
-    """{field: (schema default, signature default)} where a schema's default differs from its target's."""
+    """{"callable.field": (schema default, signature default)} where a schema's default differs from a default of its
+    target or partners (a field they take without a default is fine: the caller must pass it)."""
     node = OmegaConf.structured(schema)
     if "_target_" not in node:
         return {}  # data: read by the factory
-    params = inspect.signature(get_object(node._target_)).parameters
     out = {}
-    for key in node:
-        p = params.get(key)
-        if (
-            key.startswith("_")
-            or p is None
-            or p.default is inspect.Parameter.empty
-            or OmegaConf.is_interpolation(node, key)
-        ):
-            continue
-        if node[key] != p.default:
-            out[key] = (node[key], p.default)
+    for target in (node._target_, *PARTNERS.get(schema, ())):
+        obj = get_object(target)
+        for key, p in inspect.signature(obj).parameters.items():
+            if key not in node or key.startswith("_") or p.default is inspect.Parameter.empty:
+                continue
+            if OmegaConf.is_interpolation(node, key):
+                continue
+            ours = OmegaConf.to_container(node, resolve=False)[key]
+            default = list(p.default) if isinstance(p.default, tuple) else p.default
+            if ours != default and (obj.__name__, key) not in KNOWN | OTHER_MEANING:
+                out[f"{obj.__name__}.{key}"] = (ours, p.default)
     return out
-
-
-# Where +experiment=paper puts each schema's node (with the choices that use it).
-PAPER_NODES = {
-    PipelineConfig: ("pipeline", ()), FlowConfig: ("flow", ()), EKFBackendConfig: ("tracker", ()),
-    PaperWeightingConfig: ("weighting", ("weighting=paper",)), RelocaliseConfig: ("relocalise", ()),
-    SelectConfig: ("select", ()),
-}  # fmt: skip
 
 
 @pytest.mark.parametrize("schema", [s for nodes in SCHEMAS.values() for s in nodes.values()], ids=lambda s: s.__name__)
 def test_one_set_of_defaults(schema):
-    """A schema default that differs from its Python signature's is an improvement: +experiment=paper sets it back."""
-    diff = differences(schema)
-    if not diff:
-        return
-    assert schema in PAPER_NODES, f"{schema.__name__} differs from its signature: {diff}"
-    name, choices = PAPER_NODES[schema]
-    paper = config("+experiment=paper", *choices)
-    for key, (ours, default) in diff.items():
-        assert paper[name][key] == default, f"{name}.{key}: {ours!r} here, {default!r} in the signature and the paper"
+    """Every default lives in the schema: a signature default of what it configures equals the schema's."""
+    assert differences(schema) == {}, f"{schema.__name__}: schema vs signature defaults"
+
+
+def test_the_front_end_levels_default_to_the_flow_levels():
+    assert inspect.signature(FrontEnd).parameters["levels"].default == FlowConfig.levels
+
+
+def test_paper_values_stay_reachable():
+    """+experiment=paper is the one place of the paper's values: each it sets differs from the default."""
+    ours, paper = config(), config("+experiment=paper")
+    for group, keys in {
+        "pipeline": ("edge_step", "max_residual_px", "keep_survivors", "predict_init", "landmarks"),
+        "flow": ("policy",), "relocalise": ("recover",), "select": ("roi_fraction",),
+        "weighting": ("sigma2_xyz", "depth_var_exponent"), "tracker": ("gate", "refit"),
+    }.items():  # fmt: skip
+        for key in keys:
+            assert ours[group][key] != paper[group][key], f"{group}.{key}"
 
 
 @pytest.mark.parametrize(
@@ -158,3 +194,122 @@ def test_the_front_end_levels_are_the_flow_levels():
     assert build_tracker(config("flow.levels=2")).frontend.levels == 2
     with pytest.raises(ConfigCompositionException):
         config("frontend.levels=2")  # one place only
+
+
+# ------------------------------------------------------------------- direct builds behave as the CLI's (issue 23)
+# Each stage built by the CLI (build_tracker / build_mapper on the composed config) and built directly with no
+# arguments: equal behaviour on a small input, or equal state where the state is the behaviour. Where a default is an
+# improvement, the paper's value is also run on the same input, to show that the input tells the two apart.
+H_, W_ = 96, 128
+
+
+def _texture(x: torch.Tensor, y: torch.Tensor, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    f, phase = 0.05 + 0.25 * torch.rand(12, 2, generator=g), 6.3 * torch.rand(12, generator=g)
+    out = sum(torch.sin(f[k, 0] * x + f[k, 1] * y + phase[k]) for k in range(12))
+    return (0.5 + out / 24).clamp(0, 1)
+
+
+def _frame(dx: float = 0.0, dy: float = 0.0):
+    """(gray, depth, K, sim): a textured plane at 1 m, shifted by (dx, dy) px; its SIM image another texture."""
+    y, x = torch.meshgrid(torch.arange(H_, dtype=torch.float32), torch.arange(W_, dtype=torch.float32), indexing="ij")
+    gray, sim = _texture(x - dx, y - dy, 0)[None, None], _texture(x - dx, y - dy, 7)[None, None]
+    depth = (1.0 + 0.05 * torch.sin(x / 9) * torch.cos(y / 7))[None, None]
+    K = torch.tensor([[[120.0, 0.0, W_ / 2], [0.0, 120.0, H_ / 2], [0.0, 0.0, 1.0]]])
+    return gray, depth, K, sim
+
+
+def _state(obj, depth: int = 0):
+    """A comparable picture of an object's state (attributes, recursively; tensors as lists)."""
+    if isinstance(obj, torch.Tensor):
+        return ("tensor", obj.dtype, obj.tolist())
+    if isinstance(obj, dict):
+        return {k: _state(v, depth + 1) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_state(v, depth + 1) for v in obj)
+    if hasattr(obj, "__dict__") and not callable(getattr(obj, "__func__", None)) and depth < 4:
+        return (type(obj).__name__, {k: _state(v, depth + 1) for k, v in vars(obj).items() if k != "_ready"})
+    return obj
+
+
+def _same(a, b) -> bool:
+    return all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
+
+
+@pytest.fixture(scope="module")
+def cli():
+    """The CLI's stages: the default config, with the object region (the default is the scene: whole_frame=true)."""
+    return build_tracker(config("region=object"))
+
+
+def test_select_direct_equals_cli(cli):
+    gray, depth, K, _ = _frame()
+    roi = torch.zeros_like(depth, dtype=torch.bool)
+    roi[..., 30:70, 40:100] = True  # a small region: roi_fraction (an improvement) shrinks the patches
+    ours = cli.select(gray, depth, K, roi=roi)
+    assert _same(ours, select_features(gray, depth, K, roi=roi))
+    assert _same(ours, FeatureSelector()(gray, depth, K, roi=roi))
+    assert not _same(ours, select_features(gray, depth, K, roi=roi, roi_fraction=None))  # the paper's differs
+
+
+def test_flow_direct_equals_cli(cli):
+    (g0, _, _, s0), (g1, _, _, s1) = _frame(), _frame(0.9, 0.3)
+    f0, f1 = cli.flow.prepare(g0, s0), cli.flow.prepare(g1, s1)
+    y, x = torch.meshgrid(torch.linspace(24, H_ - 24, 5), torch.linspace(24, W_ - 24, 6), indexing="ij")
+    pts = torch.stack([x, y], -1).reshape(1, -1, 2)
+    ours = cli.flow(f0, f1, pts)
+    assert _same(ours, combined_track(f0, f1, pts)) and _same(ours, CombinedTracker()(f0, f1, pts))
+    assert CombinedTracker().kwargs == cli.flow.kwargs
+    assert not _same(ours, combined_track(f0, f1, pts, policy="min_tim"))  # the paper's differs
+
+
+def test_frontend_and_region_direct_equal_cli(cli):
+    assert _state(FrontEnd()) == _state(cli.frontend)
+    _, depth, _, _ = _frame()
+    depth = depth * (1 + (torch.arange(W_) > W_ // 2))  # two depth layers: the object is the near one
+    assert torch.equal(ObjectRegion()(depth), cli.region(depth)) and torch.equal(object_mask(depth), cli.region(depth))
+
+
+@pytest.mark.parametrize("weighting", ["paper", "fixed"])
+def test_weighting_direct_equals_cli(weighting):
+    g = torch.Generator().manual_seed(3)
+    inp = WeightingInputs(
+        torch.rand(2, 9, generator=g, dtype=torch.float64), 0.5 + 2 * torch.rand(2, 9, generator=g, dtype=torch.float64),
+        torch.randn(2, 9, 3, generator=g, dtype=torch.float64), torch.ones(2, 9, dtype=torch.bool),
+        torch.tensor([500.0, 520.0], dtype=torch.float64),
+    )  # fmt: skip
+    ours = build_tracker(config(f"weighting={weighting}")).weighting(inp)
+    direct = {"paper": PaperWeighting, "fixed": FixedWeighting}[weighting]()(inp)
+    assert _same(ours, direct)
+    if weighting == "paper":
+        assert not _same(ours, PaperWeighting(depth_var_exponent=0.0, sigma2_xyz=1e-4)(inp))  # the paper's differs
+
+
+def test_filter_direct_equals_cli(cli):
+    assert _state(FusionEKF()) == _state(cli.backend.ekf)
+
+
+@pytest.mark.xfail(strict=True, reason="backends.py (another branch) defaults gate/refit to None; see KNOWN above")
+def test_ekf_backend_direct_equals_cli(cli):
+    assert _state(EKFBackend(FusionEKF())) == _state(cli.backend)
+
+
+@pytest.mark.parametrize("name", ["icp", "cpd", "horn"])
+def test_estimators_direct_equal_cli(name):
+    backend = build_tracker(config(f"tracker={name}")).backend
+    direct = {"icp": ICPEstimator, "cpd": CPDEstimator, "horn": HornEstimator}[name]()
+    assert _state(direct) == _state(backend.estimator) and backend.weighted is RegistrationBackendConfig.weighted
+    src = random_cloud(2, 30, seed=5)
+    T = torch.eye(4, dtype=src.dtype).repeat(2, 1, 1)
+    T[:, :3, 3] = torch.tensor([0.02, -0.01, 0.03], dtype=src.dtype)
+    dst, valid = src @ T[:, :3, :3].transpose(1, 2) + T[:, None, :3, 3], torch.ones(2, 30, dtype=torch.bool)
+    eye = torch.eye(4, dtype=src.dtype).repeat(2, 1, 1)
+    assert torch.equal(direct(src, dst, valid, eye, None), backend.estimator(src, dst, valid, eye, None))
+
+
+def test_pipeline_relocaliser_and_mapper_direct_equal_cli(cli):
+    stages = dict(frontend=cli.frontend, region=cli.region, select=cli.select, flow=cli.flow,
+                  weighting=cli.weighting, backend=cli.backend, relocaliser=cli.relocaliser)  # fmt: skip
+    assert _state(Tracker(**stages)) == _state(cli)
+    assert _state(Relocaliser()) == _state(cli.relocaliser)
+    assert _state(PanoramaMapper()) == _state(build_mapper(config("mapping=panorama")))

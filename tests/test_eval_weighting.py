@@ -7,13 +7,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import eval_weighting as ew  # experiments/, on pytest's pythonpath
 import pytest
-from test_experiments import _load
 
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
-
-_load("evaluate")  # eval_weighting imports it as a sibling script
-ew = _load("eval_weighting")
 
 OTHER = "# Results\n\nintro\n\n## Issue 5\n\nkeep me\n\n### sub\n\nme too\n"
 TAIL = "## Generated report\n\nlast\n"

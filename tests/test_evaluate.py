@@ -8,7 +8,6 @@ import json
 import numpy as np
 import pytest
 import torch
-from test_experiments import _load
 
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 from torchtrack.data.tum import TumSequence
@@ -16,9 +15,9 @@ from torchtrack.data.tum_io import read_tum_trajectory
 from torchtrack.metrics import shared_error, trajectory_metrics
 
 pytest.importorskip("open3d")
-peers = _load("peers")
-evaluate = _load("evaluate")
-_load("eval_weighting")  # evaluate --results imports its replace_section
+import evaluate  # noqa: E402  (experiments/, on pytest's pythonpath)
+import peers  # noqa: E402
+
 FAST = "o3d_t_p2plane,cv2_rgbd"
 
 

@@ -3,7 +3,6 @@ stand-in app) and the report's tables on fake run folders with known numbers (th
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import sys
@@ -12,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import report
+import sweep
 import torch
 from tolerances import TIM_PX
 
@@ -19,22 +20,6 @@ from torchtrack.data.tum_io import write_tum_trajectory
 from torchtrack.geometry import T_inv, euler_to_matrix, make_T
 
 EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
-
-
-def _load(name: str):
-    """Import experiments/<name>.py (scripts, not a package) under its own name, once."""
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, EXPERIMENTS / f"{name}.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
-
-
-sweep = _load("sweep")
-report = _load("report")
-_load("report_plots")  # imported by report.main
-_load("peers")  # experiments/peers.py: imported by sweep.run_peer and evaluate.run_peer
 
 
 # ----------------------------------------------------------------------------------------------- fixtures
@@ -275,7 +260,7 @@ def test_report_main_on_a_folder_without_a_sweep_says_so_in_one_line(tmp_path, c
 # ----------------------------------------------------------------------------------------------- Table I
 
 
-table1 = _load("table1_spread")
+import table1_spread as table1  # noqa: E402
 
 
 def test_table1_exact_measurements_recover_the_artificial_motion():
@@ -315,7 +300,7 @@ def test_table1_subsets_grow_in_spread():
 # ----------------------------------------------------------------------------------------------- Table II
 
 
-table2 = _load("table2_tim")
+import table2_tim as table2  # noqa: E402
 
 
 @pytest.mark.equivalence

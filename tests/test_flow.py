@@ -97,7 +97,7 @@ def test_winner_is_argmin_where_both_track():
     f0, f1, pts, _ = split_scene((0.9, 0.3))
     both0 = prepare_frame(f0.images[0] + f0.images[1] - 0.5, f0.images[1] + f0.images[0] - 0.5)
     both1 = prepare_frame(f1.images[0] + f1.images[1] - 0.5, f1.images[1] + f1.images[0] - 0.5)
-    res = combined_track(both0, both1, pts)
+    res = combined_track(both0, both1, pts, policy="min_tim")  # the paper's step III (the default is fallback)
     ok = res.status_int & res.status_sim
     assert ok.sum() > 60
     expect = (res.d_tim_sim < res.d_tim_int).long()
@@ -128,9 +128,9 @@ def test_fallback_policy_uses_sim_only_where_intensity_fails(backend):
 
 def test_threshold_and_single_tracker_modes():
     f0, f1, pts, _ = split_scene((2.2, 1.1))
-    full = combined_track(f0, f1, pts, tim_threshold=1.0)
+    full = combined_track(f0, f1, pts, tim_threshold=1.0, policy="min_tim")  # both trackers run on every feature
     thr = float(full.d_tim[full.valid].median())
-    cut = combined_track(f0, f1, pts, tim_threshold=thr)  # step IV
+    cut = combined_track(f0, f1, pts, tim_threshold=thr, policy="min_tim")  # step IV
     assert (cut.valid == (full.valid & (full.d_tim <= thr))).all() and 0 < cut.valid.sum() < full.valid.sum()
     torch.testing.assert_close(cut.points[~cut.valid], pts[~cut.valid])  # dropped features keep the input
     intensity = CombinedTracker(mode="intensity")(f0, f1, pts)

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
-from test_experiments import _load
 
 from torchtrack.config import CONF_DIR
 from torchtrack.data.synthetic import SyntheticConfig, default_scene, render_frame, render_sequence, sequence_poses
@@ -100,9 +99,8 @@ def test_object_case_script_table_matches_its_runs(tmp_path):
     """experiments/object_case.py on a 4-frame case: the table's numbers are those of the run folders, and the
     exact dense peer (OpenCV RGB-D odometry) is within a millimetre of the truth on clean data."""
     pytest.importorskip("cv2")
-    _load("peers")
-    _load("evaluate")
-    oc = _load("object_case")
+    import object_case as oc  # experiments/, on pytest's pythonpath
+
     args = ["--cases", "clean", "--frames", "4", "--peers", "cv2_rgbd", "--ours", "object=region=object"]
     assert oc.main([*args, "--cache", str(tmp_path / "cache"), "--out", str(tmp_path / "out")]) == 0
     (row,) = json.loads((tmp_path / "out" / "object_case.json").read_text())["rows"]
@@ -118,7 +116,8 @@ def test_object_case_script_table_matches_its_runs(tmp_path):
 
 def test_data_preset_is_the_slow_case():
     """data=synthetic_object is experiments/object_case.py's "slow" case (same digest: same rendered folder)."""
-    oc = _load("object_case")
+    import object_case as oc  # experiments/, on pytest's pythonpath
+
     with initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
         cfg = compose("config", overrides=["data=synthetic_object", "region=object"])
     scene = SyntheticConfig(**cfg.data.scene)

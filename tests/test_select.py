@@ -207,8 +207,8 @@ def test_max_features_keeps_the_strongest():
 
 def test_grid_equals_patch_size():
     gray, depth, K = synthetic_frame(7)
-    a = select_features(gray, depth, K, grid=(8, 10))
-    b = select_features(gray, depth, K, patch_size=(30, 32))
+    a = select_features(gray, depth, K, grid=(8, 10), roi_fraction=None)  # a grid is the fixed grid
+    b = select_features(gray, depth, K, patch_size=(30, 32), roi_fraction=None)
     assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
 
 
@@ -249,8 +249,8 @@ def test_batched_equals_looped_no_spread():
 
 def test_module_equals_function():
     gray, depth, K = synthetic_frame(9)
-    out = FeatureSelector(lam=0.3, patch_size=[20, 24], border=5)(gray, depth, K)
-    ref = select_features(gray, depth, K, lam=0.3, patch_size=(20, 24), border=5)
+    out = FeatureSelector(lam=0.3, patch_size=[20, 24], border=5, roi_fraction=None)(gray, depth, K)
+    ref = select_features(gray, depth, K, lam=0.3, patch_size=(20, 24), border=5, roi_fraction=None)
     assert all(torch.equal(a, b) for a, b in zip(out, ref, strict=True))
 
 
@@ -285,12 +285,12 @@ def test_roi_fraction_is_the_fixed_grid_of_that_size():
     roi = rect_roi(60, 100, 90, 120)  # inside the border, with depth everywhere
     size = max(8, math.floor(32 * math.sqrt(90 * 120 / (0.5 * (H - 24) * (W - 24)))))  # border 12
     a = select_features(gray, depth, K, roi=roi, roi_fraction=0.5)
-    b = select_features(gray, depth, K, roi=roi, patch_size=size)
+    b = select_features(gray, depth, K, roi=roi, patch_size=size, roi_fraction=None)
     assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True))
-    assert int(a.valid.sum()) > 2 * int(select_features(gray, depth, K, roi=roi).valid.sum())
+    assert int(a.valid.sum()) > 2 * int(select_features(gray, depth, K, roi=roi, roi_fraction=None).valid.sum())
     full = rect_roi(0, 0, H, W)
     c = select_features(gray, depth, K, roi=full, patch_size=16, roi_fraction=0.5)  # the whole image inside the border
-    d = select_features(gray, depth, K, roi=full, patch_size=16)
+    d = select_features(gray, depth, K, roi=full, patch_size=16, roi_fraction=None)
     assert all(torch.equal(x, y) for x, y in zip(c, d, strict=True))
 
 

@@ -21,11 +21,11 @@ import time
 from pathlib import Path
 
 import pytest
-from test_experiments import EXPERIMENTS, _load
+import sweep  # experiments/, on pytest's pythonpath
+from test_experiments import EXPERIMENTS
 
 from torchtrack.data.synthetic import SyntheticConfig, render_sequence
 
-sweep = _load("sweep")
 METHODS, SEQUENCES = ("fusion_ekf", "horn"), ("s1", "s2")
 JOBS = [(m, s) for m in METHODS for s in SEQUENCES]
 

@@ -34,7 +34,7 @@ def test_hand_computed_example():
         torch.tensor([d], dtype=F64), torch.tensor([z], dtype=F64), torch.tensor([pts], dtype=F64),
         torch.ones(1, 3, dtype=torch.bool), torch.tensor([f], dtype=F64),
     )  # fmt: skip
-    out = PaperWeighting(s_pix, s_xyz)(inp)
+    out = PaperWeighting(s_pix, s_xyz, depth_var_exponent=0.0)(inp)  # the paper's eqs. (11)-(14)
     torch.testing.assert_close(out.var_pix, torch.tensor([var_pix], dtype=F64))
     torch.testing.assert_close(out.var_xyz, torch.tensor([var_xyz], dtype=F64))
 
@@ -42,7 +42,7 @@ def test_hand_computed_example():
 def test_means_preserved_over_valid_features_and_invalid_get_nominal():
     valid = torch.rand(3, 10, generator=torch.Generator().manual_seed(1)) > 0.3
     inp = inputs(3, 10, valid=valid)
-    out = PaperWeighting(1.5, 4e-4)(inp)
+    out = PaperWeighting(1.5, 4e-4, depth_var_exponent=0.0)(inp)  # the paper's: eq. (14) keeps the mean
     assert out.var_pix.shape == (3, 10) and out.var_xyz.shape == (3, 10)
     for b in range(3):
         torch.testing.assert_close(out.var_pix[b][valid[b]].mean(), torch.tensor(1.5, dtype=F64))
@@ -80,7 +80,7 @@ def test_zero_tim_floor_and_no_valid_feature():
 
 def test_depth_dependent_option():
     inp = inputs(1, 6)
-    base = PaperWeighting(1.0, 1e-4)(inp)
+    base = PaperWeighting(1.0, 1e-4, depth_var_exponent=0.0)(inp)
     kin = PaperWeighting(1.0, 1e-4, depth_var_exponent=4.0, depth_ref=1.0)(inp)
     torch.testing.assert_close(kin.var_xyz, base.var_xyz * inp.depth**4)
     torch.testing.assert_close(kin.var_pix, base.var_pix)

@@ -4,9 +4,11 @@ Each YAML file under ``conf/<group>/`` starts from its schema (``defaults: [/sch
 only changes values, so Hydra checks types when the config is composed (``data.depth_scale=abc`` fails there) and the
 schema's ``__post_init__`` checks ranges when :func:`validate` turns a node into its dataclass.
 
-Defaults. The schemas hold torchtrack's defaults (the improvements on); the Python signatures of the classes they
-build hold the paper's values where the two differ, and ``conf/method/paper.yaml`` (``+experiment=paper``) sets
-every one of those back (``tests/test_config.py`` checks that no other default differs).
+Defaults. Every default lives here, once: the schemas hold torchtrack's defaults (the improvements on), and the
+signatures of the classes and functions they configure read them by reference (``roi_fraction: float | None =
+SelectConfig.roi_fraction``), so a direct call behaves as the CLI does. The paper's values, where they differ, are
+one file: ``conf/method/paper.yaml`` (``+experiment=paper``) and the ``method_*/paper_*.yaml`` beside it
+(``tests/test_config.py`` checks both).
 
 Derived knobs are resolved in one place, :func:`torchtrack.factory.build_tracker`: the front end's pyramid levels
 are the LK tracker's (``flow.levels``). The measurement variances belong to the weighting; the filter gets its
@@ -27,6 +29,7 @@ from torchtrack.data.errors import DataError
 
 CONF_DIR = Path(__file__).resolve().parent / "conf"  # inside the package, so a wheel install finds it
 EKF_BACKEND = "torchtrack.estimators.backends.EKFBackend"
+VIEW_SIZE = (480, 640)  # the map views' [H, W] (MappingConfig.view_size; a list there, as OmegaConf needs)
 REGISTRATION_BACKEND = "torchtrack.estimators.backends.RegistrationBackend"
 
 
@@ -354,7 +357,7 @@ class MappingConfig:
     tsdf_voxel_size: float = 0.01  # m
     tsdf_trunc: float = 0.04  # m
     views: bool = True  # map.png: perspective view from the first camera and top-down view
-    view_size: list[int] = field(default_factory=lambda: [480, 640])  # [H, W] of each view
+    view_size: list[int] = field(default_factory=lambda: list(VIEW_SIZE))  # [H, W] of each view
 
     def __post_init__(self) -> None:
         for key in ("voxel_size", "tsdf_voxel_size", "tsdf_trunc", "max_depth"):

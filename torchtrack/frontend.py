@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torchtrack.config import FlowConfig, FrontendConfig
 from torchtrack.data.batching import frame_gray
 from torchtrack.data.frame import FrameBatch
 from torchtrack.geometry import warp_depth
@@ -61,7 +62,12 @@ class FrontEnd:
     """
 
     def __init__(
-        self, *, levels: int = 3, use_sim: bool = True, sim_kwargs: dict | None = None, ahead: bool = True
+        self,
+        *,
+        levels: int = FlowConfig.levels,
+        use_sim: bool = FrontendConfig.use_sim,
+        sim_kwargs: dict | None = FrontendConfig.sim_kwargs,
+        ahead: bool = FrontendConfig.ahead,
     ) -> None:
         self.levels = levels
         self.use_sim = use_sim

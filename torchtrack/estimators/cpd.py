@@ -19,6 +19,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchtrack.config import CPDConfig
 from torchtrack.estimators.base import (
     augment_targets,
     check_mask,
@@ -130,10 +131,10 @@ def cpd_rigid(
     valid_dst: Tensor,
     T_init: Tensor,
     *,
-    w: float = 0.0,
-    max_iters: int = 100,
-    tol: float = 1e-5,
-    scale: bool = False,
+    w: float = CPDConfig.w,
+    max_iters: int = CPDConfig.max_iters,
+    tol: float = CPDConfig.tol,
+    scale: bool = CPDConfig.scale,
 ) -> CPDResult:
     """Rigid CPD of ``src`` (B, N, 3) onto ``dst`` (B, M, 3) starting at ``T_init`` (B, 4, 4): ``dst ≈ s R src + t``.
 
@@ -199,7 +200,13 @@ class CPDEstimator:
     ignored. ``scale`` defaults to False: the tracker is metric. Sequences where CPD is not valid keep ``T_prev``.
     """
 
-    def __init__(self, w: float = 0.0, max_iters: int = 100, tol: float = 1e-5, scale: bool = False) -> None:
+    def __init__(
+        self,
+        w: float = CPDConfig.w,
+        max_iters: int = CPDConfig.max_iters,
+        tol: float = CPDConfig.tol,
+        scale: bool = CPDConfig.scale,
+    ) -> None:
         self.w, self.max_iters, self.tol, self.scale = w, max_iters, tol, scale
 
     def __call__(

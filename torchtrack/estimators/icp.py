@@ -16,6 +16,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchtrack.config import ICPConfig
 from torchtrack.estimators.base import (
     augment_targets,
     check_mask,
@@ -71,9 +72,9 @@ def icp(
     valid_dst: Tensor,
     T_init: Tensor,
     *,
-    max_iters: int = 50,
-    tol: float = 1e-6,
-    max_corr_dist: float | None = None,
+    max_iters: int = ICPConfig.max_iters,
+    tol: float = ICPConfig.tol,
+    max_corr_dist: float | None = ICPConfig.max_corr_dist,
 ) -> ICPResult:
     """Align ``src`` (B, N, 3) onto ``dst`` (B, M, 3), unknown correspondences, starting at ``T_init`` (B, 4, 4).
 
@@ -140,7 +141,12 @@ class ICPEstimator:
     ignored. Sequences where ICP is not valid keep ``T_prev``.
     """
 
-    def __init__(self, max_iters: int = 50, tol: float = 1e-6, max_corr_dist: float | None = None) -> None:
+    def __init__(
+        self,
+        max_iters: int = ICPConfig.max_iters,
+        tol: float = ICPConfig.tol,
+        max_corr_dist: float | None = ICPConfig.max_corr_dist,
+    ) -> None:
         self.max_iters, self.tol, self.max_corr_dist = max_iters, tol, max_corr_dist
 
     def __call__(

@@ -17,6 +17,7 @@ from typing import Literal, NamedTuple
 import torch
 from torch import Tensor
 
+from torchtrack.config import FilterConfig
 from torchtrack.filter import ekf
 from torchtrack.filter.models import (
     STATE_SIZE,
@@ -175,15 +176,15 @@ class FusionEKF:
         self,
         sigma2_pix: float = 1.0,
         sigma2_xyz: float = 1e-4,
-        sigma_ang_acc: float = 3.0,
-        sigma_lin_acc: float = 2.0,
-        init_sigma_angle: float = 1e-3,
-        init_sigma_trans: float = 1e-3,
-        init_sigma_ang_vel: float = 1.0,
-        init_sigma_lin_vel: float = 0.5,
-        iterations: int = 1,
-        form: Literal["information", "gain"] = "information",
-        jacobian: JacobianMode = "analytic",
+        sigma_ang_acc: float = FilterConfig.sigma_ang_acc,
+        sigma_lin_acc: float = FilterConfig.sigma_lin_acc,
+        init_sigma_angle: float = FilterConfig.init_sigma_angle,
+        init_sigma_trans: float = FilterConfig.init_sigma_trans,
+        init_sigma_ang_vel: float = FilterConfig.init_sigma_ang_vel,
+        init_sigma_lin_vel: float = FilterConfig.init_sigma_lin_vel,
+        iterations: int = FilterConfig.iterations,
+        form: Literal["information", "gain"] = FilterConfig.form,
+        jacobian: JacobianMode = FilterConfig.jacobian,
         dtype: torch.dtype = torch.float64,
     ) -> None:
         if form not in ("information", "gain") or jacobian not in ("forward", "reverse", "analytic"):

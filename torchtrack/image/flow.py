@@ -10,6 +10,8 @@ Each frame is prepared once (:func:`prepare_frame`): intensity and SIM are stack
 the two forward passes run as one batched LK call, and so do the two backward passes; the frame's
 pyramid is the next call's template. ``backend="opencv"`` runs ``cv2.calcOpticalFlowPyrLK`` with the
 same parameters on the 8-bit images instead (a reference for comparisons).
+
+Defaults: every keyword's default is :class:`torchtrack.config.FlowConfig`'s (the CLI's), read from it by reference.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchtrack.config import FlowConfig
 from torchtrack.image.lk import lk_track_flat, tim_error
 from torchtrack.image.pyramid import Pyramid, build_pyramid
 
@@ -59,7 +62,9 @@ class FlowFrame:
         return self._u8[(k, b)]
 
 
-def prepare_frame(gray: Tensor, sim: Tensor | None = None, levels: int = 3, *, max_window: int = 31) -> FlowFrame:
+def prepare_frame(
+    gray: Tensor, sim: Tensor | None = None, levels: int = FlowConfig.levels, *, max_window: int = 31
+) -> FlowFrame:
     """Prepare a frame for the combined tracker: build the intensity and SIM pyramids once.
 
     Args:
@@ -184,16 +189,16 @@ def combined_track(
     points: Tensor,
     valid: Tensor | None = None,
     *,
-    mode: Mode = "combined",
-    tim_threshold: float = 1.0,
-    window: int = 21,
-    levels: int = 3,
-    iters: int = 30,
-    eps: float = 0.01,
-    min_eig: float = 1e-4,
-    ic_iters: int = 3,
-    backend: Literal["torch", "opencv"] = "torch",
-    policy: Literal["min_tim", "fallback"] = "min_tim",
+    mode: Mode = FlowConfig.mode,
+    tim_threshold: float = FlowConfig.tim_threshold,
+    window: int = FlowConfig.window,
+    levels: int = FlowConfig.levels,
+    iters: int = FlowConfig.iters,
+    eps: float = FlowConfig.eps,
+    min_eig: float = FlowConfig.min_eig,
+    ic_iters: int = FlowConfig.ic_iters,
+    backend: Literal["torch", "opencv"] = FlowConfig.backend,
+    policy: Literal["min_tim", "fallback"] = FlowConfig.policy,
     with_residual: bool = False,
     init: Tensor | None = None,
 ) -> TrackResult:
@@ -207,7 +212,7 @@ def combined_track(
         window, levels, iters, eps, min_eig, ic_iters: LK parameters (see ``pyramidal_lk``).
         backend: "torch" (batched) or "opencv" (cv2.calcOpticalFlowPyrLK, for comparisons).
         policy: "min_tim" (paper, step III): per feature the tracker with the smaller d_TIM; "fallback"
-            (improvement): the SIM tracker only where the intensity tracker failed step IV. On smooth SIM
+            (improvement, the default): the SIM tracker only where the intensity tracker failed step IV. On smooth SIM
             patches LK barely moves forward or backward, so a SIM track can have a tiny d_TIM and still be
             wrong; min_tim then prefers it over a correct intensity track.
         with_residual: also return the winner's forward LK residual (a cue for learned weighting; the torch back
@@ -273,16 +278,16 @@ class CombinedTracker:
 
     def __init__(
         self,
-        mode: Mode = "combined",
-        tim_threshold: float = 1.0,
-        window: int = 21,
-        levels: int = 3,
-        iters: int = 30,
-        eps: float = 0.01,
-        min_eig: float = 1e-4,
-        ic_iters: int = 3,
-        backend: Literal["torch", "opencv"] = "torch",
-        policy: Literal["min_tim", "fallback"] = "min_tim",
+        mode: Mode = FlowConfig.mode,
+        tim_threshold: float = FlowConfig.tim_threshold,
+        window: int = FlowConfig.window,
+        levels: int = FlowConfig.levels,
+        iters: int = FlowConfig.iters,
+        eps: float = FlowConfig.eps,
+        min_eig: float = FlowConfig.min_eig,
+        ic_iters: int = FlowConfig.ic_iters,
+        backend: Literal["torch", "opencv"] = FlowConfig.backend,
+        policy: Literal["min_tim", "fallback"] = FlowConfig.policy,
     ) -> None:
         if mode not in _CHANNELS or backend not in ("torch", "opencv"):
             raise ValueError(f"CombinedTracker: bad mode {mode!r} or backend {backend!r}")

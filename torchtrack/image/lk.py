@@ -37,6 +37,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchtrack.config import FlowConfig
 from torchtrack.image.pyramid import Pyramid, build_pyramid
 
 _EXACT_F32 = 2**24  # float32 index arithmetic is exact below this
@@ -247,12 +248,12 @@ def lk_track_flat(
     image_index: Tensor,
     init: Tensor,
     *,
-    window: int = 21,
-    levels: int = 3,
-    iters: int = 30,
-    eps: float = 0.01,
-    min_eig: float = 1e-4,
-    ic_iters: int = 3,
+    window: int = FlowConfig.window,
+    levels: int = FlowConfig.levels,
+    iters: int = FlowConfig.iters,
+    eps: float = FlowConfig.eps,
+    min_eig: float = FlowConfig.min_eig,
+    ic_iters: int = FlowConfig.ic_iters,
     with_residual: bool = True,
     chunk: int = _CHUNK,
 ) -> tuple[Tensor, Tensor, Tensor]:
@@ -348,14 +349,14 @@ def pyramidal_lk(
     next: Tensor | Pyramid,
     points: Tensor,
     *,
-    window: int = 21,
-    levels: int = 3,
-    iters: int = 30,
-    eps: float = 0.01,
+    window: int = FlowConfig.window,
+    levels: int = FlowConfig.levels,
+    iters: int = FlowConfig.iters,
+    eps: float = FlowConfig.eps,
     init: Tensor | None = None,
     valid: Tensor | None = None,
-    min_eig: float = 1e-4,
-    ic_iters: int = 3,
+    min_eig: float = FlowConfig.min_eig,
+    ic_iters: int = FlowConfig.ic_iters,
     with_residual: bool = True,
 ) -> LKResult:
     """Track points from prev to next with pyramidal Lucas–Kanade (translation per window).

@@ -24,6 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from torchtrack.config import RegionConfig
 from torchtrack.geometry import backproject_depth, project
 
 
@@ -93,11 +94,11 @@ def keep_largest_component(mask: Tensor) -> Tensor:
 def object_mask(
     depth: Tensor,
     *,
-    near: float | Tensor | None = None,
-    far: float | Tensor | None = None,
-    largest_component: bool = False,
-    whole_frame: bool = False,
-    erode_px: int = 0,
+    near: float | Tensor | None = RegionConfig.near,
+    far: float | Tensor | None = RegionConfig.far,
+    largest_component: bool = RegionConfig.largest_component,
+    whole_frame: bool = RegionConfig.whole_frame,
+    erode_px: int = RegionConfig.erode_px,
     **range_kwargs,
 ) -> Tensor:
     """The object's pixels by depth thresholding: (B, 1, H, W) bool.
@@ -140,11 +141,11 @@ class ObjectRegion:
 
     def __init__(
         self,
-        near: float | None = None,
-        far: float | None = None,
-        largest_component: bool = False,
-        whole_frame: bool = False,
-        erode_px: int = 0,
+        near: float | None = RegionConfig.near,
+        far: float | None = RegionConfig.far,
+        largest_component: bool = RegionConfig.largest_component,
+        whole_frame: bool = RegionConfig.whole_frame,
+        erode_px: int = RegionConfig.erode_px,
         **range_kwargs,
     ) -> None:
         if erode_px < 0:

@@ -16,16 +16,18 @@
    the global top-N by C after non-maximum suppression in a (2 nms_radius + 1)^2 window, N the
    number of patches of the grid (or ``max_features``).
 
-``roi_fraction`` (improvement; None = the paper's fixed grid): when the bounding box of a frame's eligible pixels
-covers less than this fraction of the image inside the border, its square patches shrink (down to ``min_patch``) so
-that the box holds as many patches as that fraction of the image holds at the configured size (0.5 at 640 x 480,
-32 px: ~137). The paper
-splits the *region of interest* into patches; with a fixed image grid a small object (a few % of the image) gets
-only a couple of dozen features, which is what limits the pose there. Larger regions keep the configured size.
+``roi_fraction`` (improvement, default 0.5; None = the paper's fixed grid): when the bounding box of a frame's
+eligible pixels covers less than this fraction of the image inside the border, its square patches shrink (down to
+``min_patch``) so that the box holds as many patches as that fraction of the image holds at the configured size (0.5
+at 640 x 480, 32 px: ~137). The paper splits the *region of interest* into patches; with a fixed image grid a small
+object (a few % of the image) gets only a couple of dozen features, which is what limits the pose there. Larger
+regions keep the configured size.
 
 Only pixels with C > ``min_cornerness`` (default 0.05: a corner of about 5% of the contrast of the
 frame's strong corners) are selected: a textureless patch gives no feature rather than an
 untrackable one.
+
+Defaults: every keyword's default is :class:`torchtrack.config.SelectConfig`'s (the CLI's), read from it by reference.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from torchtrack.config import SelectConfig
 from torchtrack.geometry import backproject, sample_depth
 from torchtrack.image.corners import harris
 from torchtrack.image.shape_index import SIM, ShapeIndex, compute_sim, sim_image
@@ -78,7 +81,9 @@ class CornernessMaps(NamedTuple):
     eligible: Tensor
 
 
-def patch_shape(H: int, W: int, patch_size: int | tuple[int, int] = 32, grid: tuple[int, int] | None = None):
+def patch_shape(
+    H: int, W: int, patch_size: int | tuple[int, int] = SelectConfig.patch_size, grid: tuple[int, int] | None = None
+):
     """(ph, pw, gh, gw): patch rows/cols in pixels and the grid's rows/cols covering (H, W)."""
     if grid is not None:
         gh, gw = grid
@@ -91,7 +96,7 @@ def patch_shape(H: int, W: int, patch_size: int | tuple[int, int] = 32, grid: tu
 
 
 def roi_patch_size(
-    eligible: Tensor, patch_size: int, roi_fraction: float, min_patch: int = 8, border: int = 0
+    eligible: Tensor, patch_size: int, roi_fraction: float, min_patch: int = SelectConfig.min_patch, border: int = 0
 ) -> list[int]:
     """Per frame the square patch size (pixels) for the bounding box of the eligible pixels of ``eligible``
     (B, 1, H, W) bool: ``floor(patch_size * sqrt(box area / (roi_fraction * A)))`` clamped to
@@ -194,7 +199,7 @@ def cornerness_maps(
     lam: float,
     patches: tuple[int, int, int, int],
     border: int,
-    require_sim: bool = False,
+    require_sim: bool = SelectConfig.require_sim,
     corner_kwargs: dict | None = None,
     sim_kwargs: dict | None = None,
 ) -> CornernessMaps:
@@ -226,20 +231,20 @@ def select_features(
     *,
     roi: Tensor | None = None,
     sim: SIM | ShapeIndex | None = None,
-    lam: float = 0.5,
-    patch_size: int | tuple[int, int] = 32,
-    grid: tuple[int, int] | None = None,
-    spread: bool = True,
-    max_features: int | None = None,
-    border: int = 12,
-    nms_radius: int = 2,
-    min_cornerness: float = 0.05,
-    require_sim: bool = False,
+    lam: float = SelectConfig.lam,
+    patch_size: int | tuple[int, int] = SelectConfig.patch_size,
+    grid: tuple[int, int] | None = SelectConfig.grid,
+    spread: bool = SelectConfig.spread,
+    max_features: int | None = SelectConfig.max_features,
+    border: int = SelectConfig.border,
+    nms_radius: int = SelectConfig.nms_radius,
+    min_cornerness: float = SelectConfig.min_cornerness,
+    require_sim: bool = SelectConfig.require_sim,
     corner_kwargs: dict | None = None,
     sim_kwargs: dict | None = None,
     cpu_chunk: int | None = 1,
-    roi_fraction: float | None = None,
-    min_patch: int = 8,
+    roi_fraction: float | None = SelectConfig.roi_fraction,
+    min_patch: int = SelectConfig.min_patch,
 ) -> Features:
     """Spatio-textural feature selection (eq. 9); method and normalisation in the module docstring.
 
@@ -293,7 +298,9 @@ def select_features(
     sizes = None
     if roi_fraction is not None:
         if grid is not None or not isinstance(patch_size, int):
-            raise ValueError("select_features: roi_fraction needs an int patch_size and no grid")
+            raise ValueError(
+                "select_features: roi_fraction needs an int patch_size and no grid (roi_fraction=None: the fixed grid)"
+            )
         if not 0.0 < roi_fraction <= 1.0 or min_patch < 1:
             raise ValueError(
                 f"select_features: need 0 < roi_fraction <= 1 and min_patch >= 1, got {roi_fraction}, {min_patch}"
@@ -372,20 +379,20 @@ class FeatureSelector:
 
     def __init__(
         self,
-        lam: float = 0.5,
-        patch_size: int | tuple[int, int] = 32,
-        grid: tuple[int, int] | None = None,
-        spread: bool = True,
-        max_features: int | None = None,
-        border: int = 12,
-        nms_radius: int = 2,
-        min_cornerness: float = 0.05,
-        require_sim: bool = False,
+        lam: float = SelectConfig.lam,
+        patch_size: int | tuple[int, int] = SelectConfig.patch_size,
+        grid: tuple[int, int] | None = SelectConfig.grid,
+        spread: bool = SelectConfig.spread,
+        max_features: int | None = SelectConfig.max_features,
+        border: int = SelectConfig.border,
+        nms_radius: int = SelectConfig.nms_radius,
+        min_cornerness: float = SelectConfig.min_cornerness,
+        require_sim: bool = SelectConfig.require_sim,
         corner_kwargs: dict | None = None,
         sim_kwargs: dict | None = None,
         cpu_chunk: int | None = 1,
-        roi_fraction: float | None = None,
-        min_patch: int = 8,
+        roi_fraction: float | None = SelectConfig.roi_fraction,
+        min_patch: int = SelectConfig.min_patch,
     ) -> None:
         if not 0.0 <= lam <= 1.0:
             raise ValueError(f"FeatureSelector: lam must be in [0, 1], got {lam}")
