@@ -214,7 +214,7 @@ def test_gate_keeps_what_the_chi_square_test_keeps():
     var_xyz, var_pix = variances(1, *obs.valid.shape)
     var = Variances(var_pix[0], var_xyz[0])
     ekf = FusionEKF(jacobian="analytic")
-    out = ekf_frame(ekf, ekf.initial_state(true_pose(0.0)), obs, var, gate=0.999)
+    out = ekf_frame(ekf, ekf.initial_state(true_pose(0.0)), obs, var, gate=0.999, refit=None)
     T_prior = state_to_pose(out.prior.mean)
     points_d, pixels = measurements(T_prior, obs.points_obj, obs.K, obs.T_color_depth)
     h = torch.cat([points_d, pixels], -1)
@@ -255,7 +255,7 @@ def test_gate_threshold_is_the_chi_square_quantile():
     offset = sign * torch.cat([(r3 * q3 / 3)[:, None].expand(-1, 3), (r2 * q2 / 2)[:, None].expand(-1, 2)], -1)
     offset = (offset.abs() * s).sqrt() * offset.sign()  # each component's share of the normalised square sum
     obs = dataclasses.replace(obs, points_d=points_d + offset[..., :3], pixels=pixels + offset[..., 3:])
-    out = ekf_frame(ekf, start, obs, var, gate=0.999)
+    out = ekf_frame(ekf, start, obs, var, gate=0.999, refit=None)
     keep_xyz, keep_pix = r3 < 1, (r2 < 1) | (r3 < 1)  # a pixel is dropped only together with its 3D point
     assert torch.equal(out.used_xyz, obs.valid & keep_xyz) and torch.equal(out.used_pix, obs.valid & keep_pix)
 
@@ -271,13 +271,13 @@ def test_refit_drops_what_fails_the_chi_square_test_at_the_updated_pose():
     var = Variances(var_pix[0], var_xyz[0])
     ekf = FusionEKF(jacobian="analytic")
     start = ekf.initial_state(true_pose(0.0))
-    first = ekf_frame(ekf, start, obs, var)  # neither gate nor refit: every valid measurement
+    first = ekf_frame(ekf, start, obs, var, gate=None, refit=None)  # neither gate nor refit: every valid measurement
     assert torch.equal(first.used_xyz, obs.valid) and torch.equal(first.used_pix, obs.valid)
     points_d, pixels = measurements(first.T_cam_obj, obs.points_obj, obs.K, obs.T_color_depth)
     var5 = torch.cat([var_xyz[0][..., None].expand(-1, -1, 3), var_pix[0][..., None].expand(-1, -1, 2)], -1)
     z, h_post = torch.cat([obs.points_d, obs.pixels], -1), torch.cat([points_d, pixels], -1)
     ok_xyz, ok_pix = chi2_gate(z, h_post, var5, obs.valid, 0.999)
-    out = ekf_frame(ekf, start, obs, var, refit=0.999)
+    out = ekf_frame(ekf, start, obs, var, gate=None, refit=0.999)
     assert torch.equal(out.used_xyz, obs.valid & ok_xyz) and torch.equal(out.used_pix, obs.valid & ok_pix)
     expected_xyz = obs.valid.clone()
     expected_xyz[:, 0] = False

@@ -116,10 +116,7 @@ PARTNERS = {
     CPDConfig: ("torchtrack.estimators.cpd.cpd_rigid",),
     EKFBackendConfig: ("torchtrack.estimators.backends.ekf_frame",),
 }
-# Known disagreements, in files of another branch: torchtrack/estimators/backends.py's EKFBackend and ekf_frame still
-# default gate and refit to None (the paper's); the CLI's are 0.999. Fix: ``gate: float | None = EKFBackendConfig.gate``
-# and the same for refit, then empty this.
-KNOWN = {("EKFBackend", "gate"), ("EKFBackend", "refit"), ("ekf_frame", "gate"), ("ekf_frame", "refit")}
+KNOWN: set[tuple[str, str]] = set()  # known disagreements between a signature and its schema: none
 # Not the schema's knob under the same name: ekf_frame takes the NoiseScale object itself (None: off, as false).
 OTHER_MEANING = {("ekf_frame", "noise_scale")}
 
@@ -289,7 +286,6 @@ def test_filter_direct_equals_cli(cli):
     assert _state(FusionEKF()) == _state(cli.backend.ekf)
 
 
-@pytest.mark.xfail(strict=True, reason="backends.py (another branch) defaults gate/refit to None; see KNOWN above")
 def test_ekf_backend_direct_equals_cli(cli):
     assert _state(EKFBackend(FusionEKF())) == _state(cli.backend)
 

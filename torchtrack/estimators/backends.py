@@ -14,6 +14,7 @@ from typing import NamedTuple, Protocol
 import torch
 from torch import Tensor
 
+from torchtrack.config import EKFBackendConfig
 from torchtrack.filter.ekf import chi2_quantile, cholesky_jittered, symmetrize
 from torchtrack.filter.fusion import FilterState, FusionEKF
 from torchtrack.filter.models import measure, state_to_pose
@@ -109,8 +110,8 @@ def ekf_frame(
     obs: Observation,
     var: Variances,
     *,
-    gate: float | None = None,
-    refit: float | None = None,
+    gate: float | None = EKFBackendConfig.gate,
+    refit: float | None = EKFBackendConfig.refit,
     with_nll: bool = False,
     noise_scale: NoiseScale | None = None,
     scale_state: ScaleState | None = None,
@@ -254,8 +255,8 @@ class EKFBackend:
     def __init__(
         self,
         ekf: FusionEKF,
-        gate: float | None = None,
-        refit: float | None = None,
+        gate: float | None = EKFBackendConfig.gate,
+        refit: float | None = EKFBackendConfig.refit,
         noise_scale: bool = False,
         noise_forgetting: float = 0.98,
         noise_scale_min: float = 0.01,
