@@ -80,10 +80,10 @@ def _get(cfg, dotted: str):
 
 
 # -- torchtrack-record --help and torchtrack-train --help: each tool's own keys, defaults as composed, examples that
-# compose (torchtrack/learn/record.py and train_app.py print them; Hydra's template would print the tracker's help).
+# compose (torchtrack/learn/record_app.py and train_app.py print them; Hydra's template would print the tracker's help).
 
 TOOLS = {  # tool: (module, config name)
-    "torchtrack-record": ("torchtrack.learn.record", "record"),
+    "torchtrack-record": ("torchtrack.learn.record_app", "record"),
     "torchtrack-train": ("torchtrack.learn.train_app", "learn"),
 }
 PLACEHOLDER = re.compile(r"[A-Z][A-Z_]*")  # DIR, NAME: no default to compare

@@ -369,7 +369,7 @@ def test_synthetic_set_definition():
 
 def cli(args: list[str], env_cache: Path) -> subprocess.CompletedProcess:
     script = Path(sys.executable).with_name("torchtrack-record")
-    cmd = [str(script)] if script.is_file() else [sys.executable, "-m", "torchtrack.learn.record"]
+    cmd = [str(script)] if script.is_file() else [sys.executable, "-m", "torchtrack.learn.record_app"]
     env = {**os.environ, "TORCHTRACK_CACHE": str(env_cache)}
     return subprocess.run(cmd + args, capture_output=True, text=True, env=env, timeout=300)
 

@@ -65,7 +65,7 @@ def recorded(tmp_path_factory) -> Path:
         synth(["--out", str(folder), "--frames", "12", "--width", "160", "--height", "120", "--seed", str(seed)])
         (folder / "groundtruth.txt").unlink()  # the user's own footage: no ground truth
         folders.append(str(folder))
-    run(script("torchtrack-record", "torchtrack.learn.record") + [
+    run(script("torchtrack-record", "torchtrack.learn.record_app") + [
         "data=tum", f"data.root=[{','.join(folders)}]", f"out={root / 'obs'}", "threads=1",
     ], root)  # fmt: skip
     return root / "obs"

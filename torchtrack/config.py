@@ -455,4 +455,17 @@ def exit_on_bad_overrides(prog: str, config_name: str) -> None:
         sys.exit(2)
 
 
+def console_main(prog: str, config_name: str, help_text: str, app) -> None:
+    """A console script's entry: its own ``help_text`` for ``--help``/``-h`` (the tool's keys, not the tracker's help
+    of conf/config.yaml), one line and exit code 2 for overrides that do not compose, else the Hydra ``app``."""
+    if any(a in ("--help", "-h") for a in sys.argv[1:]):
+        print(help_text, end="")
+        return
+    import logging
+
+    logging.getLogger("PIL").setLevel(logging.WARNING)
+    exit_on_bad_overrides(prog, config_name)
+    app()
+
+
 register()

@@ -21,7 +21,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from torchtrack.config import CONF_DIR, exit_on_bad_overrides, load_option
+from torchtrack.config import CONF_DIR, console_main, load_option
 from torchtrack.data.errors import DataError
 from torchtrack.io import write_atomic
 from torchtrack.learn.cache import SequenceObservations, load_observations
@@ -192,12 +192,7 @@ Print the composed configuration: torchtrack-train --cfg job [overrides]. Hydra'
 
 
 def main() -> None:
-    if any(a in ("--help", "-h") for a in sys.argv[1:]):  # this tool's keys, not the tracker's help (conf/config.yaml)
-        print(HELP, end="")
-        return
-    logging.getLogger("PIL").setLevel(logging.WARNING)
-    exit_on_bad_overrides("torchtrack-train", "learn")  # a bad value: one line, exit code 2
-    app()
+    console_main("torchtrack-train", "learn", HELP, app)
 
 
 if __name__ == "__main__":
