@@ -68,13 +68,13 @@ def load_sequences(data: DictConfig) -> Sequences:
         intrinsics_depth=None if data.depth_intrinsics is None else tuple(data.depth_intrinsics),
         T_color_depth=None if data.T_color_depth is None else OmegaConf.to_container(data.T_color_depth),
     )  # fmt: skip
-    if len(roots) == 1:
-        return Sequences([TumSequence(Path(roots[0]).expanduser(), **opts, **extra)], [])
     loaded, failed = [], []
     for r in roots:
         try:
             loaded.append(TumSequence(Path(r).expanduser(), **opts, **extra))
         except DataError as e:
+            if len(roots) == 1:
+                raise
             failed.append(LoadFailure(Path(r).expanduser().resolve().name, str(e)))
     return Sequences(loaded, failed)
 

@@ -257,11 +257,11 @@ class EKFBackend:
         ekf: FusionEKF,
         gate: float | None = EKFBackendConfig.gate,
         refit: float | None = EKFBackendConfig.refit,
-        noise_scale: bool = False,
-        noise_forgetting: float = 0.98,
-        noise_scale_min: float = 0.01,
-        noise_scale_max: float = 100.0,
-        noise_clip: float | None = 0.9,
+        noise_scale: bool = EKFBackendConfig.noise_scale,
+        noise_forgetting: float = EKFBackendConfig.noise_forgetting,
+        noise_scale_min: float = EKFBackendConfig.noise_scale_min,
+        noise_scale_max: float = EKFBackendConfig.noise_scale_max,
+        noise_clip: float | None = EKFBackendConfig.noise_clip,
     ) -> None:
         for name, p in (("gate", gate), ("refit", refit)):
             if p is not None and not 0.0 < p < 1.0:

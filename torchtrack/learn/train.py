@@ -104,8 +104,8 @@ def sequence_windows(
         return None
     s = torch.tensor(starts, device=seq.valid.device)
     rows = s[None, :] + torch.arange(1, window + 1, device=s.device)[:, None]  # T,B: the updates of each window
-    unlabelled_start = torch.where(seq.T_cam_obj_gt_valid[s][:, None, None], seq.T_cam_obj_gt[s], seq.T_cam_obj_est[s])
-    start_pose = torch.where(seq.reselected[s][:, None, None], seq.model_T_cam_obj[s], unlabelled_start)
+    gt_or_est = torch.where(seq.T_cam_obj_gt_valid[s][:, None, None], seq.T_cam_obj_gt[s], seq.T_cam_obj_est[s])
+    start_pose = torch.where(seq.reselected[s][:, None, None], seq.model_T_cam_obj[s], gt_or_est)
     B = len(starts)
     win = Windows(
         start_T_cam_obj=start_pose,
