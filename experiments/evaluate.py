@@ -1,7 +1,7 @@
 """Evaluate torchtrack against the strongest peers on every sequence and its perturbed variants (issue 12).
 
 For every sequence folder (TUM layout) this runs torchtrack's default tracker exactly as the CLI composes
-it (``torchtrack/conf`` through Hydra, in-process) and the peers of :mod:`peers` (Open3D legacy RGB-D odometry,
+it (``conf/`` through Hydra, in-process) and the peers of :mod:`peers` (Open3D legacy RGB-D odometry,
 hybrid and colour terms; Open3D tensor odometry, hybrid and point-to-plane; Open3D tensor frame-to-model
 tracking against a TSDF raycast; OpenCV 5 ``cv2.Odometry``), scores all with
 :func:`torchtrack.metrics.trajectory_metrics` (evo's ATE/RPE) and prints per sequence each peer's ATE/RPE/ms, the

@@ -27,7 +27,10 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchtrack.data.errors import DataError
 
-CONF_DIR = Path(__file__).resolve().parent / "conf"  # inside the package, so a wheel install finds it
+# The Hydra configs: the top-level conf/ of a checkout (also an editable install's); a built wheel carries that folder
+# inside the package as torchtrack/conf (setup.py), which a checkout never has.
+_PACKAGED_CONF = Path(__file__).resolve().parent / "conf"
+CONF_DIR = _PACKAGED_CONF if _PACKAGED_CONF.is_dir() else Path(__file__).resolve().parents[1] / "conf"
 EKF_BACKEND = "torchtrack.estimators.backends.EKFBackend"
 VIEW_SIZE = (480, 640)  # the map views' [H, W] (MappingConfig.view_size; a list there, as OmegaConf needs)
 REGISTRATION_BACKEND = "torchtrack.estimators.backends.RegistrationBackend"
