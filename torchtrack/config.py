@@ -162,6 +162,7 @@ class FlowConfig:
     min_eig: float = 1.0e-4  # minimum eigenvalue of the 2x2 gradient matrix (normalised, as OpenCV)
     ic_iters: int = 3  # inverse-compositional iterations before Newton steps
     backend: str = "torch"  # torch | opencv (cv2.calcOpticalFlowPyrLK, reference)
+    lk_backend: str = "auto"  # auto | cpp | torch: torch LK as the compiled operator (auto: where it builds) or pure torch
     policy: str = "fallback"  # improvement (paper: min_tim): the SIM tracker only where the intensity tracker failed
 
 
