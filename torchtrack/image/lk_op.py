@@ -86,9 +86,24 @@ def _register_fake() -> None:
 
 
 def lk_track(
-    prev_flat: Tensor, next_flat: Tensor, base_prev: Tensor, base_next: Tensor, sizes: Tensor, points: Tensor,
-    image_index: Tensor, init: Tensor, *, stride: int, plane: int, pad: int, window: int, iters: int,
-    ic_iters: int, eps: float, min_eig: float, with_residual: bool,
+    prev_flat: Tensor,
+    next_flat: Tensor,
+    base_prev: Tensor,
+    base_next: Tensor,
+    sizes: Tensor,
+    points: Tensor,
+    image_index: Tensor,
+    init: Tensor,
+    *,
+    stride: int,
+    plane: int,
+    pad: int,
+    window: int,
+    iters: int,
+    ic_iters: int,
+    eps: float,
+    min_eig: float,
+    with_residual: bool,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """``torch.ops.torchtrack.lk_track``: pyramidal LK of P points, each in its own image of the pyramids' batch.
 

@@ -25,6 +25,13 @@
 
 namespace {
 
+// AVX2 + FMA and baseline builds of the hot functions, picked at load time (the cached library runs on any x86-64).
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#define CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))
+#else
+#define CLONES
+#endif
+
 constexpr float kGradScale = 13.0f / 32.0f;  // lk.py _GRAD_SCALE: the gradients below are Scharr / this
 
 // torch.lerp's formula (ATen/native/Lerp.h), one weight for a whole row: base + coeff * (b - a).
@@ -47,7 +54,7 @@ struct Geometry {
 
 // Bilinear (C, m, m) window centred at q (level px), m = window + 2 extra: lk.py _Sampler.bilinear (no clamping; the
 // caller keeps q inside the padded image). rows: scratch of (m + 1) floats.
-void bilinear(const Geometry& g, const float* flat, int64_t base, float qx, float qy, int m, float* out, float* rows) {
+CLONES void bilinear(const Geometry& g, const float* flat, int64_t base, float qx, float qy, int m, float* out, float* rows) {
   const float flx = std::floor(qx), fly = std::floor(qy);
   const Lerp ly(qy - fly), lx(qx - flx);
   const int h = m / 2;
@@ -63,7 +70,7 @@ void bilinear(const Geometry& g, const float* flat, int64_t base, float qx, floa
   }
 }
 
-// Template of one point at one level: lk.py _template. gx, gy: (C * w * w) unscaled Scharr gradients.
+// Template of one point at one level: lk.py _template. gx, gy: (C, w, w + 1) unscaled Scharr gradients, column w 0.
 struct Template {
   float tg0, tg1;                   // g . T
   float hi00, hi01, hi10, hi11;     // H^-1 / _GRAD_SCALE
@@ -71,7 +78,7 @@ struct Template {
   bool degenerate;
 };
 
-Template make_template(const Geometry& g, int64_t base, float x, float y, float min_eig, float* gx, float* gy,
+CLONES Template make_template(const Geometry& g, int64_t base, float x, float y, float min_eig, float* gx, float* gy,
                        float* scratch) {
   const int w = g.window, m = w + 2;
   float* patch = scratch;  // (C, m, m)
@@ -85,8 +92,9 @@ Template make_template(const Geometry& g, int64_t base, float x, float y, float 
       const float* r0 = p + i * m;
       const float* r1 = r0 + m;
       const float* r2 = r1 + m;
-      float* ox = gx + (c * w + i) * w;
-      float* oy = gy + (c * w + i) * w;
+      float* ox = gx + (c * w + i) * (w + 1);
+      float* oy = gy + (c * w + i) * (w + 1);
+      ox[w] = oy[w] = 0.0f;
 #pragma omp simd reduction(+ : a00, a01, a11, t0, t1)
       for (int j = 0; j < w; ++j) {
         const float dx0 = r0[j + 2] - r0[j], dx1 = r1[j + 2] - r1[j], dx2 = r2[j + 2] - r2[j];
@@ -124,21 +132,22 @@ struct Settings {
 };
 
 // LK iterations at one level from q (level px): lk.py _iterate for one point. Returns converged.
-bool iterate(const Geometry& g, int level, int64_t base, const Template& t, const float* gx, const float* gy,
-             const Settings& s, float& qx, float& qy, float* scratch) {
-  const int w = g.window, r = w / 2;
+// The sums run over flat rows of w + 1 values (gx, gy have a zero column w), so that they vectorise as one loop.
+CLONES bool iterate(const Geometry& g, int level, int64_t base, const Template& t, const float* gx, const float* gy,
+                    const Settings& s, float& qx, float& qy, float* scratch) {
+  const int w = g.window, r = w / 2, n1 = w + 1, len = w * n1;
   const float lo = static_cast<float>(r + 1 - g.pad);
   const float hix = static_cast<float>(g.sizes[2 * level + 1] + g.pad - r - 3);
   const float hiy = static_cast<float>(g.sizes[2 * level] + g.pad - r - 3);
-  float* jy = scratch;           // (w + 1): one row of the y-interpolated patch
-  float* dpy = scratch + w + 1;  // (w + 1): one row of the patch's y differences
+  float* jy = scratch;           // (w, w + 1) + 1: the y-interpolated patch (lk.py _iterate's jy)
+  float* dpy = jy + len + 1;     // (w, w + 1) + 1: the patch's y differences (lk.py _newton's dpy)
+  jy[len] = dpy[len] = 0.0f;
   float d2_prev = 0.0f;
   for (int j = 0; j < s.iters; ++j) {
     if (!(std::isfinite(qx) && std::isfinite(qy))) return false;
     const float fl0x = std::floor(qx), fl0y = std::floor(qy);
     const float flx = std::min(std::max(fl0x, lo), hix), fly = std::min(std::max(fl0y, lo), hiy);
-    const float fx = qx - flx, fy = qy - fly;
-    const Lerp ly(fy), lx(fx);
+    const Lerp ly(qy - fly), lx(qx - flx);
     const bool newton = j >= s.ic_iters;
     const int64_t start = base + (static_cast<int64_t>(fly) - r) * g.stride + static_cast<int64_t>(flx) - r;
     float s0 = 0, s1 = 0, m00 = 0, m01 = 0, m10 = 0, m11 = 0;
@@ -147,29 +156,33 @@ bool iterate(const Geometry& g, int level, int64_t base, const Template& t, cons
       for (int i = 0; i < w; ++i) {
         const float* r0 = p + i * g.stride;
         const float* r1 = r0 + g.stride;
-        const float* ax = gx + (c * w + i) * w;
-        const float* ay = gy + (c * w + i) * w;
-        for (int k = 0; k <= w; ++k) jy[k] = ly(r0[k], r1[k]);
-        if (!newton) {
+        float* o = jy + i * n1;
+        for (int k = 0; k < n1; ++k) o[k] = ly(r0[k], r1[k]);
+        if (newton) {
+          float* d = dpy + i * n1;
+          for (int k = 0; k < n1; ++k) d[k] = r1[k] - r0[k];
+        }
+      }
+      const float* ax = gx + c * len;
+      const float* ay = gy + c * len;
+      if (!newton) {
 #pragma omp simd reduction(+ : s0, s1)
-          for (int k = 0; k < w; ++k) {
-            const float v = lx(jy[k], jy[k + 1]);
-            s0 += v * ax[k];
-            s1 += v * ay[k];
-          }
-        } else {  // lk.py _newton: d/dx from jy, d/dy from the raw patch, interpolated in x
-          for (int k = 0; k <= w; ++k) dpy[k] = r1[k] - r0[k];
+        for (int k = 0; k < len; ++k) {
+          const float v = lx(jy[k], jy[k + 1]);
+          s0 += v * ax[k];
+          s1 += v * ay[k];
+        }
+      } else {  // lk.py _newton: d/dx from jy, d/dy from the raw patch, interpolated in x
 #pragma omp simd reduction(+ : s0, s1, m00, m01, m10, m11)
-          for (int k = 0; k < w; ++k) {
-            const float v = lx(jy[k], jy[k + 1]);
-            const float djx = jy[k + 1] - jy[k], djy = lx(dpy[k], dpy[k + 1]);
-            s0 += v * ax[k];
-            s1 += v * ay[k];
-            m00 += djx * ax[k];
-            m01 += djx * ay[k];
-            m10 += djy * ax[k];
-            m11 += djy * ay[k];
-          }
+        for (int k = 0; k < len; ++k) {
+          const float v = lx(jy[k], jy[k + 1]);
+          const float djx = jy[k + 1] - jy[k], djy = lx(dpy[k], dpy[k + 1]);
+          s0 += v * ax[k];
+          s1 += v * ay[k];
+          m00 += djx * ax[k];
+          m01 += djx * ay[k];
+          m10 += djy * ax[k];
+          m11 += djy * ay[k];
         }
       }
     }
@@ -239,11 +252,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> lk_track_cpu(
   float* po = out.data_ptr<float>();
   bool* so = status.data_ptr<bool>();
   float* ro = residual.data_ptr<float>();
-  const int64_t k = g.channels * window * window, h0 = g.sizes[0], w0 = g.sizes[1];
+  const int64_t k = g.channels * window * (window + 1), h0 = g.sizes[0], w0 = g.sizes[1];
   const int64_t m = window + 2;
 
   at::parallel_for(0, n, 16, [&](int64_t begin, int64_t end) {
-    std::vector<float> grads(2 * levels * k), scratch(g.channels * m * m + m + 1);
+    std::vector<float> grads(2 * levels * k), scratch(std::max(g.channels * m * m + m + 1, 2 * k + 2));
     std::vector<Template> tpl(levels);
     for (int64_t p = begin; p < end; ++p) {
       const float px = x0[2 * p], py = x0[2 * p + 1];
@@ -279,9 +292,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> lk_track_cpu(
         float* j = grads.data() + k;
         bilinear(g, g.prev, g.base_prev[img[p]], px, py, static_cast<int>(window), t, scratch.data());
         bilinear(g, g.next, g.base_next[img[p]], ux, uy, static_cast<int>(window), j, scratch.data());
+        const int64_t kw = g.channels * window * window;
         double sum = 0.0;
-        for (int64_t i = 0; i < k; ++i) sum += std::abs(j[i] - t[i]);
-        ro[p] = static_cast<float>(sum / static_cast<double>(k));
+        for (int64_t i = 0; i < kw; ++i) sum += std::abs(j[i] - t[i]);
+        ro[p] = static_cast<float>(sum / static_cast<double>(kw));
       }
     }
   });
