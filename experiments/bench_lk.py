@@ -166,7 +166,9 @@ def main() -> None:
           f"{cv2.__version__}, {a.threads} thread(s), window {a.window}, levels {a.levels}, 30 iters, eps 0.01, "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")  # fmt: skip
     data = load_pairs(a.seq, 8, a.features)
-    tracker = CombinedTracker(window=a.window, levels=a.levels, lk_backend=a.lk_backend)
+    # policy min_tim: all four passes on every point, as the OpenCV side (the default fallback policy runs the SIM
+    # passes only where the intensity tracker failed)
+    tracker = CombinedTracker(window=a.window, levels=a.levels, lk_backend=a.lk_backend, policy="min_tim")
     args = dict(
         winSize=(a.window, a.window), maxLevel=a.levels - 1, minEigThreshold=1e-4,
         criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),

@@ -34,12 +34,12 @@ namespace {
 
 constexpr float kGradScale = 13.0f / 32.0f;  // lk.py _GRAD_SCALE: the gradients below are Scharr / this
 
-// torch.lerp's formula (ATen/native/Lerp.h), one weight for a whole row: base + coeff * (b - a).
+// torch.lerp's formula (ATen/native/Lerp.h), one weight for a whole row: base + coeff * (b - a), base = a when
+// |w| < 0.5, else b. Loops take the base as a pointer offset (off = 0 or 1), which keeps them free of branches.
 struct Lerp {
-  bool small;
+  int off;
   float coeff;
-  explicit Lerp(float w) : small(std::abs(w) < 0.5f), coeff(small ? w : w - 1.0f) {}
-  inline float operator()(float a, float b) const { return (small ? a : b) + coeff * (b - a); }
+  explicit Lerp(float w) : off(std::abs(w) < 0.5f ? 0 : 1), coeff(off ? w - 1.0f : w) {}
 };
 
 struct Geometry {
@@ -64,8 +64,10 @@ CLONES void bilinear(const Geometry& g, const float* flat, int64_t base, float q
     for (int i = 0; i < m; ++i, out += m) {
       const float* r0 = p + i * g.stride;
       const float* r1 = r0 + g.stride;
-      for (int j = 0; j <= m; ++j) rows[j] = ly(r0[j], r1[j]);
-      for (int j = 0; j < m; ++j) out[j] = lx(rows[j], rows[j + 1]);
+      const float* rb = ly.off ? r1 : r0;
+      for (int j = 0; j <= m; ++j) rows[j] = rb[j] + ly.coeff * (r1[j] - r0[j]);
+      const float* xb = rows + lx.off;
+      for (int j = 0; j < m; ++j) out[j] = xb[j] + lx.coeff * (rows[j + 1] - rows[j]);
     }
   }
 }
@@ -84,7 +86,7 @@ CLONES Template make_template(const Geometry& g, int64_t base, float x, float y,
   float* patch = scratch;  // (C, m, m)
   float* rows = scratch + g.channels * m * m;
   bilinear(g, g.prev, base, x, y, m, patch, rows);
-  const Lerp l3(3.0f / 13.0f);
+  const float w3 = 3.0f / 13.0f;  // lk.py _gradients: lerp(centre, sum of the outer rows, 3/13)
   float a00 = 0, a01 = 0, a11 = 0, t0 = 0, t1 = 0;
   for (int64_t c = 0; c < g.channels; ++c) {
     const float* p = patch + c * m * m;
@@ -99,7 +101,7 @@ CLONES Template make_template(const Geometry& g, int64_t base, float x, float y,
       for (int j = 0; j < w; ++j) {
         const float dx0 = r0[j + 2] - r0[j], dx1 = r1[j + 2] - r1[j], dx2 = r2[j + 2] - r2[j];
         const float dy0 = r2[j] - r0[j], dy1 = r2[j + 1] - r0[j + 1], dy2 = r2[j + 2] - r0[j + 2];
-        const float vx = l3(dx1, dx0 + dx2), vy = l3(dy1, dy0 + dy2), t = r1[j + 1];
+        const float vx = dx1 + w3 * (dx0 + dx2 - dx1), vy = dy1 + w3 * (dy0 + dy2 - dy1), t = r1[j + 1];
         ox[j] = vx;
         oy[j] = vy;
         a00 += vx * vx;
@@ -157,7 +159,8 @@ CLONES bool iterate(const Geometry& g, int level, int64_t base, const Template& 
         const float* r0 = p + i * g.stride;
         const float* r1 = r0 + g.stride;
         float* o = jy + i * n1;
-        for (int k = 0; k < n1; ++k) o[k] = ly(r0[k], r1[k]);
+        const float* rb = ly.off ? r1 : r0;
+        for (int k = 0; k < n1; ++k) o[k] = rb[k] + ly.coeff * (r1[k] - r0[k]);
         if (newton) {
           float* d = dpy + i * n1;
           for (int k = 0; k < n1; ++k) d[k] = r1[k] - r0[k];
@@ -165,18 +168,21 @@ CLONES bool iterate(const Geometry& g, int level, int64_t base, const Template& 
       }
       const float* ax = gx + c * len;
       const float* ay = gy + c * len;
+      const float* jb = jy + lx.off;
+      const float* db = dpy + lx.off;
+      const float cx = lx.coeff;
       if (!newton) {
 #pragma omp simd reduction(+ : s0, s1)
         for (int k = 0; k < len; ++k) {
-          const float v = lx(jy[k], jy[k + 1]);
+          const float v = jb[k] + cx * (jy[k + 1] - jy[k]);
           s0 += v * ax[k];
           s1 += v * ay[k];
         }
       } else {  // lk.py _newton: d/dx from jy, d/dy from the raw patch, interpolated in x
 #pragma omp simd reduction(+ : s0, s1, m00, m01, m10, m11)
         for (int k = 0; k < len; ++k) {
-          const float v = lx(jy[k], jy[k + 1]);
-          const float djx = jy[k + 1] - jy[k], djy = lx(dpy[k], dpy[k + 1]);
+          const float djx = jy[k + 1] - jy[k];
+          const float v = jb[k] + cx * djx, djy = db[k] + cx * (dpy[k + 1] - dpy[k]);
           s0 += v * ax[k];
           s1 += v * ay[k];
           m00 += djx * ax[k];
