@@ -44,12 +44,14 @@ TRAJ = 1e-5
 # The compiled LK operator (torchtrack/image/csrc/lk.cpp) vs the pure-torch reference (issue 25): the same arithmetic
 # in float32, but the window sums run in another order (8-wide FMA lanes vs torch's bmm), so a step differs by
 # rounding and a track by ~LK_PX. Measured on 49,512 points of 5 real sequences (pairs 2 frames apart, 300 corners and
-# 200 random points each, forward and backward; 39,839 tracked by both): median 0, 99 % within 2e-4 px, 99.9 % within
-# 9.5e-4 px -> LK_OP_PX = 1e-3. Beyond it: a stop decision (update <= eps = 0.01 px; a Newton step not halved) that
-# flips on that rounding ends a track one update away (~eps), and on repetitive texture a flip at a coarse level can
-# end in another minimum (once: 49 px on visp_castle_simu). Such points, and status flips (9 of 49,512), are counted:
-# measured 9.3e-4 of the points beyond LK_OP_PX (most among the random points in weak texture), so LK_OP_OUTLIERS =
-# 5e-3 of the points may differ in status or beyond LK_OP_PX. A broken rule or a wrong window moves most points.
+# 200 random points each, forward and backward; 39,744 tracked by both): median 0, 99 % within 1.2e-4 px, 99.9 % within
+# 6.7e-4 px: hence LK_OP_PX. Beyond it: a stop decision (update <= eps = 0.01 px; a Newton step not halved) that
+# flips on that rounding ends a track one update away (~eps; measured max 0.011 px), and on repetitive texture a flip
+# at a coarse level can end in another minimum (an earlier build of the op, other roundings: once 49 px on
+# visp_castle_simu). Such points and status flips are counted: 27 of 49,512 (6 status flips, 21 beyond LK_OP_PX;
+# 9.3e-4 with the earlier build), so LK_OP_OUTLIERS = 5e-3 of the points may differ in status or beyond LK_OP_PX.
+# A broken rule or a wrong window moves many points (a Newton rule of 1.0 instead of 0.25: 8 of 400 on real frames;
+# gradients' 3/16 for 3/13: 288 of 400).
 LK_OP_PX = 1e-3
 LK_OP_OUTLIERS = 5e-3
 # d_TIM of the op vs the reference: a forward and a backward track, each within LK_OP_PX per coordinate.

@@ -39,13 +39,22 @@ def build_key() -> str:
 
 
 def _build() -> float:
-    """Build (or load the cached build of) the operator; returns the seconds it took."""
-    from torch.utils.cpp_extension import load
-
+    """Build (or load the cached build of) the operator; returns the seconds it took. A finished build (the library
+    there and no build holding the lock) loads directly: torch's loader would import cpp_extension and run the
+    compiler's and ninja's checks first (~0.5-1 s of start-up)."""
     key = build_key()
     folder = cache_dir() / "ext" / f"lk_{key}"
-    folder.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
+    library = folder / f"torchtrack_lk_{key}.so"
+    if library.is_file() and not (folder / "lock").exists():
+        try:
+            torch.ops.load_library(str(library))
+            return time.perf_counter() - t0
+        except OSError:  # unreadable: build it again below
+            pass
+    from torch.utils.cpp_extension import load
+
+    folder.mkdir(parents=True, exist_ok=True)
     load(name=f"torchtrack_lk_{key}", sources=[str(SOURCE)], extra_cflags=CFLAGS, build_directory=str(folder),
          is_python_module=False, verbose=False)  # fmt: skip
     return time.perf_counter() - t0
