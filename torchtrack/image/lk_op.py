@@ -1,5 +1,7 @@
-"""The compiled LK operator ``torch.ops.torchtrack.lk_track`` (csrc/lk.cpp): built on first use, cached, with a fake
-kernel; :mod:`torchtrack.image.lk` falls back to its pure-torch reference where it cannot be built.
+"""The compiled operators ``torch.ops.torchtrack.lk_track`` (csrc/lk.cpp, the LK inner loop) and
+``torch.ops.torchtrack.shape_index_map`` (csrc/sim.cpp, the SIM): one library, built on first use, cached, with fake
+kernels; :mod:`torchtrack.image.lk` and :mod:`torchtrack.image.shape_index` fall back to their pure-torch references
+where it cannot be built.
 
 Build: ``torch.utils.cpp_extension.load`` (ninja, the system C++ compiler, ``-O3``) into
 ``$TORCHTRACK_CACHE/ext/lk_<hash>`` (default ``~/.cache/torchtrack``), where the hash covers the source, the flags
@@ -21,6 +23,7 @@ import torch
 from torch import Tensor
 
 SOURCE = Path(__file__).with_name("csrc") / "lk.cpp"
+SOURCES = [SOURCE, SOURCE.with_name("sim.cpp")]
 # -fopenmp compiles at::parallel_for's OpenMP region; it is not linked: the symbols resolve to torch's own OpenMP
 # runtime (linking the system libgomp would load a second one).
 CFLAGS = ["-O3", "-fopenmp", "-fno-math-errno"]
@@ -33,7 +36,7 @@ def cache_dir() -> Path:
 
 
 def build_key() -> str:
-    h = hashlib.sha256(SOURCE.read_bytes())
+    h = hashlib.sha256(b"".join(s.read_bytes() for s in SOURCES))
     h.update(" ".join(CFLAGS + [torch.__version__]).encode())
     return h.hexdigest()[:16]
 
@@ -55,7 +58,7 @@ def _build() -> float:
     from torch.utils.cpp_extension import load
 
     folder.mkdir(parents=True, exist_ok=True)
-    load(name=f"torchtrack_lk_{key}", sources=[str(SOURCE)], extra_cflags=CFLAGS, build_directory=str(folder),
+    load(name=f"torchtrack_lk_{key}", sources=[str(s) for s in SOURCES], extra_cflags=CFLAGS, build_directory=str(folder),
          is_python_module=False, verbose=False)  # fmt: skip
     return time.perf_counter() - t0
 
@@ -90,6 +93,10 @@ def _register_fake() -> None:
     def _(prev, next, base_prev, base_next, sizes, points, image_index, init, *args) -> tuple[Tensor, Tensor, Tensor]:
         n = points.shape[0]
         return points.new_empty(n, 2), points.new_empty(n, dtype=torch.bool), points.new_empty(n)
+
+    @torch.library.register_fake("torchtrack::shape_index_map")
+    def _(depth, K, *args) -> tuple[Tensor, Tensor, Tensor]:
+        return torch.empty_like(depth), torch.empty_like(depth, dtype=torch.bool), torch.empty_like(depth)
 
     _state["fake"] = True
 

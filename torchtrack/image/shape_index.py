@@ -265,15 +265,31 @@ def sim_image(sim: ShapeIndex | Tensor, valid: Tensor | None = None, *, fill: fl
     return (si.clamp(0.0, 1.0) * 255.0).round() / 255.0
 
 
-def compute_sim(depth: Tensor, K: Tensor, **kwargs) -> SIM:
+_SIM_DEFAULTS = dict(smooth_sigma=4.0, min_curvature=5.0, max_step=0.05, min_support=0.9999, max_incidence=60.0,
+                     decimate=2, fill=0.5)  # fmt: skip
+
+
+def compute_sim(depth: Tensor, K: Tensor, backend: str = "auto", **kwargs) -> SIM:
     """One call for the per-frame pipeline: ``shape_index(depth, K, **kwargs)`` and its ``sim_image``.
 
+    ``backend``: "cpp" runs the compiled operator ``torch.ops.torchtrack.shape_index_map`` (csrc/sim.cpp, the same
+    stages in one pass each; :mod:`torchtrack.image.lk_op`), "torch" the functions above (the reference), "auto" the
+    operator where it builds (``frontend.sim_kwargs={backend: torch}`` selects the reference in a run).
     A batch is computed one image at a time (the same values within float error: other shapes sum in other orders;
     tests/tolerances.py): the temporaries of one 640x480 image stay in the CPU's
     cache, those of eight do not (measured at B=8: 52 ms instead of 75 ms per step)."""
     _check(depth, K)
+    from torchtrack.image.lk import use_cpp  # the operators' one switch (import here: lk imports this package)
+
+    if use_cpp(backend) and depth.device.type == "cpu":
+        p = {**_SIM_DEFAULTS, **kwargs}
+        si, valid, image = torch.ops.torchtrack.shape_index_map(
+            depth.float().contiguous(), K.float().contiguous(), p["smooth_sigma"], p["min_curvature"], p["max_step"],
+            p["min_support"], p["max_incidence"], p["decimate"], p["fill"],
+        )  # fmt: skip
+        return SIM(si=si, valid=valid, image=image)
     if depth.shape[0] > 1:
-        parts = [compute_sim(depth[i : i + 1], K[i : i + 1], **kwargs) for i in range(depth.shape[0])]
+        parts = [compute_sim(depth[i : i + 1], K[i : i + 1], "torch", **kwargs) for i in range(depth.shape[0])]
         return SIM(*(torch.cat(x) for x in zip(*parts, strict=True)))
     s = shape_index(depth, K, **kwargs, curvedness=False)
     image = (s.si * 255.0).round_().div_(255.0)  # SI and fill are in [0, 1]: sim_image without its clamp
