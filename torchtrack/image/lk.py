@@ -304,21 +304,27 @@ def use_cpp(backend: str) -> bool:
     return lk_op.available()
 
 
-def _op_tables(pyr: Pyramid, levels: int) -> tuple[Tensor, Tensor]:
-    """(L, B) int64 flat index of each level's and image's pixel (0, 0), and (L, 2) int64 level sizes, kept with the
-    pyramid."""
-    key = ("op", levels)
-    if key not in pyr.samplers:
-        base = ((pyr.row_start[:levels] + pyr.pad) * pyr.stride + pyr.pad).contiguous()
-        pyr.samplers[key] = base, torch.tensor([pyr.size(level) for level in range(levels)], dtype=torch.int64)
-    return pyr.samplers[key]
+class _OpTables:
+    """The operator's tables of one pyramid, kept with it (``Pyramid.samplers``): base (L, B) int64 flat index of each
+    level's and image's pixel (0, 0), sizes (L, 2) int64 level sizes (H_l, W_l)."""
+
+    def __init__(self, pyr: Pyramid, levels: int):
+        self.base = ((pyr.row_start[:levels] + pyr.pad) * pyr.stride + pyr.pad).contiguous()
+        self.sizes = torch.tensor([pyr.size(level) for level in range(levels)], dtype=torch.int64)
+
+    @staticmethod
+    def of(pyr: Pyramid, levels: int) -> _OpTables:
+        if ("op", levels) not in pyr.samplers:
+            pyr.samplers[("op", levels)] = _OpTables(pyr, levels)
+        return pyr.samplers[("op", levels)]
 
 
 def _track_op(prev, next, points, image_index, init, *, window, levels, iters, eps, min_eig, ic_iters, with_residual):
     """:func:`lk_track_flat` by the compiled operator (all points in one call)."""
     if (prev.stride, prev.plane, prev.pad, prev.flat.numel()) != (next.stride, next.plane, next.pad, next.flat.numel()):
         raise ValueError("lk_track_flat: prev and next pyramids must have the same geometry")
-    (base_prev, sizes), (base_next, _) = _op_tables(prev, levels), _op_tables(next, levels)
+    tables_prev, tables_next = _OpTables.of(prev, levels), _OpTables.of(next, levels)
+    base_prev, base_next, sizes = tables_prev.base, tables_next.base, tables_prev.sizes
     f32 = dict(dtype=torch.float32, memory_format=torch.contiguous_format)
     return lk_op.lk_track(
         prev.flat.contiguous(), next.flat.contiguous(), base_prev, base_next, sizes, points.to(**f32),
