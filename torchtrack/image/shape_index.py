@@ -41,6 +41,7 @@ References:
 
 from __future__ import annotations
 
+import inspect
 import math
 from typing import NamedTuple
 
@@ -265,8 +266,8 @@ def sim_image(sim: ShapeIndex | Tensor, valid: Tensor | None = None, *, fill: fl
     return (si.clamp(0.0, 1.0) * 255.0).round() / 255.0
 
 
-_SIM_DEFAULTS = dict(smooth_sigma=4.0, min_curvature=5.0, max_step=0.05, min_support=0.9999, max_incidence=60.0,
-                     decimate=2, fill=0.5)  # fmt: skip
+# shape_index's keyword defaults (one place), for the operator's positional arguments
+_SIM_DEFAULTS = {k: p.default for k, p in inspect.signature(shape_index).parameters.items() if p.kind == p.KEYWORD_ONLY}
 
 
 def compute_sim(depth: Tensor, K: Tensor, backend: str = "auto", **kwargs) -> SIM:
@@ -282,6 +283,8 @@ def compute_sim(depth: Tensor, K: Tensor, backend: str = "auto", **kwargs) -> SI
     from torchtrack.image.lk import use_cpp  # the operators' one switch (import here: lk imports this package)
 
     if use_cpp(backend) and depth.device.type == "cpu":
+        if set(kwargs) - set(_SIM_DEFAULTS) | ({"curvedness"} & set(kwargs)):
+            raise TypeError(f"compute_sim: unexpected arguments {sorted(kwargs)}")
         p = {**_SIM_DEFAULTS, **kwargs}
         si, valid, image = torch.ops.torchtrack.shape_index_map(
             depth.float().contiguous(), K.float().contiguous(), p["smooth_sigma"], p["min_curvature"], p["max_step"],
@@ -308,7 +311,9 @@ class ShapeIndexMap:
         max_incidence: float = 60.0,
         decimate: int = 2,
         fill: float = 0.5,
+        backend: str = "auto",
     ) -> None:
+        self.backend = backend
         self.kwargs = dict(
             smooth_sigma=smooth_sigma,
             min_curvature=min_curvature,
@@ -320,4 +325,4 @@ class ShapeIndexMap:
         )
 
     def __call__(self, depth: Tensor, K: Tensor) -> SIM:
-        return compute_sim(depth, K, **self.kwargs)
+        return compute_sim(depth, K, self.backend, **self.kwargs)
