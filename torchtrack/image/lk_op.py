@@ -76,7 +76,7 @@ def available() -> bool:
         except Exception as e:  # any build failure: the reference path still works
             _state["ok"], _state["error"] = False, f"{type(e).__name__}: {str(e).strip().splitlines()[-1:]}"
             warnings.warn(f"torchtrack: compiled LK operator unavailable ({_state['error']}); using the pure-torch "
-                          "LK (slower)", RuntimeWarning, stacklevel=3)  # fmt: skip
+                          "LK and SIM (slower)", RuntimeWarning, stacklevel=3)  # fmt: skip
     return _state["ok"]
 
 
