@@ -26,7 +26,7 @@
 namespace {
 
 // AVX2 + FMA and baseline builds of the hot functions, picked at load time (the cached library runs on any x86-64).
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 11  // x86-64-v3: GCC 11+
 #define CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))
 #else
 #define CLONES

@@ -18,7 +18,7 @@
 
 namespace {
 
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 11  // x86-64-v3: GCC 11+
 #define SIM_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))
 #else
 #define SIM_CLONES
