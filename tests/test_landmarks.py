@@ -1,4 +1,4 @@
-"""Landmark re-acquisition (torchtrack.landmarks): the pose refinement against closed-form data, the keyframe ring, and
+"""Landmark re-acquisition (torchtrack.pipeline.landmarks): the pose refinement against closed-form data, the keyframe ring, and
 re-tracking from a keyframe on rendered frames with exact ground truth."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from torchtrack.frontend import FrontEnd, smooth_depth_mask
 from torchtrack.geometry import T_inv, backproject, make_T, project, se3_exp, se3_log, transform_points
 from torchtrack.image.flow import CombinedTracker
 from torchtrack.image.select import select_features
-from torchtrack.landmarks import LandmarkMap, refine_pose
+from torchtrack.pipeline.landmarks import LandmarkMap, refine_pose
 
 
 def random_scene(B: int, C: int, seed: int = 0):

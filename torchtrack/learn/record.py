@@ -25,7 +25,7 @@ from torchtrack.factory import build_tracker
 from torchtrack.learn.cache import SequenceObservations, load_observations, object_poses_gt, save_observations
 from torchtrack.learn.cues import CUE_NAMES
 from torchtrack.run import unique_names
-from torchtrack.tracker import StepResult
+from torchtrack.pipeline import StepResult
 
 log = logging.getLogger("torchtrack.record")
 

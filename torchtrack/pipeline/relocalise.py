@@ -28,6 +28,7 @@ from torch import Tensor
 
 from torchtrack.config import RelocaliseConfig
 from torchtrack.filter.models import measure_points
+from torchtrack.frontend import PreparedFrame
 from torchtrack.geometry import T_inv, rotation_angle
 
 
@@ -57,6 +58,16 @@ class LossCheck(NamedTuple):
     health: Health
 
 
+class Relocalisation(NamedTuple):
+    """The loss check's decision for one frame, for the tracker to apply: ``T_world_depth`` (B, 4, 4) the camera poses
+    found where ``relocalised`` (B,) (a new model is to be taken there; other rows: the tracked pose) and the
+    frame's :class:`LossCheck` ``loss``."""
+
+    T_world_depth: Tensor
+    relocalised: Tensor
+    loss: LossCheck
+
+
 class Keyframe(NamedTuple):
     """A model frame's ORB descriptors (M, 32) uint8 and their 3D points (M, 3) float64 in the tracker's world."""
 
@@ -66,7 +77,7 @@ class Keyframe(NamedTuple):
 
 def frame_health(n_prev: Tensor, result) -> Health:
     """Health of a tracked frame from ``n_prev`` (B,) the previous frame's feature count and its
-    :class:`~torchtrack.tracker.StepResult` (with ``observation`` and ``estimate``)."""
+    :class:`~torchtrack.pipeline.state.StepResult` (with ``observation`` and ``estimate``)."""
     tracked = result.observation.valid.sum(1)
     survival = torch.where(n_prev > 0, tracked / n_prev.clamp_min(1), torch.zeros_like(tracked, dtype=torch.float32))
     used = getattr(result.estimate, "used_xyz", None)
@@ -111,7 +122,9 @@ def pnp_pose(
 
 
 class Relocaliser:
-    """The loss check and relocalisation of :mod:`torchtrack.relocalise`, called by the tracker after each frame.
+    """The loss check and relocalisation of :mod:`torchtrack.pipeline.relocalise`, the tracker's ``relocaliser`` stage:
+    after each frame :meth:`check` returns a :class:`Relocalisation` that the tracker applies, then :meth:`remember`
+    stores the frame where it is a trusted model frame.
 
     Args:
         recover: False (the paper): the loss check only marks lost frames (and warns); no relocalisation, the
@@ -154,17 +167,19 @@ class Relocaliser:
         self.interrupted: Tensor | None = None
         self.since_stored: Tensor | None = None  # (B,) frames since each sequence's last stored frame
 
-    def __call__(self, tracker, n_prev: Tensor | None, frame, result):
-        """Check the frame ``result`` (a StepResult) that ``tracker`` just produced from ``frame``; relocalise the
-        lost sequences (through ``tracker.relocalise``); store new model frames. Returns the result with ``loss``
-        set and, where relocalised, the new pose."""
-        from dataclasses import replace
+    def reset(self, B: int) -> None:
+        """Empty stores for B sequences (the tracker's first frame)."""
+        self.store = [deque(maxlen=self.keyframes) for _ in range(B)]
+        self.interrupted = torch.zeros(B, dtype=torch.bool)
+        self.since_stored = torch.full((B,), self.store_every, dtype=torch.long)
 
+    def check(self, frame, cur: PreparedFrame, result, n_prev: Tensor | None) -> Relocalisation:
+        """The loss check of the frame ``result`` (a :class:`~torchtrack.pipeline.state.StepResult`) that the tracker
+        made of ``frame`` (prepared as ``cur``; ``n_prev`` (B,) the previous frame's feature count, None on the first
+        frame), and the relocalisation of the lost sequences: the decision, for the tracker to apply."""
         B = frame.rgb.shape[0]
         if len(self.store) != B:
-            self.store = [deque(maxlen=self.keyframes) for _ in range(B)]
-            self.interrupted = torch.zeros(B, dtype=torch.bool)
-            self.since_stored = torch.full((B,), self.store_every, dtype=torch.long)
+            self.reset(B)
         zeros = torch.zeros(B)
         health = frame_health(n_prev, result) if result.observation is not None else Health(zeros + 1, zeros, zeros)
         lost = frame.active & (
@@ -176,57 +191,53 @@ class Relocaliser:
         relocalised, inliers = torch.zeros(B, dtype=torch.bool), torch.zeros(B, dtype=torch.long)
         T_new = result.T_world_depth.clone()
         for b in retry.nonzero()[:, 0].tolist():
-            T, inliers[b] = self._relocalise(tracker, frame, b)
+            T, inliers[b] = self._relocalise(frame, cur, b)
             if T is None:
                 continue
             self.interrupted[b] = False
             if not self._agrees(T, result.T_world_depth[b]):
                 T_new[b], relocalised[b] = T, True
         self.interrupted |= retry & (inliers < self.min_inliers)
-        if relocalised.any():  # a new model at the found pose; T_cam_obj stays the frame as tracked (old model)
-            T_model = tracker.relocalise(frame, T_new, relocalised)
-            m3 = relocalised[:, None, None]
-            model = T_model if result.model_T_cam_obj is None else torch.where(m3, T_model, result.model_T_cam_obj)
-            result = replace(
-                result, T_world_depth=torch.where(m3, tracker.state.T_world_depth, result.T_world_depth),
-                reselected=result.reselected | relocalised, model_T_cam_obj=model,
-            )  # fmt: skip
+        check = LossCheck(lost, relocalised, self.interrupted & frame.active, inliers, health)
+        return Relocalisation(T_new, relocalised, check)
+
+    def remember(self, frame, cur: PreparedFrame, result, decision: Relocalisation) -> None:
+        """Store the frame (prepared as ``cur``) of the sequences whose ``result`` (after the tracker applied
+        ``decision``) is a trusted model frame, or a trusted tracked frame ``store_every`` frames after the last."""
         self.since_stored += frame.active.long()
         due = result.reselected | (self.since_stored >= self.store_every)
-        keep = frame.active & due & ~self.interrupted & (~lost | relocalised) & self.recover
+        ok = ~decision.loss.lost | decision.relocalised
+        keep = frame.active & due & ~self.interrupted & ok & self.recover
         for b in keep.nonzero()[:, 0].tolist():
-            self._store(tracker, frame, b, result.T_world_depth[b])
+            self._store(frame, cur, b, result.T_world_depth[b])
             self.since_stored[b] = 0
-        check = LossCheck(lost, relocalised, self.interrupted & frame.active, inliers, health)
-        return replace(result, loss=check)
 
     # ---------------------------------------------------------------------------------------------- internals
     def _agrees(self, T_a: Tensor, T_b: Tensor) -> bool:
         E = T_inv(T_a.double()) @ T_b.double()
         return bool(E[:3, 3].norm() <= self.agree_m) and bool(rotation_angle(E[:3, :3]) <= self.agree_rad)
 
-    def _points(self, tracker, frame, b: int, pixels: np.ndarray) -> tuple[Tensor, Tensor]:
+    @staticmethod
+    def _points(frame, cur: PreparedFrame, b: int, pixels: np.ndarray) -> tuple[Tensor, Tensor]:
         """3D points (M, 3) in sequence b's depth camera at colour ``pixels`` (M, 2), and has-depth (M,)."""
         px = torch.from_numpy(pixels)[None]
-        p, ok = measure_points(
-            tracker.state.prev.depth[b : b + 1], frame.K[b : b + 1], frame.T_color_depth[b : b + 1], px
-        )
+        p, ok = measure_points(cur.depth[b : b + 1], frame.K[b : b + 1], frame.T_color_depth[b : b + 1], px)
         return p[0].double(), ok[0]
 
-    def _store(self, tracker, frame, b: int, T_world_depth: Tensor) -> None:
+    def _store(self, frame, cur: PreparedFrame, b: int, T_world_depth: Tensor) -> None:
         """Sequence b's current frame (a model frame with a trusted pose) into its store."""
-        pixels, desc = orb_features(tracker.state.prev.gray[b, 0], self.n_orb)
+        pixels, desc = orb_features(cur.gray[b, 0], self.n_orb)
         if desc is None:
             return
-        points, ok = self._points(tracker, frame, b, pixels)
+        points, ok = self._points(frame, cur, b, pixels)
         world = (points @ T_world_depth[:3, :3].T.double() + T_world_depth[:3, 3].double())[ok].numpy()
         if len(world) >= self.min_inliers:
             self.store[b].append(Keyframe(desc[ok.numpy()], world))
 
-    def _relocalise(self, tracker, frame, b: int) -> tuple[Tensor | None, int]:
+    def _relocalise(self, frame, cur: PreparedFrame, b: int) -> tuple[Tensor | None, int]:
         """Sequence b's camera pose T_world_depth (4, 4) from its current frame against its stored model frames, newest
         first; (None, best inlier count) when none verifies."""
-        pixels, desc = orb_features(tracker.state.prev.gray[b, 0], self.n_orb)
+        pixels, desc = orb_features(cur.gray[b, 0], self.n_orb)
         if desc is None or not self.store[b]:
             return None, 0
         K = frame.K[b].double().numpy()

@@ -23,6 +23,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchtrack.config import LandmarkConfig, ReselectConfig
+from torchtrack.estimators.backends import Observation
 from torchtrack.filter.models import measure_points
 from torchtrack.frontend import PreparedFrame
 from torchtrack.geometry import (
@@ -36,6 +38,7 @@ from torchtrack.geometry import (
     transform_points,
 )
 from torchtrack.image.flow import FlowFrame, prepare_frame
+from torchtrack.pipeline.reselect import far_from
 
 
 class Reacquired(NamedTuple):
@@ -52,6 +55,16 @@ class Reacquired(NamedTuple):
     cornerness: Tensor
     valid: Tensor
     T_world_depth: Tensor
+
+    def observation(self, T_world_obj: Tensor, dt: Tensor, K: Tensor, T_color_depth: Tensor) -> Observation:
+        """The re-acquired landmarks as measurements of the model frame ``T_world_obj`` (B, 4, 4): model points
+        (their stored world positions in the object frame), the points measured from depth and their tracked
+        pixels (eqs. 6-7), with ``dt`` (B,) s, ``K`` (B, 3, 3), ``T_color_depth`` (B, 4, 4) as in the frame's
+        :class:`~torchtrack.estimators.backends.Observation`. Not valid rows carry zeros."""
+        points_obj = transform_points(T_inv(T_world_obj.double()), self.points_world).to(self.points_cam.dtype)
+        ok = self.valid[..., None]
+        return Observation(dt.to(self.points_cam.dtype), torch.where(ok, points_obj, 0.0),
+                           torch.where(ok, self.points_cam, 0.0), self.pixels, self.valid, K, T_color_depth)  # fmt: skip
 
 
 class LandmarkMap:
@@ -75,28 +88,35 @@ class LandmarkMap:
         max_angle_deg: re-track only landmarks whose keyframe's rotation and ray to the point are within this angle.
         max_scale: ... and whose depth changed by at most this ratio (LK tracks a translation of the window).
         converge_px, probe_px: a second LK started ``probe_px`` away must end within ``converge_px`` of the first.
+        every: > 0: the tracker also re-acquires landmarks into the current model every that many frames (no new
+            model); 0: only at re-selections.
+
+    The map is the tracker's ``landmarks`` stage: :meth:`reacquire_into` gives the landmarks found again in the current
+    frame (:class:`Reacquired`) and :meth:`Reacquired.observation` states them as back-end measurements of the
+    current model (eqs. 6-7), so that they can join the frame's update instead of a correction outside the filter.
     """
 
     def __init__(
         self,
         *,
-        keyframes: int = 8,
-        per_keyframe: int = 128,
-        max_candidates: int = 256,
-        min_separation_px: float = 8.0,
-        max_residual: float = 0.1,
-        max_shift_px: float = 30.0,
-        max_offset_m: float = 0.1,
-        occlusion: float = 0.05,
-        correct: bool = True,
-        inlier_m: float = 0.02,
-        min_inliers: int = 8,
-        max_correction_m: float = 0.1,
-        max_correction_deg: float = 5.0,
-        max_angle_deg: float = 15.0,
-        max_scale: float = 1.25,
-        converge_px: float = 0.5,
-        probe_px: float = 3.0,
+        keyframes: int = LandmarkConfig.keyframes,
+        per_keyframe: int = LandmarkConfig.per_keyframe,
+        max_candidates: int = LandmarkConfig.max_candidates,
+        min_separation_px: float = ReselectConfig.min_separation_px,
+        max_residual: float = LandmarkConfig.max_residual,
+        max_shift_px: float = LandmarkConfig.max_shift_px,
+        max_offset_m: float = LandmarkConfig.max_offset_m,
+        occlusion: float = LandmarkConfig.occlusion,
+        correct: bool = LandmarkConfig.correct,
+        inlier_m: float = LandmarkConfig.inlier_m,
+        min_inliers: int = LandmarkConfig.min_inliers,
+        max_correction_m: float = LandmarkConfig.max_correction_m,
+        max_correction_deg: float = LandmarkConfig.max_correction_deg,
+        max_angle_deg: float = LandmarkConfig.max_angle_deg,
+        max_scale: float = LandmarkConfig.max_scale,
+        converge_px: float = LandmarkConfig.converge_px,
+        probe_px: float = LandmarkConfig.probe_px,
+        every: int = LandmarkConfig.every,
     ) -> None:
         if keyframes < 1 or per_keyframe < 1 or max_candidates < 1:
             raise ValueError(f"LandmarkMap: keyframes, per_keyframe and max_candidates must be >= 1, got "
@@ -108,6 +128,9 @@ class LandmarkMap:
         self.max_correction_m, self.max_correction_rad = max_correction_m, math.radians(max_correction_deg)
         self.max_angle_deg, self.max_scale = max_angle_deg, max_scale
         self.converge_px, self.probe_px = converge_px, probe_px
+        if every < 0:
+            raise ValueError(f"landmarks.every must be >= 0, got {every}")
+        self.every = every
         self.reset()
 
     def reset(self) -> None:
@@ -270,6 +293,15 @@ class LandmarkMap:
             world, good = world[:, :n], inl[:, :n]
         return Reacquired(pixels, world, X_meas, corner, good, T_world_depth)
 
+    def reacquire_into(self, flow: Callable, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor, state,
+                       keep: Tensor, mask: Tensor) -> Reacquired:  # fmt: skip
+        """:meth:`reacquire` for the tracker's model: the landmarks of the sequences in ``mask`` (B,) around the
+        features ``keep`` (B, N) of ``state`` (a :class:`~torchtrack.pipeline.state.TrackerState`: its camera pose,
+        pixels and model points at their world positions, which take part in the re-fit)."""
+        world = transform_points(state.T_world_obj, state.points_obj.double())
+        return self.reacquire(flow, cur, K, T_color_depth, state.T_world_depth, state.pixels, keep, mask,
+                              tracked_world=world)  # fmt: skip
+
     def _corrected(self, K: Tensor, T_color_depth: Tensor, T_world_depth: Tensor, world: Tensor, pixels: Tensor,
                    X_meas: Tensor, good: Tensor, n: int) -> tuple[Tensor, Tensor]:  # fmt: skip
         """The camera pose (B, 4, 4) re-fitted to the points (world (B, C, 3), their tracked pixels and measured
@@ -340,14 +372,6 @@ def refine_pose(K: Tensor, T_color_world: Tensor, world: Tensor, pixels: Tensor,
         g = torch.einsum("bcki,bck,bc->bi", J, r, hw)
         T = se3_exp(-torch.linalg.solve(H, g)) @ T
     return PoseFit(T, valid & (err <= inlier))
-
-
-def far_from(points: Tensor, others: Tensor, others_valid: Tensor, gap: float) -> Tensor:
-    """(B, C) bool: each of points (B, C, 2) is at least ``gap`` px from every valid one of others (B, N, 2)."""
-    if others.shape[1] == 0:
-        return torch.ones(points.shape[:2], dtype=torch.bool)
-    d = torch.cdist(points, others).masked_fill(~others_valid[:, None, :], float("inf"))
-    return d.amin(2) >= gap
 
 
 def _take(x: Tensor, order: Tensor, n: int) -> Tensor:
