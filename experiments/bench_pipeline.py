@@ -53,8 +53,8 @@ from omegaconf import DictConfig
 from torch.utils._python_dispatch import TorchDispatchMode
 
 import torchtrack.frontend as frontend_module
-import torchtrack.run as run_module
 import torchtrack.pipeline.tracker as tracker_module
+import torchtrack.run as run_module
 from torchtrack.config import CONF_DIR
 from torchtrack.factory import build_sequences, build_tracker
 from torchtrack.runtime import configure

@@ -43,6 +43,7 @@ from torchtrack.learn.checkpoint import save_checkpoint
 from torchtrack.learn.model import LearnedWeighting
 from torchtrack.mapping import PanoramaMapper
 from torchtrack.pipeline import Tracker
+from torchtrack.pipeline.keyframes import KeyframeStore
 from torchtrack.pipeline.landmarks import LandmarkMap
 from torchtrack.pipeline.outliers import ResidualDrop
 from torchtrack.pipeline.relocalise import Relocaliser
@@ -248,7 +249,7 @@ def test_select_direct_equals_cli(cli):
     gray, depth, K, _ = _frame()
     roi = torch.zeros_like(depth, dtype=torch.bool)
     roi[..., 30:70, 40:100] = True  # a small region: roi_fraction (an improvement) shrinks the patches
-    ours = cli.select(gray, depth, K, roi=roi)
+    ours = cli.reselect.select(gray, depth, K, roi=roi)
     assert _same(ours, select_features(gray, depth, K, roi=roi))
     assert _same(ours, FeatureSelector()(gray, depth, K, roi=roi))
     assert not _same(ours, select_features(gray, depth, K, roi=roi, roi_fraction=None))  # the paper's differs
@@ -269,7 +270,8 @@ def test_frontend_and_region_direct_equal_cli(cli):
     assert _state(FrontEnd()) == _state(cli.frontend)
     _, depth, _, _ = _frame()
     depth = depth * (1 + (torch.arange(W_) > W_ // 2))  # two depth layers: the object is the near one
-    assert torch.equal(ObjectRegion()(depth), cli.region(depth)) and torch.equal(object_mask(depth), cli.region(depth))
+    region = cli.reselect.region
+    assert torch.equal(ObjectRegion()(depth), region(depth)) and torch.equal(object_mask(depth), region(depth))
 
 
 @pytest.mark.parametrize("weighting", ["paper", "fixed"])
@@ -311,11 +313,12 @@ def test_estimators_direct_equal_cli(name):
 def test_pipeline_stages_and_mapper_direct_equal_cli(cli):
     """Every policy stage built directly equals the CLI's, and so does the tracker composed of the CLI's per-frame
     stages with its policy stages left to their defaults."""
-    stages = dict(frontend=cli.frontend, region=cli.region, select=cli.select, flow=cli.flow,
-                  weighting=cli.weighting, backend=cli.backend, landmarks=cli.landmarks,
-                  relocaliser=cli.relocaliser)  # fmt: skip
+    per_frame = dict(region=cli.reselect.region, select=cli.reselect.select)
+    stages = dict(frontend=cli.frontend, flow=cli.flow, weighting=cli.weighting, backend=cli.backend,
+                  reselect=Reselection(**per_frame), landmarks=cli.landmarks, relocaliser=cli.relocaliser)  # fmt: skip
     assert _state(Tracker(**stages)) == _state(cli)
-    assert _state(Reselection()) == _state(cli.reselect) and _state(ResidualDrop()) == _state(cli.outliers)
+    assert _state(Reselection(**per_frame)) == _state(cli.reselect)
+    assert _state(ResidualDrop()) == _state(cli.outliers) and _state(KeyframeStore()) == _state(cli.keyframes)
     assert _state(LandmarkMap()) == _state(cli.landmarks)
     assert _state(Relocaliser()) == _state(cli.relocaliser)
     assert _state(PanoramaMapper()) == _state(build_mapper(config("mapping=panorama")))
@@ -327,14 +330,14 @@ def test_policy_stages_direct_equal_cli_in_behaviour(cli):
     g = torch.Generator().manual_seed(1)
     valid = torch.rand(3, 40, generator=g) < torch.tensor([[0.2], [0.4], [0.9]])
     n_model, active = torch.full((3,), 40), torch.ones(3, dtype=torch.bool)
+    stages = dict(region=cli.reselect.region, select=cli.reselect.select)
     ours = cli.reselect.needed(valid, n_model, active)
-    assert torch.equal(ours, Reselection().needed(valid, n_model, active))
-    assert not torch.equal(ours, Reselection(fraction=0.1, min_features=1).needed(valid, n_model, active))
+    assert torch.equal(ours, Reselection(**stages).needed(valid, n_model, active))
+    assert not torch.equal(ours, Reselection(**stages, fraction=0.1, min_features=1).needed(valid, n_model, active))
     residuals = 6 * torch.rand(3, 40, generator=g)
     assert torch.equal(cli.outliers(residuals, valid), ResidualDrop()(residuals, valid))
     assert not torch.equal(cli.outliers(residuals, valid), ResidualDrop(max_residual_px=None)(residuals, valid))
     _, depth, _, _ = _frame()
     depth = depth * (1 + (torch.arange(W_) > W_ // 2))  # a depth step: the edge rule removes its neighbourhood
-    roi = torch.ones_like(depth, dtype=torch.bool)
-    assert torch.equal(cli.reselect.region(roi, depth), Reselection().region(roi, depth))
-    assert not torch.equal(cli.reselect.region(roi, depth), Reselection(edge_step=None).region(roi, depth))
+    assert torch.equal(cli.reselect.roi(depth), Reselection(**stages).roi(depth))
+    assert not torch.equal(cli.reselect.roi(depth), Reselection(**stages, edge_step=None).roi(depth))

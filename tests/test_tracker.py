@@ -136,7 +136,7 @@ def test_keep_survivors_keeps_their_world_points_and_the_pose(synth):
     keep = s().valid[0].clone()
     pixels, points = s().pixels[0][keep], (world()[..., 0] + s().T_world_obj[:, None, :3, 3].float())[0][keep]
     pose = s().T_world_depth
-    n_select = len(tracker.select(s().prev.gray, s().prev.depth, frames[-1].K, sim=s().prev.sim).valid[0])
+    n_select = len(tracker.reselect.select(s().prev.gray, s().prev.depth, frames[-1].K, sim=s().prev.sim).valid[0])
     width = max(n_select, s().pixels.shape[1])  # the new model: the selector's width or the old model's
 
     tracker.state, _ = tracker._new_model(s(), frames[-1], s().prev, torch.ones(1, dtype=torch.bool))
@@ -161,12 +161,14 @@ def test_keep_survivors_keeps_them_all_when_the_selection_is_poor(synth):
     for frame in frames:
         tracker.step(frame)
     survivors = int(tracker.state.valid.sum())
-    select = tracker.select
-    tracker.select = lambda *a, **k: select(*a, **k)._replace(
+    select = tracker.reselect.select
+    tracker.reselect.select = lambda *a, **k: select(*a, **k)._replace(
         **{
             f: getattr(select(*a, **k), f)[:, :5]
             for f in ("pixels", "points", "cornerness", "cornerness_int", "cornerness_sim", "valid")
         }
     )  # noqa: E501
-    tracker.state, _ = tracker._new_model(tracker.state, frames[-1], tracker.state.prev, torch.ones(1, dtype=torch.bool))
+    tracker.state, _ = tracker._new_model(
+        tracker.state, frames[-1], tracker.state.prev, torch.ones(1, dtype=torch.bool)
+    )
     assert survivors > 5 and int(tracker.state.valid.sum()) >= survivors

@@ -283,7 +283,7 @@ class RegistrationBackendConfig:
 # --- the pipeline and its stages ------------------------------------------------------------------------------
 # The tracker (torchtrack.pipeline.Tracker) is composed of stage objects, each built by the factory from its own group:
 # the per-frame stages above (region, select, flow, weighting, tracker = the back end) and the policy stages below
-# (reselect, outliers, landmarks, relocalise).
+# (reselect, outliers, keyframes, landmarks, relocalise).
 
 
 @dataclass
@@ -316,13 +316,23 @@ class OutlierConfig:
 
 
 @dataclass
+class KeyframeConfig:
+    """:class:`torchtrack.pipeline.keyframes.KeyframeStore`: the one store of keyframes the landmarks and the
+    relocaliser share (each attaches its own content per keyframe)."""
+
+    _target_: str = "torchtrack.pipeline.keyframes.KeyframeStore"
+    size: int = 8  # keyframes kept per sequence, a ring (the oldest is replaced)
+    every: int = 10  # a keyframe at every model frame with a trusted pose, and at a trusted tracked frame this many
+    # frames after the last keyframe (a model can last long: the store must stay recent); 0: model frames only
+
+
+@dataclass
 class LandmarkConfig:
     """:class:`torchtrack.pipeline.landmarks.LandmarkMap`: model points that outlive their model, re-acquired from the
     keyframes that saw them (the tracker's ``landmarks``; none when ``enabled`` is false)."""
 
     _target_: str = "torchtrack.pipeline.landmarks.LandmarkMap"
     enabled: bool = True  # improvement (false = paper): re-selections re-acquire old model points from keyframes
-    keyframes: int = 8  # keyframes (model frames) kept per sequence, a ring
     per_keyframe: int = 128  # landmarks kept per keyframe
     max_candidates: int = 256  # at most this many re-tracked per sequence at once (oldest keyframe first)
     min_separation_px: float = "${reselect.min_separation_px}"  # not re-tracked this close to a tracked feature
@@ -352,8 +362,6 @@ class RelocaliseConfig:
     min_survival: float = 0.25  # lost: fewer than this fraction of the previous frame's features tracked with depth
     max_rejected: float = 0.95  # ... or the filter rejected more than this fraction of them
     max_pos_std: float = 0.01  # m, ... or the posterior position std exceeds this
-    keyframes: int = 8  # recent model frames kept per sequence
-    store_every: int = 10  # ... plus a tracked frame whenever this many passed since the last one stored
     orb_features: int = 1000
     ratio: float = 0.8  # Lowe's ratio test
     reprojection_px: float = 3.0  # RANSAC inlier threshold
@@ -410,6 +418,7 @@ SCHEMAS: dict[str, dict[str, type]] = {
     "pipeline": {"pipeline": PipelineConfig},
     "reselect": {"reselect": ReselectConfig},
     "outliers": {"outliers": OutlierConfig},
+    "keyframes": {"keyframes": KeyframeConfig},
     "landmarks": {"landmarks": LandmarkConfig},
     "relocalise": {"relocalise": RelocaliseConfig},
     "mapping": {"mapping": MappingConfig},

@@ -3,6 +3,7 @@ may lie, and how a new model joins the features it keeps (survivors, re-acquired
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
@@ -48,9 +49,13 @@ def far_from(points: Tensor, others: Tensor, others_valid: Tensor, gap: float) -
 
 
 class Reselection:
-    """When and how the tracker takes a new model.
+    """The model stage: where a model's features may lie (``region``, off depth edges), how they are selected
+    (``select``, eq. 9), when a new model is taken and what it keeps.
 
     Args:
+        region: ``region(depth (B,1,H,W)) -> (B,1,H,W) bool`` region of interest of the model (object by depth
+            thresholding, or the whole frame): the ``region`` config group.
+        select: ``select(gray, depth, K, roi=, sim=) -> Features``, spatio-textural selection (eq. 9): ``select``.
         fraction: take a new model when fewer than this fraction of the model's features survive.
         min_features: ... or fewer than this many.
         edge_step: improvement (None = paper): select only where the depth in a 5x5 window varies by less than this
@@ -66,6 +71,8 @@ class Reselection:
     def __init__(
         self,
         *,
+        region: Callable,
+        select: Callable,
         fraction: float = ReselectConfig.fraction,
         min_features: int = ReselectConfig.min_features,
         edge_step: float | None = ReselectConfig.edge_step,
@@ -74,6 +81,7 @@ class Reselection:
     ) -> None:
         if not 0.0 <= fraction < 1.0:
             raise ValueError(f"reselect.fraction must be in [0, 1), got {fraction}")
+        self.region, self.select = region, select
         self.fraction, self.min_features, self.edge_step = fraction, min_features, edge_step
         self.keep_survivors, self.min_separation_px = keep_survivors, min_separation_px
 
@@ -83,8 +91,10 @@ class Reselection:
         n = valid.sum(1)
         return active & ((n < self.fraction * n_model) | (n < self.min_features))
 
-    def region(self, roi: Tensor, depth: Tensor) -> Tensor:
-        """(B, 1, H, W) where new features may be selected: the region of interest ``roi`` off depth edges."""
+    def roi(self, depth: Tensor) -> Tensor:
+        """(B, 1, H, W) bool where new features may be selected in a frame of ``depth`` (B, 1, H, W): the region of
+        interest, off depth edges (``edge_step``)."""
+        roi = self.region(depth)
         return roi if self.edge_step is None else roi & smooth_depth_mask(depth, self.edge_step)
 
     def survivors(self, valid: Tensor, mask: Tensor) -> Tensor:

@@ -32,6 +32,7 @@ from torchtrack.frontend import FrontEnd, PreparedFrame
 from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, se3_log, transform_points
 from torchtrack.image.flow import TrackResult
 from torchtrack.learn.cues import stack_cues
+from torchtrack.pipeline.keyframes import KeyframeStore
 from torchtrack.pipeline.landmarks import LandmarkMap
 from torchtrack.pipeline.outliers import ResidualDrop, feature_residuals
 from torchtrack.pipeline.relocalise import Relocalisation, Relocaliser
@@ -44,22 +45,25 @@ class Tracker:
 
     Args:
         frontend: per-frame preparation (registered depth, SIM, pyramids).
-        region: ``region(depth (B,1,H,W)) -> (B,1,H,W) bool`` region of interest of the model
-            (object by depth thresholding, or the whole frame).
-        select: ``select(gray, depth, K, roi=, sim=) -> Features``, spatio-textural selection (eq. 9).
         flow: combined LK + TIM tracker (eq. 10), ``flow(prev, next, pixels, valid) -> TrackResult``.
         weighting: per-feature noise variances (eqs. 11-14).
         backend: the pose estimator (fusion EKF or a registration baseline), :class:`PoseBackend`.
-        reselect: when and how a new model is taken (:class:`~torchtrack.pipeline.reselect.Reselection`).
+        reselect: the model stage (:class:`~torchtrack.pipeline.reselect.Reselection`): its region of interest and
+            spatio-textural selection (eq. 9) take a model's features; when too few survive it takes a new one, and
+            what the new model keeps.
         outliers: which features leave the model after the update (:class:`~torchtrack.pipeline.outliers.ResidualDrop`).
+        keyframes: the one keyframe store (:class:`~torchtrack.pipeline.keyframes.KeyframeStore`; None: a default
+            one): a model frame, or a tracked frame every ``keyframes.every`` frames, with a trusted pose becomes a
+            keyframe; the landmarks and the relocaliser attach their content to it.
         landmarks: improvement (None = paper): model points that outlive their model
-            (:class:`~torchtrack.pipeline.landmarks.LandmarkMap`): every model frame is a keyframe; at a re-selection
-            (and every ``landmarks.every`` frames when > 0) the visible landmarks are re-tracked from their keyframe
-            and join the model at their ORIGINAL world positions, after the survivors and before new features; with
+            (:class:`~torchtrack.pipeline.landmarks.LandmarkMap`), the keyframes' features: at a re-selection (and
+            every ``landmarks.every`` frames when > 0) the visible landmarks are re-tracked from their keyframe and
+            join the model at their ORIGINAL world positions, after the survivors and before new features; with
             ``landmarks.correct`` the camera pose is first re-fitted to them by moving the model frame in the world.
         relocaliser: improvement (None = no loss check): after each frame, the loss check
-            (:class:`~torchtrack.pipeline.relocalise.Relocaliser`); its :class:`Relocalisation` decision is applied
-            here: the relocalised sequences take a new model at the found camera pose.
+            (:class:`~torchtrack.pipeline.relocalise.Relocaliser`) against the keyframes' ORB descriptors; its
+            :class:`Relocalisation` decision is applied here: the relocalised sequences take a new model at the
+            found camera pose.
         predict_init: improvement (False = paper): each feature's LK starts where the model point projects under the
             constant-velocity prediction of the pose (``TrackerState.velocity``), not at its previous pixel: under
             fast motion the displacement left to LK is the prediction's error, not the whole motion.
@@ -76,22 +80,21 @@ class Tracker:
         self,
         *,
         frontend: FrontEnd,
-        region: Callable,
-        select: Callable,
         flow: Callable,
         weighting: Callable,
         backend: PoseBackend,
-        reselect: Reselection | None = None,
+        reselect: Reselection,
         outliers: ResidualDrop | None = None,
+        keyframes: KeyframeStore | None = None,
         landmarks: LandmarkMap | None = None,
         relocaliser: Relocaliser | None = None,
         predict_init: bool = PipelineConfig.predict_init,
         record: bool = PipelineConfig.record,
     ) -> None:
-        self.frontend, self.region, self.select = frontend, region, select
-        self.flow, self.weighting, self.backend = flow, weighting, backend
-        self.reselect = reselect if reselect is not None else Reselection()
+        self.frontend, self.flow, self.weighting, self.backend = frontend, flow, weighting, backend
+        self.reselect = reselect
         self.outliers = outliers if outliers is not None else ResidualDrop()
+        self.keyframes = keyframes if keyframes is not None else KeyframeStore()
         self.landmarks, self.relocaliser = landmarks, relocaliser
         self.predict_init, self.record = predict_init, record
         self.state = TrackerState()
@@ -102,17 +105,19 @@ class Tracker:
         return self.record or bool(getattr(self.weighting, "needs_cues", False))
 
     def step(self, frame: FrameBatch) -> StepResult:
-        """One frame of every sequence (paper §III), then the relocaliser's loss check and its decision."""
+        """One frame of every sequence (paper §III), then the relocaliser's loss check and its decision, then the
+        keyframe the frame may become."""
         n_prev = self.state.valid.sum(1) if self.state.valid is not None else None
         cur = self.frontend(frame)  # depth in the colour camera, SIM (eq. 8), LK pyramids
         res = self._track(frame, cur) if self.state.started else self._start(frame, cur)
-        if self.relocaliser is None:
-            return res
-        decision = self.relocaliser.check(frame, cur, res, n_prev)
-        if decision.relocalised.any():
-            res = self._relocalised(frame, cur, res, decision)
-        self.relocaliser.remember(frame, cur, res, decision)
-        return replace(res, loss=decision.loss)
+        trusted = frame.active
+        if self.relocaliser is not None:
+            decision = self.relocaliser.check(self.keyframes, frame, cur, res, n_prev)
+            if decision.relocalised.any():
+                res = self._relocalised(frame, cur, res, decision)
+            res, trusted = replace(res, loss=decision.loss), trusted & self.relocaliser.trusted(decision)
+        self._keyframe(frame, cur, self.keyframes.due(res.reselected, frame.active) & trusted, res.reselected)
+        return res
 
     def _track(self, frame: FrameBatch, cur: PreparedFrame) -> StepResult:
         """One frame after the first: track, weight, update, drop outliers, re-acquire landmarks, re-select."""
@@ -128,6 +133,8 @@ class Tracker:
         obs = Observation(
             dt.to(points_d.dtype), s.points_obj, points_d, track.points, valid, frame.K, frame.T_color_depth
         )
+        # more measurements of the current model join ``obs`` (and ``var``) here, e.g. re-acquired landmarks
+        # (:meth:`~torchtrack.pipeline.landmarks.Reacquired.observation`), so that the back end weighs them in its update
         est = self.backend.step(obs, var, active=frame.active)  # eqs. (2)-(7), (15)
         tracked = self._advanced(s, frame, cur, track.points, valid, est.T_cam_obj.double())  # and the outlier drop
         if self.landmarks is not None and self.landmarks.every > 0:
@@ -189,7 +196,8 @@ class Tracker:
         mask = frame.active & (since >= self.landmarks.every)
         if not mask.any():
             return replace(s, since_landmarks=since)
-        acq = self.landmarks.reacquire_into(self.flow, cur, frame.K, frame.T_color_depth, s, s.valid, mask)
+        acq = self.landmarks.reacquire_into(self.keyframes, self.flow, cur, frame.K, frame.T_color_depth, s, s.valid,
+                                            mask)  # fmt: skip
         found = acq.valid & mask[:, None]
         T_world_obj = torch.where(mask[:, None, None], acq.T_world_depth @ s.T_cam_obj, s.T_world_obj)
         points_obj = transform_points(T_inv(T_world_obj), acq.points_world).to(s.points_obj.dtype)
@@ -213,10 +221,11 @@ class Tracker:
         count = torch.zeros(B, dtype=torch.long, device=dev)
         s = TrackerState(timestamp=frame.timestamp, T_cam_obj=eye, T_world_obj=eye.clone(), velocity=zero,
                          since_landmarks=count, reacquired_total=count.clone())  # fmt: skip
+        self.keyframes.reset(B, dev)
         if self.landmarks is not None:
             self.landmarks.reset()
         if self.relocaliser is not None:
-            self.relocaliser.reset(B)
+            self.relocaliser.reset(B, self.keyframes.slots)
         everyone = torch.ones(B, dtype=torch.bool, device=dev)
         self.state, model_T_cam_obj = self._new_model(s, frame, cur, everyone)
         return _result(self.state, None, None, everyone, model_T_cam_obj=model_T_cam_obj)
@@ -224,11 +233,11 @@ class Tracker:
     def _new_model(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, mask: Tensor):
         """The state ``s`` after the sequences in ``mask`` (B,) took the current frame as their model: the features
         kept (survivors, re-acquired landmarks), then new PCM features (eq. 9), pose and chain; the back end starts
-        over there and the frame becomes a keyframe of the landmarks. Returns (the new state, the pose (B, 4, 4) the
+        over there. Returns (the new state, the pose (B, 4, 4) the
         back end was reset to, meaningful where ``mask``)."""
         kept, n_found, s = self._kept(s, frame, cur, mask)  # may correct T_world_obj (the landmarks' re-fit)
-        roi = self.reselect.region(self.region(cur.depth), cur.depth)
-        feats = self.select(cur.gray, cur.depth, frame.K, roi=roi, sim=cur.sim)  # eq. (9)
+        roi = self.reselect.roi(cur.depth)
+        feats = self.reselect.select(cur.gray, cur.depth, frame.K, roi=roi, sim=cur.sim)  # eq. (9)
         pixels, cornerness = feats.pixels, torch.stack([feats.cornerness_int, feats.cornerness_sim], -1)
         points_d, has_depth = measure_points(cur.depth, frame.K, frame.T_color_depth, pixels)
         valid = feats.valid & has_depth
@@ -257,12 +266,7 @@ class Tracker:
                                       state.valid)  # fmt: skip  # in the new layout: the next frame's prev_reproj cue
         state = replace(state, residuals=residuals)
         self.backend.reset(T_cam_obj, mask)
-        if self.landmarks is not None:  # the model frame is a keyframe, its features landmarks at their world positions
-            state = replace(state, since_landmarks=torch.where(mask, 0, state.since_landmarks))
-            world = transform_points(state.T_world_obj, state.points_obj.double())
-            self.landmarks.add(cur, frame.timestamp, state.T_world_depth, state.pixels, world, state.cornerness,
-                               state.valid, mask)  # fmt: skip
-        return state, T_cam_obj
+        return replace(state, since_landmarks=torch.where(mask, 0, state.since_landmarks)), T_cam_obj
 
     def _kept(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, mask: Tensor):
         """What a re-selection of the sequences in ``mask`` (B,) keeps before it selects new features, in the current
@@ -277,7 +281,7 @@ class Tracker:
         kept = Kept(s.pixels, transform_points(s.T_cam_obj.float(), s.points_obj.float()), keep, s.age, s.cornerness)
         if self.landmarks is None:
             return kept, None, s
-        acq = self.landmarks.reacquire_into(self.flow, cur, frame.K, frame.T_color_depth, s, keep, mask)
+        acq = self.landmarks.reacquire_into(self.keyframes, self.flow, cur, frame.K, frame.T_color_depth, s, keep, mask)
         T_world_depth = torch.where(mask[:, None, None], acq.T_world_depth, s.T_world_depth)
         found = acq.valid & mask[:, None]
         n_found = found.sum(1)
@@ -289,19 +293,32 @@ class Tracker:
     def _relocalised(self, frame: FrameBatch, cur: PreparedFrame, res: StepResult, dec: Relocalisation) -> StepResult:
         """Apply the relocaliser's decision: the sequences it relocalised take the current frame as a new model at the
         camera pose it found (its features are dropped first: they followed the wrong motion, so no survivor carries
-        over; a keyframe taken this frame at the lost pose is forgotten). Returns ``res`` with their new pose."""
+        over). Returns ``res`` with their new pose."""
         s, mask = self.state, dec.relocalised
         m3 = mask[:, None, None]
         T_world_obj = torch.where(m3, dec.T_world_depth.double() @ s.T_cam_obj, s.T_world_obj)
         s = replace(s, valid=s.valid & ~mask[:, None], T_world_obj=T_world_obj)
-        if self.landmarks is not None:
-            self.landmarks.forget(frame.timestamp, mask)
         self.state, T_model = self._new_model(s, frame, cur, mask)
         model = T_model if res.model_T_cam_obj is None else torch.where(m3, T_model, res.model_T_cam_obj)
         return replace(
             res, T_world_depth=torch.where(m3, self.state.T_world_depth, res.T_world_depth),
             reselected=res.reselected | mask, model_T_cam_obj=model,
         )  # fmt: skip
+
+    def _keyframe(self, frame: FrameBatch, cur: PreparedFrame, due: Tensor, reselected: Tensor) -> None:
+        """The current frame of the sequences in ``due`` (B,) becomes a keyframe at the camera pose of the state (where
+        ``reselected`` (B,) a model keyframe, with the new model's features; the landmarks' re-fit included); the
+        landmarks (model keyframes) and the relocaliser (every keyframe) attach their content to it."""
+        if not due.any():
+            return
+        s = self.state
+        slot = self.keyframes.add(frame.timestamp, s.T_world_depth, due, reselected)
+        if self.landmarks is not None:  # a model keyframe's features are landmarks at their world positions
+            world = transform_points(s.T_world_obj, s.points_obj.double())
+            model_slot = torch.where(reselected, slot, -1)
+            self.landmarks.add(self.keyframes, model_slot, cur, s.pixels, world, s.cornerness, s.valid)
+        if self.relocaliser is not None:
+            self.relocaliser.add(slot, frame, cur, s.T_world_depth)
 
 
 # ---------------------------------------------------------------------------------------------- helpers
