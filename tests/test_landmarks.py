@@ -99,12 +99,11 @@ def test_ring_keeps_the_last_keyframes_per_sequence():
         lm.add(store, slot, _Prepared(float(k)), pixels, world, torch.zeros(2, 6, 2), valid)
     assert store.count.tolist() == [5, 3]
     # sequence 0 holds keyframes 3, 4, 2 in slots 0, 1, 2; sequence 1 holds 0, 2, 4; slot 3 (a tracked keyframe): none
-    assert lm.gray[:, 0, 0, 0, 0].tolist() == [3.0, 4.0, 2.0, 0.0]
-    assert lm.gray[:, 1, 0, 0, 0].tolist() == [0.0, 2.0, 4.0, 0.0]
-    assert lm.sim[:, 1, 0, 0, 0].tolist() == [-0.0, -2.0, -4.0, 0.0]
+    assert lm.gray[:, 0, 0, 0, 0].tolist() == [3.0, 4.0, 2.0] and lm.gray[:, 1, 0, 0, 0].tolist() == [0.0, 2.0, 4.0]
+    assert lm.sim[:, 1, 0, 0, 0].tolist() == [-0.0, -2.0, -4.0]
     assert store.stamp.tolist() == [[3, 4, 2, -1], [0, 1, 2, -1]] and store.time[0, :3].tolist() == [3.0, 4.0, 2.0]
     assert store.newest_first(0) == [1, 0, 2] and store.newest_first(1) == [2, 1, 0]
-    assert lm.valid.sum(-1).tolist() == [[4, 4, 3, 0], [1, 3, 4, 0]]  # at most per_keyframe, valid ones first
+    assert lm.valid.sum(-1).tolist() == [[4, 4, 3], [1, 3, 4]]  # at most per_keyframe, valid ones first
     assert lm.world[0, 1, :, 0].tolist() == [4.0] * 4
 
 

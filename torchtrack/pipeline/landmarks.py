@@ -69,7 +69,8 @@ class Reacquired(NamedTuple):
 
 
 class LandmarkMap:
-    """The features of the keyframes of the tracker's :class:`KeyframeStore` as world landmarks, batched over B.
+    """The features of the model keyframes of the tracker's :class:`KeyframeStore` (its slots 0 .. size - 1) as world
+    landmarks, batched over B.
 
     Args:
         per_keyframe: landmarks kept per keyframe (the model's first valid features: survivors and re-acquired first).
@@ -149,15 +150,15 @@ class LandmarkMap:
 
     def add(self, store: KeyframeStore, slot: Tensor, cur: PreparedFrame, pixels: Tensor, points_world: Tensor,
             cornerness: Tensor, valid: Tensor) -> None:  # fmt: skip
-        """Attach the current frame's LK images and features to the keyframes ``slot`` (B,) of ``store`` just took
-        (-1: none): pixels (B, N, 2), points_world (B, N, 3) in the tracker's world, cornerness (B, N, 2), valid (B, N)
+        """Attach the current frame's LK images and features to the model keyframes ``slot`` (B,) of ``store`` just
+        took (-1: none; a tracked keyframe's slot is not one): pixels (B, N, 2), points_world (B, N, 3) in the tracker's world, cornerness (B, N, 2), valid (B, N)
         (the first ``per_keyframe`` valid ones are kept)."""
         if pixels.shape[:2] != valid.shape or points_world.shape[:2] != valid.shape or slot.shape != valid.shape[:1]:
             raise ValueError(f"LandmarkMap.add: pixels, points_world (B, N, .), valid (B, N), slot (B,); got "
                              f"{tuple(pixels.shape)}, {tuple(points_world.shape)}, {tuple(valid.shape)}, {tuple(slot.shape)}")  # fmt: skip
         gray, sim = cur.flow.images[0], (cur.flow.images[1] if cur.flow.has_sim else None)  # what LK tracks
         if self.gray is None:
-            self._allocate(store.slots, gray, sim)
+            self._allocate(store.size, gray, sim)
         rows = (slot >= 0).nonzero().squeeze(1)
         if len(rows) == 0:
             return
@@ -191,10 +192,10 @@ class LandmarkMap:
         inside &= (proj[..., 1] >= border) & (proj[..., 1] <= H - 1 - border)
         d = sample_depth(cur.depth, proj).double()
         visible = (z > 0.1) & inside & (d > 0) & (d >= z * (1 - self.occlusion))  # nothing nearer in front of it
-        live = (self.valid & store.live[..., None]).reshape(B, S * P)
+        live = (self.valid & store.live[:, :S, None]).reshape(B, S * P)  # the model keyframes' slots: 0 .. S-1
         ok = live & visible & mask[:, None] & self._similar_view(store, T_world_depth, world, X_cam)
         ok &= far_from(proj, tracked.float(), tracked_valid, self.min_separation_px)
-        age = store.stamp[:, :, None].expand(B, S, P).reshape(B, S * P)  # smaller = older keyframe
+        age = store.stamp[:, :S, None].expand(B, S, P).reshape(B, S * P)  # smaller = older keyframe
         key = torch.where(ok, age, torch.iinfo(torch.long).max)
         C = min(self.C, S * P)
         index = torch.sort(key, dim=1, stable=True).indices[:, :C]
@@ -211,12 +212,13 @@ class LandmarkMap:
         a window): the cameras' rotation and the two rays to the point differ by at most ``max_angle_deg`` and its
         depth by at most the ``max_scale`` ratio, so its window looks about the same."""
         B, S, P = self.valid.shape
-        R_rel = T_world_depth[:, None, :3, :3].double().transpose(-1, -2) @ store.T_world_kf[..., :3, :3]  # B,S,3,3
+        T_world_kf = store.T_world_kf[:, :S]  # the model keyframes'
+        R_rel = T_world_depth[:, None, :3, :3].double().transpose(-1, -2) @ T_world_kf[..., :3, :3]  # B,S,3,3
         near = torch.rad2deg(rotation_angle(R_rel)) <= self.max_angle_deg  # B,S
-        X_kf = transform_points(T_inv(store.T_world_kf).reshape(B * S, 4, 4), world.reshape(B * S, P, 3))
+        X_kf = transform_points(T_inv(T_world_kf).reshape(B * S, 4, 4), world.reshape(B * S, P, 3))
         ratio = X_cam[..., 2] / X_kf.reshape(B, S * P, 3)[..., 2].clamp_min(1e-6)
         scale_ok = (ratio <= self.max_scale) & (ratio >= 1 / self.max_scale)
-        ray_kf = world.reshape(B, S, P, 3) - store.T_world_kf[:, :, None, :3, 3]  # from each camera to the point
+        ray_kf = world.reshape(B, S, P, 3) - T_world_kf[:, :, None, :3, 3]  # from each camera to the point
         ray_cur = world - T_world_depth[:, None, :3, 3].double()
         cos_ray = torch.nn.functional.cosine_similarity(ray_kf.reshape(B, S * P, 3), ray_cur, dim=-1)
         parallax_ok = cos_ray >= math.cos(math.radians(self.max_angle_deg))
@@ -232,10 +234,10 @@ class LandmarkMap:
         the landmarks move the pose only as far as they outweigh the current model."""
         B = T_world_depth.shape[0]
         if self.gray is None:
-            self._allocate(store.slots, cur.flow.images[0], cur.flow.images[1] if cur.flow.has_sim else None)
+            self._allocate(store.size, cur.flow.images[0], cur.flow.images[1] if cur.flow.has_sim else None)
         index, ok, proj, X_pred = self.candidates(store, cur, K, T_color_depth, T_world_depth, tracked, tracked_valid,
                                                   mask)  # fmt: skip
-        S, P = store.slots, self.P
+        S, P = store.size, self.P
         slot = index // P
         kf_pix = self.pixels.reshape(B, S * P, 2).gather(1, index[..., None].expand(-1, -1, 2))
         pixels, good = proj.clone(), torch.zeros_like(ok)

@@ -1,4 +1,4 @@
-"""Tracking loss: a per-frame health signal, and relocalisation against recent model frames.
+"""Tracking loss: a per-frame health signal, and relocalisation against recent keyframes.
 
 After each frame the tracker's result is checked (:func:`frame_health`): the fraction of the previous frame's
 features that LK still tracked with depth, the fraction of those the filter rejected (gate, refit), and the
