@@ -56,7 +56,7 @@ class Tracker:
             one): a model frame, or a tracked frame every ``keyframes.every`` frames, with a trusted pose becomes a
             keyframe; the landmarks and the relocaliser attach their content to it.
         landmarks: improvement (None = paper): model points that outlive their model
-            (:class:`~torchtrack.pipeline.landmarks.LandmarkMap`), the keyframes' features: at a re-selection (and
+            (:class:`~torchtrack.pipeline.landmarks.LandmarkMap`), the model keyframes' features: at a re-selection (and
             every ``landmarks.every`` frames when > 0) the visible landmarks are re-tracked from their keyframe and
             join the model at their ORIGINAL world positions, after the survivors and before new features; with
             ``landmarks.correct`` the camera pose is first re-fitted to them by moving the model frame in the world.
