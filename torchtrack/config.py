@@ -173,6 +173,7 @@ class FrontendConfig:
     _target_: str = "torchtrack.frontend.FrontEnd"
     use_sim: bool = True  # compute the SIM (SIM-assisted tracking, lambda < 1 selection)
     sim_kwargs: dict[str, Any] | None = None
+    sim_backend: str = "auto"  # auto | cpp | torch: the SIM as the compiled operator (auto: where it builds) or pure torch
     ahead: bool = True  # prepare the next frame (SIM, pyramids) in a thread while this one is tracked; same results
 
 

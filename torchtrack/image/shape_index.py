@@ -275,7 +275,7 @@ def compute_sim(depth: Tensor, K: Tensor, backend: str = "auto", **kwargs) -> SI
 
     ``backend``: "cpp" runs the compiled operator ``torch.ops.torchtrack.shape_index_map`` (csrc/sim.cpp, the same
     stages in one pass each; :mod:`torchtrack.image.lk_op`), "torch" the functions above (the reference), "auto" the
-    operator where it builds (``frontend.sim_kwargs={backend: torch}`` selects the reference in a run).
+    operator where it builds (``frontend.sim_backend=torch`` selects the reference in a run).
     A batch is computed one image at a time (the same values within float error: other shapes sum in other orders;
     tests/tolerances.py): the temporaries of one 640x480 image stay in the CPU's
     cache, those of eight do not (measured at B=8: 52 ms instead of 75 ms per step)."""
