@@ -280,6 +280,21 @@ class RegistrationBackendConfig:
     estimator: Any = None
 
 
+@dataclass
+class WindowConfig:
+    """:class:`torchtrack.estimators.window.WindowRefiner`: robust LM over the last K keyframe poses and landmarks."""
+
+    _target_: str = "torchtrack.estimators.window.WindowRefiner"
+    iters: int = 10  # Levenberg-Marquardt iterations with the robust (IRLS) weights
+    polish_iters: int = 5  # ... then Gauss-Newton iterations on the inliers alone (unweighted by the loss)
+    loss: str = "huber"  # huber | cauchy | l2: on each block's whitened norm (3D point, pixel)
+    robust_quantile: float = 0.95  # the loss's scale: this chi-square quantile of the block's dof, in sigmas
+    inlier_quantile: float = 0.999  # a block is an inlier when its whitened squared norm is below this quantile
+    fix_first: bool = True  # gauge: the first (oldest) pose is fixed; else the poses' priors must fix it
+    damping: float = 1.0e-3  # initial LM damping (Marquardt: times the normal matrix's diagonal)
+    tol: float = 1.0e-10  # a window stops when its largest step (m, rad) is below this
+
+
 # --- the pipeline's policy --------------------------------------------------------------------------------------
 
 
