@@ -1,0 +1,126 @@
+"""Pose-warped templates for landmark re-acquisition: the keyframe's window seen from the predicted viewpoint.
+
+LK (eq. 10) tracks a translation of the template window; a landmark's window seen from a keyframe several frames
+(or degrees) away is rotated, scaled and sheared, and the translation that best explains it is biased. The plane
+through the landmark with the surface normal ``n`` (from the keyframe's depth) induces the homography
+
+    H_cur_kf = K (R + t n^T / d) K^-1,    d = n^T X_kf,                            (Hartley & Zisserman, eq. 13.2)
+
+with ``(R, t) = T_cur_kf`` between the colour cameras: a pixel of the plane in the keyframe maps to ``H x`` in the
+current frame. :func:`track_warped` samples the keyframe image through ``H^-1`` on a square crop of current-frame
+pixels around the predicted position (the template), crops the current image at the same integer origin, and runs
+the same pyramidal LK with the forward-backward (TIM) check between the two; the end point, plus the crop origin, is
+the re-acquired pixel. With ``H`` the translation that takes the keyframe pixel to the prediction, the same code is the
+unwarped template (the baseline the warp is measured against: experiments/warp_reacquire.py).
+
+References: Hartley & Zisserman, "Multiple View Geometry", §13.1; Molton, Davison & Reid, "Locally Planar Patch
+Features for Real-Time Structure from Motion", BMVC 2004 (patches warped by their normal).
+Frames: ``kf`` and ``cur`` are colour cameras; pixels are colour pixels, centres at integers.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from torchtrack.config import FlowConfig
+from torchtrack.geometry import backproject
+from torchtrack.image.lk import forward_backward
+
+
+def depth_normals(depth: Tensor, K: Tensor, pixels: Tensor, step: int = 3) -> tuple[Tensor, Tensor]:
+    """Unit surface normals (B, C, 3) in the camera at ``pixels`` (B, C, 2), from the depth map (B, 1, H, W) metres:
+    the cross product of central differences of the back-projected points ``step`` px apart (at the nearest pixel),
+    turned towards the camera. Returns (normals, valid (B, C)): the four neighbours and the centre have depth and
+    the differences are not parallel."""
+    B, C = pixels.shape[:2]
+    H, W = depth.shape[-2:]
+    centre = pixels.round().long()
+    offsets = torch.tensor([[step, 0], [-step, 0], [0, step], [0, -step]], device=pixels.device)
+    nb = (centre[:, :, None] + offsets).clamp_min(0)  # B,C,4,2
+    nb = torch.stack([nb[..., 0].clamp_max(W - 1), nb[..., 1].clamp_max(H - 1)], -1)
+    flat = depth.reshape(B, H * W)
+    z = flat.gather(1, (nb[..., 1] * W + nb[..., 0]).reshape(B, C * 4)).reshape(B, C, 4)
+    P = backproject(K, nb.reshape(B, C * 4, 2).to(depth.dtype), z.reshape(B, C * 4)).reshape(B, C, 4, 3)
+    n = torch.linalg.cross(P[:, :, 0] - P[:, :, 1], P[:, :, 2] - P[:, :, 3])
+    norm = n.norm(dim=-1, keepdim=True)
+    n = n / norm.clamp_min(1e-12)
+    ray = backproject(K, centre.to(depth.dtype), torch.ones(B, C, dtype=depth.dtype, device=depth.device))
+    n = torch.where((n * ray).sum(-1, keepdim=True) > 0, -n, n)  # facing the camera
+    return n, (z > 0).all(-1) & (norm[..., 0] > 1e-12)
+
+
+def plane_homography(K: Tensor, T_cur_kf: Tensor, points_kf: Tensor, normals_kf: Tensor) -> Tensor:
+    """(B, C, 3, 3) homographies ``K (R + t n^T / d) K^-1`` taking keyframe pixels to current pixels for the planes
+    through ``points_kf`` (B, C, 3) with normals ``normals_kf`` (B, C, 3), both in the keyframe's colour camera;
+    K (B, 3, 3); T_cur_kf (B, 4, 4) keyframe -> current colour camera."""
+    R, t = T_cur_kf[:, None, :3, :3], T_cur_kf[:, None, :3, 3:]
+    d = (normals_kf * points_kf).sum(-1)[..., None, None]  # B,C,1,1
+    Hm = R + t @ normals_kf[..., None, :] / d
+    return K[:, None] @ Hm @ torch.linalg.inv(K)[:, None]
+
+
+def translation_homography(kf_pixels: Tensor, predicted: Tensor) -> Tensor:
+    """(B, C, 3, 3) the translations taking ``kf_pixels`` (B, C, 2) to ``predicted`` (B, C, 2): the unwarped
+    template."""
+    Hm = torch.eye(3, dtype=predicted.dtype, device=predicted.device).repeat(*predicted.shape[:2], 1, 1)
+    Hm[..., :2, 2] = predicted - kf_pixels
+    return Hm
+
+
+def sample_through(image: Tensor, M: Tensor, size: int) -> Tensor:
+    """(B, C, ch, size, size) windows: pixel u of window c is ``image[b]`` (B, ch, H, W) bilinearly sampled at
+    ``M[b, c] (u, 1)`` (M (B, C, 3, 3), projective; zeros outside the image)."""
+    B, C = M.shape[:2]
+    H, W = image.shape[-2:]
+    r = torch.arange(size, dtype=M.dtype, device=M.device)
+    grid = torch.stack(torch.meshgrid(r, r, indexing="xy") + (torch.ones(size, size, dtype=M.dtype),), -1)  # S,S,3
+    p = torch.einsum("bcij,yxj->bcyxi", M, grid)
+    xy = p[..., :2] / p[..., 2:]
+    norm = torch.stack([2 * xy[..., 0] / (W - 1) - 1, 2 * xy[..., 1] / (H - 1) - 1], -1)
+    out = F.grid_sample(
+        image.to(norm.dtype), norm.reshape(B, C * size, size, 2), align_corners=True, padding_mode="zeros"
+    )
+    return out.reshape(B, image.shape[1], C, size, size).transpose(1, 2)
+
+
+class WarpedTrack(NamedTuple):
+    """pixels (B, C, 2) re-acquired colour pixels; status (B, C) tracked both ways; d_tim (B, C) eq. (10), px;
+    residual (B, C) LK's mean absolute intensity difference."""
+
+    pixels: Tensor
+    status: Tensor
+    d_tim: Tensor
+    residual: Tensor
+
+
+def track_warped(kf_image: Tensor, cur_image: Tensor, H_cur_kf: Tensor, kf_pixels: Tensor, predicted: Tensor,
+                 valid: Tensor, *, crop: int = 160, window: int = FlowConfig.window, levels: int = FlowConfig.levels,
+                 iters: int = FlowConfig.iters, eps: float = FlowConfig.eps, min_eig: float = FlowConfig.min_eig,
+                 ic_iters: int = FlowConfig.ic_iters) -> WarpedTrack:  # fmt: skip
+    """Track landmarks from the keyframe's template warped by ``H_cur_kf`` into the current image (module docstring).
+
+    Args:
+        kf_image, cur_image: (B, ch, H, W) the keyframe's and the current frame's LK images (intensity in [0, 1]).
+        H_cur_kf: (B, C, 3, 3) keyframe -> current pixels (:func:`plane_homography` or :func:`translation_homography`).
+        kf_pixels: (B, C, 2) the landmarks in the keyframe; predicted: (B, C, 2) ``H kf_pixels``, LK's start.
+        valid: (B, C) bool. crop: the square crop's side (px): the window at the coarsest level plus the search range.
+    """
+    B, C = kf_pixels.shape[:2]
+    origin = predicted.round() - crop // 2  # B,C,2 integer
+    shift = torch.eye(3, dtype=H_cur_kf.dtype, device=H_cur_kf.device).repeat(B, C, 1, 1)
+    shift[..., :2, 2] = origin.to(H_cur_kf.dtype)
+    template = sample_through(kf_image, torch.linalg.solve(H_cur_kf, shift), crop).float()  # B,C,ch,S,S
+    target = sample_through(cur_image, shift, crop).float()  # LK's images are float32
+    start = (predicted - origin).reshape(B * C, 1, 2).float()
+    fwd, _, d_tim = forward_backward(
+        template.reshape(B * C, *template.shape[2:]).contiguous(), target.reshape(B * C, *target.shape[2:]).contiguous(),
+        start, window=window, levels=levels, iters=iters, eps=eps, min_eig=min_eig, ic_iters=ic_iters,
+        valid=valid.reshape(B * C, 1),
+    )  # fmt: skip
+    pixels = fwd.points.reshape(B, C, 2).to(predicted.dtype) + origin
+    status = fwd.status.reshape(B, C) & valid
+    return WarpedTrack(pixels, status, d_tim.reshape(B, C), fwd.residual.reshape(B, C))
