@@ -82,11 +82,11 @@ def run(gap: int, seed: int, pose_err_deg: float, pose_err_m: float) -> dict:
                         mode="intensity", init=pred.float(), **kw)  # fmt: skip
     out["full"] = (fr.points.double(), fr.valid)
     Hc = translation_homography(px.double(), pred)
-    r = track_warped(g_kf.double(), g_cur.double(), Hc, px.double(), pred, visible, **kw)
+    r = track_warped(g_kf.double(), g_cur.double(), Hc, px.double(), visible, pred, **kw)
     out["crop"] = (r.pixels, r.status & (r.d_tim <= fl.tim_threshold))
     n, ok_n = depth_normals(d_kf.double(), K, px.double())
     Hw = plane_homography(K, T_pred[None], X_kf, n)
-    r = track_warped(g_kf.double(), g_cur.double(), Hw, px.double(), pred, visible & ok_n, **kw)
+    r = track_warped(g_kf.double(), g_cur.double(), Hw, px.double(), visible & ok_n, pred, **kw)
     out["warp"] = (r.pixels, r.status & (r.d_tim <= fl.tim_threshold))
     res = {"candidates": int(visible.sum())}
     for name, (p, ok) in out.items():

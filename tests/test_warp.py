@@ -84,10 +84,15 @@ def test_warped_template_tracks_a_known_homography_exactly(angle_deg, scale):
     H_pred = torch.eye(3, dtype=F64).repeat(1, 40, 1, 1)
     H_pred[..., :2, 2] = pred - truth
     H_pred = H_pred @ Hm  # the prediction's homography: the true one, moved by the start's offset
-    warped = track_warped(kf, cur, H_pred.expand(1, 40, 3, 3), px, pred, valid)
+    warped = track_warped(kf, cur, H_pred.expand(1, 40, 3, 3), px, valid, pred)
     e_w = (warped.pixels - truth).norm(dim=-1)[warped.status]
     assert warped.status.sum() >= 36 and e_w.max() < 0.1, e_w
-    plain = track_warped(kf, cur, translation_homography(px, pred), px, pred, valid)
+    two = track_warped(kf, cur, H_pred.expand(1, 40, 3, 3), px, valid, torch.stack([pred, pred + 3.0], 2))
+    assert two.pixels.shape == (1, 40, 2, 2)  # a second start (the re-acquisition's probe) per landmark
+    torch.testing.assert_close(two.pixels[:, :, 0], warped.pixels, rtol=0, atol=1e-9)
+    both = two.status.all(-1)
+    assert (two.pixels[:, :, 0] - two.pixels[:, :, 1]).norm(dim=-1)[both].max() < 0.05
+    plain = track_warped(kf, cur, translation_homography(px, pred), px, valid, pred)
     e_p = (plain.pixels - truth).norm(dim=-1)[plain.status]
     if angle_deg == 0:
         torch.testing.assert_close(plain.pixels, warped.pixels, rtol=0, atol=1e-3)

@@ -97,30 +97,45 @@ class WarpedTrack(NamedTuple):
     residual: Tensor
 
 
-def track_warped(kf_image: Tensor, cur_image: Tensor, H_cur_kf: Tensor, kf_pixels: Tensor, predicted: Tensor,
-                 valid: Tensor, *, crop: int = 160, window: int = FlowConfig.window, levels: int = FlowConfig.levels,
-                 iters: int = FlowConfig.iters, eps: float = FlowConfig.eps, min_eig: float = FlowConfig.min_eig,
-                 ic_iters: int = FlowConfig.ic_iters) -> WarpedTrack:  # fmt: skip
+def track_warped(kf_image: Tensor, cur_image: Tensor, H_cur_kf: Tensor, kf_pixels: Tensor, valid: Tensor,
+                 init: Tensor | None = None, *, crop: int = 160, window: int = FlowConfig.window,
+                 levels: int = FlowConfig.levels, iters: int = FlowConfig.iters, eps: float = FlowConfig.eps,
+                 min_eig: float = FlowConfig.min_eig, ic_iters: int = FlowConfig.ic_iters) -> WarpedTrack:  # fmt: skip
     """Track landmarks from the keyframe's template warped by ``H_cur_kf`` into the current image (module docstring).
 
     Args:
         kf_image, cur_image: (B, ch, H, W) the keyframe's and the current frame's LK images (intensity in [0, 1]).
         H_cur_kf: (B, C, 3, 3) keyframe -> current pixels (:func:`plane_homography` or :func:`translation_homography`).
-        kf_pixels: (B, C, 2) the landmarks in the keyframe; predicted: (B, C, 2) ``H kf_pixels``, LK's start.
-        valid: (B, C) bool. crop: the square crop's side (px): the window at the coarsest level plus the search range.
+        kf_pixels: (B, C, 2) the landmarks in the keyframe: the template's point is ``H kf_pixels``.
+        valid: (B, C) bool. init: (B, C, 2) or (B, C, J, 2) LK's start(s) in the current image (default: the
+            template's point); results are (B, C) or (B, C, J) accordingly.
+        crop: the square crop's side (px): the window at the coarsest level plus the search range.
     """
     B, C = kf_pixels.shape[:2]
-    origin = predicted.round() - crop // 2  # B,C,2 integer
+    q = apply_homography(H_cur_kf, kf_pixels)
+    init = q if init is None else init
+    J = 1 if init.dim() == 3 else init.shape[2]
+    origin = q.round() - crop // 2  # B,C,2 integer
     shift = torch.eye(3, dtype=H_cur_kf.dtype, device=H_cur_kf.device).repeat(B, C, 1, 1)
     shift[..., :2, 2] = origin.to(H_cur_kf.dtype)
     template = sample_through(kf_image, torch.linalg.solve(H_cur_kf, shift), crop).float()  # B,C,ch,S,S
     target = sample_through(cur_image, shift, crop).float()  # LK's images are float32
-    start = (predicted - origin).reshape(B * C, 1, 2).float()
+    o = origin[:, :, None].to(init.dtype)
+    points = (q[:, :, None] - o).expand(B, C, J, 2).reshape(B * C, J, 2).float()
+    start = (init.reshape(B, C, J, 2) - o).reshape(B * C, J, 2).float()
+    ok = valid[:, :, None].expand(B, C, J).reshape(B * C, J)
     fwd, _, d_tim = forward_backward(
         template.reshape(B * C, *template.shape[2:]).contiguous(), target.reshape(B * C, *target.shape[2:]).contiguous(),
-        start, window=window, levels=levels, iters=iters, eps=eps, min_eig=min_eig, ic_iters=ic_iters,
-        valid=valid.reshape(B * C, 1),
+        points, init=start, valid=ok, window=window, levels=levels, iters=iters, eps=eps, min_eig=min_eig,
+        ic_iters=ic_iters,
     )  # fmt: skip
-    pixels = fwd.points.reshape(B, C, 2).to(predicted.dtype) + origin
-    status = fwd.status.reshape(B, C) & valid
-    return WarpedTrack(pixels, status, d_tim.reshape(B, C), fwd.residual.reshape(B, C))
+    shape = (B, C, 2) if init.dim() == 3 else (B, C, J, 2)
+    pixels = (fwd.points.reshape(B, C, J, 2).to(init.dtype) + o).reshape(shape)
+    status = (fwd.status & ok).reshape(shape[:-1])
+    return WarpedTrack(pixels, status, d_tim.reshape(shape[:-1]), fwd.residual.reshape(shape[:-1]))
+
+
+def apply_homography(Hm: Tensor, x: Tensor) -> Tensor:
+    """(..., 2) pixels ``x`` (..., 2) through the homographies ``Hm`` (..., 3, 3)."""
+    p = (Hm @ torch.cat([x.to(Hm.dtype), torch.ones_like(x[..., :1], dtype=Hm.dtype)], -1)[..., None])[..., 0]
+    return p[..., :2] / p[..., 2:]
