@@ -27,7 +27,7 @@ from torchtrack.data.synthetic import SyntheticConfig, default_scene, render_fra
 from torchtrack.geometry import T_inv, backproject, project, se3_exp, transform_points
 from torchtrack.image.corners import harris
 from torchtrack.image.flow import combined_track, prepare_frame
-from torchtrack.image.warp import depth_normals, plane_homography, track_warped, translation_homography
+from torchtrack.image.warp import track_warped, translation_homography, warped_landmark_tracks
 
 
 def gray(rgb: torch.Tensor) -> torch.Tensor:
@@ -84,9 +84,11 @@ def run(gap: int, seed: int, pose_err_deg: float, pose_err_m: float) -> dict:
     Hc = translation_homography(px.double(), pred)
     r = track_warped(g_kf.double(), g_cur.double(), Hc, px.double(), visible, pred, **kw)
     out["crop"] = (r.pixels, r.status & (r.d_tim <= fl.tim_threshold))
-    n, ok_n = depth_normals(d_kf.double(), K, px.double())
-    Hw = plane_homography(K, T_pred[None], X_kf, n)
-    r = track_warped(g_kf.double(), g_cur.double(), Hw, px.double(), visible & ok_n, pred, **kw)
+    T_world_kf = poses.T_world_cam[0].double()[None]
+    world = transform_points(T_world_kf, X_kf)  # the landmarks (depth registered: colour = depth camera)
+    r = warped_landmark_tracks(g_kf, d_kf, g_cur, K, torch.eye(4, dtype=torch.float64)[None], T_world_kf,
+                               T_world_kf @ T_inv(T_pred)[None], world, px, pred[:, :, None], visible, **kw)  # fmt: skip
+    r = r._replace(pixels=r.pixels[:, :, 0], status=r.status[:, :, 0], d_tim=r.d_tim[:, :, 0])
     out["warp"] = (r.pixels, r.status & (r.d_tim <= fl.tim_threshold))
     res = {"candidates": int(visible.sum())}
     for name, (p, ok) in out.items():

@@ -27,7 +27,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchtrack.config import FlowConfig
-from torchtrack.geometry import backproject
+from torchtrack.geometry import T_inv, backproject, transform_points
 from torchtrack.image.lk import forward_backward
 
 
@@ -139,3 +139,20 @@ def apply_homography(Hm: Tensor, x: Tensor) -> Tensor:
     """(..., 2) pixels ``x`` (..., 2) through the homographies ``Hm`` (..., 3, 3)."""
     p = (Hm @ torch.cat([x.to(Hm.dtype), torch.ones_like(x[..., :1], dtype=Hm.dtype)], -1)[..., None])[..., 0]
     return p[..., :2] / p[..., 2:]
+
+
+def warped_landmark_tracks(kf_gray: Tensor, kf_depth: Tensor, cur_gray: Tensor, K: Tensor, T_color_depth: Tensor,
+                           T_world_kf: Tensor, T_world_depth: Tensor, world: Tensor, kf_pixels: Tensor, starts: Tensor,
+                           valid: Tensor, **lk) -> WarpedTrack:  # fmt: skip
+    """Landmarks re-tracked from one keyframe with pose-warped templates: the plane homography of each landmark (its
+    world position ``world`` (B, C, 3) seen from the keyframe camera ``T_world_kf`` (B, 4, 4), the normal from the
+    keyframe's depth ``kf_depth`` (B, 1, H, W, registered to colour) at ``kf_pixels`` (B, C, 2)) between the keyframe
+    and the current camera ``T_world_depth`` (B, 4, 4), then :func:`track_warped` from ``kf_gray`` into ``cur_gray``
+    (B, 1, H, W) started at ``starts`` (B, C, J, 2). Landmarks without a normal are not tracked. ``lk``: LK settings."""
+    T_cd = T_color_depth.double()
+    T_kf_col = T_world_kf.double() @ T_inv(T_cd)  # keyframe colour camera -> world
+    T_cur_kf = T_cd @ T_inv(T_world_depth.double()) @ T_kf_col  # keyframe colour -> current colour camera
+    X_kf = transform_points(T_inv(T_kf_col), world.double())
+    normals, has_normal = depth_normals(kf_depth.double(), K.double(), kf_pixels.double())
+    Hm = plane_homography(K.double(), T_cur_kf, X_kf, normals)
+    return track_warped(kf_gray, cur_gray, Hm, kf_pixels.double(), valid & has_normal, starts.double(), **lk)
