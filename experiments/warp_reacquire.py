@@ -50,7 +50,7 @@ def corners(g: torch.Tensor, depth: torch.Tensor, cell: int = 20, border: int = 
     return torch.stack([x, y], -1)[keep][None].float()
 
 
-def run(gap: int, seed: int, pose_err_deg: float, pose_err_m: float) -> dict:
+def run(gap: int, seed: int, pose_err_deg: float, pose_err_m: float, crop: int = 160) -> dict:
     cfg = SyntheticConfig(frames=gap + 1, seed=seed, mode="scene", noise="none", trans_step_m=0.015, rot_step_deg=1.5)
     scene, poses = default_scene(cfg), sequence_poses(cfg)
     kf, cur = render_frame(scene, poses.T_world_cam[0]), render_frame(scene, poses.T_world_cam[gap])
@@ -78,8 +78,9 @@ def run(gap: int, seed: int, pose_err_deg: float, pose_err_m: float) -> dict:
     out = {}
     fl = FlowConfig()
     kw = dict(window=fl.window, levels=fl.levels, iters=fl.iters, eps=fl.eps, min_eig=fl.min_eig, ic_iters=fl.ic_iters)
+    full_kw, kw = dict(kw), dict(kw, crop=crop)
     fr = combined_track(prepare_frame(g_kf, None, fl.levels), prepare_frame(g_cur, None, fl.levels), px, visible,
-                        mode="intensity", init=pred.float(), **kw)  # fmt: skip
+                        mode="intensity", init=pred.float(), **full_kw)  # fmt: skip
     out["full"] = (fr.points.double(), fr.valid)
     Hc = translation_homography(px.double(), pred)
     r = track_warped(g_kf.double(), g_cur.double(), Hc, px.double(), visible, pred, **kw)
@@ -113,13 +114,14 @@ def main() -> None:
     p.add_argument("--pose-err-deg", type=float, default=1.0)
     p.add_argument("--pose-err-m", type=float, default=0.01)
     p.add_argument("--json", help="write the per-gap errors here")
+    p.add_argument("--crop", type=int, default=160, help="side of the warped crops (px)")
     a = p.parse_args()
     torch.set_num_threads(1)
     table = {}
     for gap in a.gaps:
         agg = {"candidates": 0, "full": [], "crop": [], "warp": []}
         for seed in a.seeds:
-            r = run(gap, seed, a.pose_err_deg, a.pose_err_m)
+            r = run(gap, seed, a.pose_err_deg, a.pose_err_m, a.crop)
             agg["candidates"] += r["candidates"]
             for k in ("full", "crop", "warp"):
                 agg[k] += r[k]
