@@ -73,18 +73,33 @@ def translation_homography(kf_pixels: Tensor, predicted: Tensor) -> Tensor:
 
 def sample_through(image: Tensor, M: Tensor, size: int) -> Tensor:
     """(B, C, ch, size, size) windows: pixel u of window c is ``image[b]`` (B, ch, H, W) bilinearly sampled at
-    ``M[b, c] (u, 1)`` (M (B, C, 3, 3), projective; zeros outside the image)."""
+    ``M[b, c] (u, 1)`` (M (B, C, 3, 3), projective; zeros outside the image). Coordinates in float32 (1e-4 px at
+    1000 px), sampled in the image's dtype."""
     B, C = M.shape[:2]
     H, W = image.shape[-2:]
-    r = torch.arange(size, dtype=M.dtype, device=M.device)
-    grid = torch.stack(torch.meshgrid(r, r, indexing="xy") + (torch.ones(size, size, dtype=M.dtype),), -1)  # S,S,3
-    p = torch.einsum("bcij,yxj->bcyxi", M, grid)
-    xy = p[..., :2] / p[..., 2:]
-    norm = torch.stack([2 * xy[..., 0] / (W - 1) - 1, 2 * xy[..., 1] / (H - 1) - 1], -1)
-    out = F.grid_sample(
-        image.to(norm.dtype), norm.reshape(B, C * size, size, 2), align_corners=True, padding_mode="zeros"
-    )
+    M = M.float()
+    r = torch.arange(size, dtype=torch.float32, device=M.device)
+    u, v = r.view(1, 1, 1, size), r.view(1, 1, size, 1)
+    p = [M[:, :, i, 0, None, None] * u + M[:, :, i, 1, None, None] * v + M[:, :, i, 2, None, None] for i in range(3)]
+    gx = p[0] / p[2] * (2.0 / (W - 1)) - 1
+    gy = p[1] / p[2] * (2.0 / (H - 1)) - 1
+    grid = torch.stack([gx, gy], -1).reshape(B, C * size, size, 2).to(image.dtype)
+    out = F.grid_sample(image, grid, align_corners=True, padding_mode="zeros")
     return out.reshape(B, image.shape[1], C, size, size).transpose(1, 2)
+
+
+def crop_at(image: Tensor, origin: Tensor, size: int) -> Tensor:
+    """(B, C, ch, size, size) crops of ``image`` (B, ch, H, W) whose pixel (0, 0) is at the integer ``origin`` (B, C, 2)
+    (x, y); zeros outside the image (:func:`sample_through` of a translation, without interpolation)."""
+    B, ch, H, W = image.shape
+    C = origin.shape[1]
+    r = torch.arange(size, device=image.device)
+    x = origin[..., 0].long()[..., None] + r  # B,C,S
+    y = origin[..., 1].long()[..., None] + r
+    inside = ((x >= 0) & (x < W))[:, :, None, :] & ((y >= 0) & (y < H))[:, :, :, None]  # B,C,S,S
+    flat = (y.clamp(0, H - 1)[:, :, :, None] * W + x.clamp(0, W - 1)[:, :, None, :]).reshape(B, 1, C * size * size)
+    out = image.reshape(B, ch, H * W).gather(2, flat.expand(B, ch, -1)).reshape(B, ch, C, size, size)
+    return (out * inside[:, None].to(out.dtype)).transpose(1, 2)
 
 
 class WarpedTrack(NamedTuple):
@@ -118,8 +133,8 @@ def track_warped(kf_image: Tensor, cur_image: Tensor, H_cur_kf: Tensor, kf_pixel
     origin = q.round() - crop // 2  # B,C,2 integer
     shift = torch.eye(3, dtype=H_cur_kf.dtype, device=H_cur_kf.device).repeat(B, C, 1, 1)
     shift[..., :2, 2] = origin.to(H_cur_kf.dtype)
-    template = sample_through(kf_image, torch.linalg.solve(H_cur_kf, shift), crop).float()  # B,C,ch,S,S
-    target = sample_through(cur_image, shift, crop).float()  # LK's images are float32
+    template = sample_through(kf_image.float(), torch.linalg.solve(H_cur_kf, shift), crop)  # B,C,ch,S,S float32
+    target = crop_at(cur_image.float(), origin, crop)  # LK's images are float32
     o = origin[:, :, None].to(init.dtype)
     points = (q[:, :, None] - o).expand(B, C, J, 2).reshape(B * C, J, 2).float()
     start = (init.reshape(B, C, J, 2) - o).reshape(B * C, J, 2).float()
