@@ -50,7 +50,7 @@ def corners(g: torch.Tensor, depth: torch.Tensor, cell: int = 20, border: int = 
     return torch.stack([x, y], -1)[keep][None].float()
 
 
-def run(gap: int, seed: int, pose_err_deg: float, pose_err_m: float, crop: int = 160) -> dict:
+def run(gap: int, seed: int, pose_err_deg: float, pose_err_m: float, crop: int = 96) -> dict:
     cfg = SyntheticConfig(frames=gap + 1, seed=seed, mode="scene", noise="none", trans_step_m=0.015, rot_step_deg=1.5)
     scene, poses = default_scene(cfg), sequence_poses(cfg)
     kf, cur = render_frame(scene, poses.T_world_cam[0]), render_frame(scene, poses.T_world_cam[gap])
@@ -114,7 +114,7 @@ def main() -> None:
     p.add_argument("--pose-err-deg", type=float, default=1.0)
     p.add_argument("--pose-err-m", type=float, default=0.01)
     p.add_argument("--json", help="write the per-gap errors here")
-    p.add_argument("--crop", type=int, default=160, help="side of the warped crops (px)")
+    p.add_argument("--crop", type=int, default=96, help="side of the warped crops (px)")
     a = p.parse_args()
     torch.set_num_threads(1)
     table = {}

@@ -113,7 +113,7 @@ class WarpedTrack(NamedTuple):
 
 
 def track_warped(kf_image: Tensor, cur_image: Tensor, H_cur_kf: Tensor, kf_pixels: Tensor, valid: Tensor,
-                 init: Tensor | None = None, *, crop: int = 160, window: int = FlowConfig.window,
+                 init: Tensor | None = None, *, crop: int = 96, window: int = FlowConfig.window,
                  levels: int = FlowConfig.levels, iters: int = FlowConfig.iters, eps: float = FlowConfig.eps,
                  min_eig: float = FlowConfig.min_eig, ic_iters: int = FlowConfig.ic_iters) -> WarpedTrack:  # fmt: skip
     """Track landmarks from the keyframe's template warped by ``H_cur_kf`` into the current image (module docstring).
