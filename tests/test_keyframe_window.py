@@ -38,13 +38,13 @@ def _scene(B=2, S=3, P=8, L=12, C=6, seed=0):
                 valid=valid, world=world, h_now=h[:, S].gather(1, now[..., None].expand(-1, -1, 5)))  # fmt: skip
 
 
-def _run(d, T_kf, T_now, world, world_now):
+def _run(d, T_kf, T_now, world, world_now, has_xyz=None):
     B, S, P = d["ident"].shape
     one = torch.ones(B, S, dtype=F64)
     return refine_keyframes(T_kf, d["stamp"], d["ident"], d["pix"], d["pts"], d["valid"], world, one, 1e-4 * one,
                             T_now, d["now"], d["h_now"][..., 3:], d["h_now"][..., :3],
                             torch.ones_like(d["now"], dtype=torch.bool), world_now, torch.ones(B, dtype=F64),
-                            1e-4 * torch.ones(B, dtype=F64), d["K"], d["T_cd"])  # fmt: skip
+                            1e-4 * torch.ones(B, dtype=F64), d["K"], d["T_cd"], has_xyz=has_xyz)  # fmt: skip
 
 
 def test_exact_keyframes_are_recovered_around_the_oldest():
@@ -58,7 +58,8 @@ def test_exact_keyframes_are_recovered_around_the_oldest():
     T_now = noise((B,), 0.01) @ d["T_world_cam"][:, S]
     world = d["world"] + 0.01 * torch.randn(d["world"].shape, generator=g, dtype=F64)
     world_now = d["X"].gather(1, d["now"][..., None].expand(-1, -1, 3)) + 0.01
-    out = _run(d, T_kf, T_now, world, world_now)
+    has_xyz = torch.rand(B, S, P, generator=g) > 0.3  # some keyframe observations are pixels only
+    out = _run(d, T_kf, T_now, world, world_now, has_xyz)
     assert bool(out.used.all()) and bool(out.inlier_now.all())
     torch.testing.assert_close(out.T_world_depth, d["T_world_cam"][:, S], rtol=0, atol=1e-9)
     ok = d["stamp"] >= 0

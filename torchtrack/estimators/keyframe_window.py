@@ -47,7 +47,7 @@ def refine_keyframes(
     T_world_kf: Tensor, stamp: Tensor, ident: Tensor, pixels: Tensor, points: Tensor, valid: Tensor, world: Tensor,
     var_pix: Tensor, var_xyz: Tensor, T_world_depth: Tensor, ident_now: Tensor, pixels_now: Tensor,
     points_now: Tensor, valid_now: Tensor, world_now: Tensor, var_pix_now: Tensor, var_xyz_now: Tensor, K: Tensor,
-    T_color_depth: Tensor, refine=refine_window,
+    T_color_depth: Tensor, refine=refine_window, has_xyz: Tensor | None = None,
 ) -> KeyframeWindow:  # fmt: skip
     """Refine the keyframes, the current camera and the landmarks seen at least twice (module docstring).
 
@@ -60,6 +60,8 @@ def refine_keyframes(
             valid_now (B, C), world_now (B, C, 3): the re-acquired landmarks; var_pix_now, var_xyz_now: (B,).
         K: (B, 3, 3) colour intrinsics; T_color_depth: (B, 4, 4). refine: the solver (a configured
             :class:`~torchtrack.estimators.window.WindowRefiner` or :func:`refine_window`).
+        has_xyz: (B, S, P) bool, the slots' features whose 3D point was measured there (default: all valid); the
+            others give their pixel only (a landmark re-acquired into a keyframe keeps its original position).
     """
     B, S, P = ident.shape
     C = ident_now.shape[1]
@@ -92,6 +94,11 @@ def refine_keyframes(
     z_pix = zeros(2).scatter(1, flat[..., None].expand(-1, -1, 2), pix_all)[:, :-1]
     z_pts = zeros(3).scatter(1, flat[..., None].expand(-1, -1, 3), pts_all)[:, :-1]
     ok = torch.zeros(B, Kn * U + 1, dtype=torch.bool, device=ident.device).scatter(1, flat, in_win)[:, :-1]
+    xyz_all = torch.ones_like(in_win) if has_xyz is None else torch.cat(
+        [take(has_xyz).reshape(B, S * P), torch.ones_like(valid_now)], 1)  # fmt: skip
+    ok_xyz = torch.zeros(B, Kn * U + 1, dtype=torch.bool, device=ident.device).scatter(1, flat, in_win & xyz_all)[
+        :, :-1
+    ]
     to_col = torch.where(in_win, obs_col, U)[..., None].expand(-1, -1, 3)
     X0 = torch.zeros(B, U + 1, 3, **f64).scatter(1, to_col, wld_all)[:, :-1]
     vp = torch.cat([take(var_pix.to(**f64)), var_pix_now.to(**f64)[:, None]], 1)  # B,K
@@ -99,8 +106,9 @@ def refine_keyframes(
     T_world_cam = torch.cat([take(T_world_kf.to(**f64)), T_world_depth.to(**f64)[:, None]], 1)
     pose_valid = torch.cat([slot_ok, torch.ones(B, 1, dtype=torch.bool, device=ident.device)], 1)
     ok = ok.reshape(B, Kn, U) & pose_valid[..., None]
+    ok_xyz = ok_xyz.reshape(B, Kn, U) & ok
     res = refine(T_inv(T_world_cam), X0, z_pts.reshape(B, Kn, U, 3), z_pix.reshape(B, Kn, U, 2),
-                 vx[..., None].expand(B, Kn, U), vp[..., None].expand(B, Kn, U), ok, ok, K, T_color_depth,
+                 vx[..., None].expand(B, Kn, U), vp[..., None].expand(B, Kn, U), ok_xyz, ok, K, T_color_depth,
                  pose_valid=pose_valid)  # fmt: skip
     used = in_win.any(1)
     T_new = T_inv(res.T_cam_world)  # B,K,4,4 in the window's order
