@@ -53,8 +53,8 @@ from omegaconf import DictConfig
 from torch.utils._python_dispatch import TorchDispatchMode
 
 import torchtrack.frontend as frontend_module
+import torchtrack.pipeline.tracker as tracker_module
 import torchtrack.run as run_module
-import torchtrack.tracker as tracker_module
 from torchtrack.config import CONF_DIR
 from torchtrack.factory import build_sequences, build_tracker
 from torchtrack.runtime import configure
@@ -357,7 +357,7 @@ def parallel_processes(args, overrides: list[str], processes: int, per_process: 
 
 _FIRST_FRAME = """
 import os, sys, time
-import torchtrack.tracker as T
+import torchtrack.pipeline.tracker as T
 step = T.Tracker.step
 def first(self, frame):
     out = step(self, frame)
