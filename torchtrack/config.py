@@ -294,6 +294,7 @@ class WindowConfig:
     damping: float = 1.0e-3  # initial LM damping (Marquardt: times the normal matrix's diagonal)
     tol: float = 1.0e-10  # a window stops when its largest step (m, rad) is below this
 
+
 # --- the pipeline and its stages ------------------------------------------------------------------------------
 # The tracker (torchtrack.pipeline.Tracker) is composed of stage objects, each built by the factory from its own group:
 # the per-frame stages above (region, select, flow, weighting, tracker = the back end) and the policy stages below
@@ -364,6 +365,12 @@ class LandmarkConfig:
     converge_px: float = 0.5  # a second LK started probe_px away must end within this of the first
     probe_px: float = 3.0
     every: int = 0  # also every this many frames into the current model (0: only at re-selections)
+    # issue 24 (measured on and off in RESULTS.md): the re-acquired landmarks enter the back end's update (a second
+    # update of the frame, dt = 0, their variance the frame's plus their stored position's) instead of ``correct``'s
+    # re-fit outside the filter (``correct`` is then not applied)
+    measure: bool = False
+    warp: bool = False  # re-track them from pose-warped templates (plane homography, normal from the keyframe depth)
+    warp_crop: int = 96  # ... the side (px) of the warped crops
 
 
 @dataclass
