@@ -25,6 +25,7 @@ from torch import Tensor
 
 from torchtrack.config import LandmarkConfig, PaperWeightingConfig, ReselectConfig
 from torchtrack.estimators.backends import Observation
+from torchtrack.estimators.window import WindowRefiner
 from torchtrack.filter.models import measure_points
 from torchtrack.frontend import PreparedFrame
 from torchtrack.geometry import (
@@ -40,6 +41,7 @@ from torchtrack.geometry import (
 from torchtrack.image.flow import FlowFrame, TrackResult, prepare_frame
 from torchtrack.image.warp import warped_landmark_tracks
 from torchtrack.pipeline.keyframes import KeyframeStore
+from torchtrack.pipeline.landmark_window import Identities
 from torchtrack.pipeline.reselect import far_from
 
 
@@ -121,6 +123,7 @@ class LandmarkMap:
         measure: bool = LandmarkConfig.measure,
         warp: bool = LandmarkConfig.warp,
         warp_crop: int = LandmarkConfig.warp_crop,
+        refine: bool = LandmarkConfig.refine,
     ) -> None:
         if per_keyframe < 1 or max_candidates < 1:
             raise ValueError(f"LandmarkMap: per_keyframe and max_candidates must be >= 1, got "
@@ -136,6 +139,7 @@ class LandmarkMap:
             raise ValueError(f"landmarks.every must be >= 0, got {every}")
         self.every = every
         self.measure, self.warp, self.warp_crop = measure, warp, warp_crop
+        self.refiner = WindowRefiner() if refine else None  # the keyframe window (torchtrack.pipeline.landmark_window)
         self.reset()
 
     def reset(self) -> None:
@@ -145,6 +149,8 @@ class LandmarkMap:
         self.pixels = self.world = self.cornerness = self.valid = None  # (B, S, P, ...) the keyframes' features
         self.depth = None  # (S, B, 1, H, W) the keyframes' depth (registered to colour), with ``warp``
         self.var_kf = None  # (B, S) m^2 the keyframes' 3D variance: their landmarks' position variance
+        self.ids: Identities | None = None  # with ``refine``: landmark identities across keyframes
+        self.last_ident = self.survivor_ident = None  # of the last re-acquisition's landmarks (B, C) and survivors
 
     def _allocate(self, S: int, gray: Tensor, sim: Tensor | None) -> None:
         P, B, dev = self.P, gray.shape[0], gray.device
@@ -155,6 +161,7 @@ class LandmarkMap:
         self.cornerness = torch.zeros(B, S, P, 2, device=dev)
         self.valid = torch.zeros(B, S, P, dtype=torch.bool, device=dev)
         self.var_kf = torch.full((B, S), PaperWeightingConfig.sigma2_xyz, dtype=torch.float64, device=dev)
+        self.ids = Identities(B, S, P, dev) if self.refiner is not None else None
 
     def add(self, store: KeyframeStore, slot: Tensor, cur: PreparedFrame, pixels: Tensor, points_world: Tensor,
             cornerness: Tensor, valid: Tensor, var_xyz: Tensor | None = None) -> None:  # fmt: skip
@@ -184,6 +191,9 @@ class LandmarkMap:
         self.valid[rows, slot] = _take(valid, order, self.P)[rows]
         if var_xyz is not None:
             self.var_kf[rows, slot] = var_xyz.double()[rows]
+        if self.ids is not None:
+            self.ids.assign(rows, slot, self.pixels[rows, slot], self.valid[rows, slot], self.world[rows, slot],
+                            store.T_world_kf[rows, slot])  # fmt: skip
         if self.warp:  # the normals of the warped templates come from the keyframe's depth
             if self.depth is None:
                 self.depth = torch.zeros(self.gray.shape[0], *cur.depth.shape, dtype=cur.depth.dtype,
@@ -299,6 +309,14 @@ class LandmarkMap:
             T_world_depth, inl = self._corrected(K, T_color_depth, T_world_depth, world, pixels_fit, X_fit, good_fit, n)
             world, good = world[:, :n], inl[:, :n]
         var_world = self.var_kf.gather(1, slot)
+        if self.ids is not None:  # the identities the next keyframe's features carry (survivors, re-acquired)
+            self.last_ident = self.ids.ident.reshape(B, S * P).gather(1, index)
+            newest = torch.where(self.valid.any(-1), store.stamp, -1).argmax(1)  # the current model's keyframe
+            rows = torch.arange(B, device=index.device)
+            tw = tracked_world if tracked_world is not None else torch.full((*tracked.shape[:2], 3), torch.inf)
+            self.survivor_ident = self.ids.note(tracked, tw, tracked_valid, self.world[rows, newest],
+                                                self.ids.ident[rows, newest], self.valid[rows, newest], pixels,
+                                                self.last_ident, good & mask[:, None])  # fmt: skip
         return Reacquired(pixels, world, X_meas, corner, good, T_world_depth, var_world)
 
     def _warped(self, s: int, flow: Callable, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor,

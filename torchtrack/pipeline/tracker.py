@@ -34,6 +34,7 @@ from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, s
 from torchtrack.image.flow import TrackResult
 from torchtrack.learn.cues import stack_cues
 from torchtrack.pipeline.keyframes import KeyframeStore
+from torchtrack.pipeline.landmark_window import refine_at_reselection
 from torchtrack.pipeline.landmarks import LandmarkMap
 from torchtrack.pipeline.outliers import ResidualDrop, feature_residuals
 from torchtrack.pipeline.relocalise import Relocalisation, Relocaliser
@@ -294,6 +295,8 @@ class Tracker:
                                   acq.pixels, acq.valid & mask[:, None], lm_var, frame.K, frame.T_color_depth)  # fmt: skip
             s = replace(s, T_cam_obj=upd.T_cam_obj)
             acq = acq._replace(valid=acq.valid & (upd.used | ~upd.updated[:, None]), T_world_depth=s.T_world_depth)
+        if self.landmarks.refiner is not None and self._frame_var is not None:  # issue 24: the keyframe window
+            s, acq = self._refined(s, acq, frame, cur, keep, mask)
         T_world_depth = torch.where(mask[:, None, None], acq.T_world_depth, s.T_world_depth)
         found = acq.valid & mask[:, None]
         n_found = found.sum(1)
@@ -301,6 +304,23 @@ class Tracker:
         points = transform_points(T_inv(T_world_depth), acq.points_world).float()  # the ORIGINAL world positions
         return kept.cat(Kept(acq.pixels, points, found, torch.zeros_like(found, dtype=torch.long), acq.cornerness)), \
             n_found, s  # fmt: skip
+
+    def _refined(self, s: TrackerState, acq, frame: FrameBatch, cur: PreparedFrame, keep: Tensor, mask: Tensor):
+        """``s`` and ``acq`` after the keyframe window's refinement (:mod:`torchtrack.pipeline.landmark_window`): the
+        refined camera becomes the back end's pose (``set_pose``), the re-acquired landmarks take their refined
+        positions and inliers."""
+        var, valid = self._frame_var
+        n = valid.sum(1).clamp_min(1)
+        v_pix, v_xyz = (var.var_pix * valid).sum(1) / n, (var.var_xyz * valid).sum(1) / n
+        X_tr, has = measure_points(cur.depth, frame.K, frame.T_color_depth, s.pixels)
+        world = transform_points(s.T_world_obj, s.points_obj.double())
+        ref = refine_at_reselection(self.landmarks, self.keyframes, self.landmarks.refiner, acq, s.pixels, keep & has,
+                                    X_tr, world, self.landmarks.survivor_ident, s.T_world_depth, v_pix, v_xyz, frame.K,
+                                    frame.T_color_depth, mask)  # fmt: skip
+        T_cam_obj = torch.where(ref.used[:, None, None], T_inv(ref.T_world_depth) @ s.T_world_obj, s.T_cam_obj)
+        self.backend.set_pose(T_cam_obj, ref.used)
+        s = replace(s, T_cam_obj=T_cam_obj)
+        return s, acq._replace(points_world=ref.points_world, valid=ref.valid, T_world_depth=s.T_world_depth)
 
     def _relocalised(self, frame: FrameBatch, cur: PreparedFrame, res: StepResult, dec: Relocalisation) -> StepResult:
         """Apply the relocaliser's decision: the sequences it relocalised take the current frame as a new model at the
