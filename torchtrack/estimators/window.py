@@ -183,11 +183,21 @@ def _reduced(n: _Normal, lam: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     B, K = n.U.shape[:2]
     U = n.U + lam[:, None, None, None] * torch.diag_embed(torch.diagonal(n.U, dim1=-2, dim2=-1))
     V = n.V + lam[:, None, None, None] * torch.diag_embed(torch.diagonal(n.V, dim1=-2, dim2=-1))
-    Vinv = torch.linalg.inv(V)
+    Vinv = torch.linalg.inv(_floored(V))
     Y = n.W @ Vinv[:, None]
     eye = torch.eye(K, dtype=U.dtype, device=U.device)
     S = torch.einsum("kl,bkij->bkilj", eye, U) - torch.einsum("bkpij,blpmj->bkilm", Y, n.W)  # B,K,6,L,6
-    return S.reshape(B, 6 * K, 6 * K), Vinv, Y
+    return _floored(S.reshape(B, 6 * K, 6 * K)), Vinv, Y
+
+
+def _floored(A: Tensor) -> Tensor:
+    """``A + 1e-12 diag(A) + 1e-30 I`` (..., n, n): a landmark left with one pixel (its 3D point an outlier) or a pose
+    seen along one ray is singular along it; the floor, 1e-12 of each unknown's own information, keeps the solve
+    finite (that direction stays near its start, its variance ~1e12 times the others') and moves a well-posed answer
+    by ~1e-12 of itself (independent of other unknowns, padding or priors)."""
+    n = A.shape[-1]
+    eye = torch.eye(n, dtype=A.dtype, device=A.device)
+    return A + 1e-12 * torch.diag_embed(torch.diagonal(A, dim1=-2, dim2=-1)) + 1e-30 * eye
 
 
 def _solve(n: _Normal, lam: Tensor) -> tuple[Tensor, Tensor]:
