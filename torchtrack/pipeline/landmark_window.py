@@ -105,7 +105,9 @@ def refine_at_reselection(lm, store, refiner: WindowRefiner, acq, tracked: Tenso
         torch.cat([tracked_world.double(), acq.points_world.double()], 1), v_pix, v_xyz, K, T_color_depth,
         refine=refiner, has_xyz=ids.has_xyz,
     )  # fmt: skip
-    used = kw.used & mask
+    finite = torch.isfinite(kw.T_world_depth).flatten(1).all(1) & torch.isfinite(kw.T_world_kf).flatten(1).all(1)
+    finite &= torch.isfinite(kw.world_kf).flatten(1).all(1) & torch.isfinite(kw.world_now).flatten(1).all(1)
+    used = kw.used & mask & finite  # a window that did not converge to finite numbers changes nothing
     u4 = used[:, None, None, None]
     store.T_world_kf = torch.where(u4 & has_lm[..., None, None], kw.T_world_kf, store.T_world_kf)
     lm.world = torch.where(u4, kw.world_kf, lm.world)
