@@ -24,7 +24,7 @@ from torch import Tensor
 
 from torchtrack.estimators.keyframe_window import KeyframeWindow, refine_keyframes
 from torchtrack.estimators.window import WindowRefiner
-from torchtrack.geometry import T_inv, transform_points
+from torchtrack.geometry import T_inv, se3_log, transform_points
 
 _SAME_M = 1e-4  # a survivor is the newest keyframe's feature at the same world position (float32 round trips: ~1e-6)
 _SAME_PX = 1e-3  # a keyframe feature is a pending one at the same pixel (pixels pass through unchanged)
@@ -85,12 +85,15 @@ class Refined(NamedTuple):
 
 def refine_at_reselection(lm, store, refiner: WindowRefiner, acq, tracked: Tensor, tracked_valid: Tensor,
                           tracked_points: Tensor, tracked_world: Tensor, survivor_ident: Tensor, T_world_depth: Tensor,
-                          v_pix: Tensor, v_xyz: Tensor, K: Tensor, T_color_depth: Tensor, mask: Tensor) -> Refined:  # fmt: skip
+                          v_pix: Tensor, v_xyz: Tensor, K: Tensor, T_color_depth: Tensor, mask: Tensor,
+                          max_m: float = 0.1, max_rad: float = 0.0873) -> Refined:  # fmt: skip
     """Refine the keyframe window of the map ``lm`` (its :class:`Identities` ``lm.ids``, the keyframe store ``store``)
     with the current frame's survivors (``tracked`` (B, N, 2), ``tracked_valid`` (B, N), measured ``tracked_points``
     (B, N, 3), ``tracked_world`` (B, N, 3), ``survivor_ident`` (B, N)) and re-acquired landmarks ``acq``, for the
     sequences in ``mask`` (B,); the current camera starts at ``T_world_depth`` (B, 4, 4); ``v_pix``, ``v_xyz`` (B,)
-    the frame's mean variances. Updates the map's landmark positions and the store's keyframe poses in place."""
+    the frame's mean variances; a window that moves the camera more than ``max_m`` / ``max_rad`` (the landmark stage's
+    ``max_correction_m`` / ``_deg``) is not applied. Updates the map's landmark positions and the store's keyframe poses
+    in place."""
     ids = lm.ids
     B, S, P = ids.ident.shape
     found = acq.valid & mask[:, None]
@@ -107,7 +110,9 @@ def refine_at_reselection(lm, store, refiner: WindowRefiner, acq, tracked: Tenso
     )  # fmt: skip
     finite = torch.isfinite(kw.T_world_depth).flatten(1).all(1) & torch.isfinite(kw.T_world_kf).flatten(1).all(1)
     finite &= torch.isfinite(kw.world_kf).flatten(1).all(1) & torch.isfinite(kw.world_now).flatten(1).all(1)
-    used = kw.used & mask & finite  # a window that did not converge to finite numbers changes nothing
+    step = se3_log(T_inv(T_world_depth.double()) @ torch.where(finite[:, None, None], kw.T_world_depth, T_world_depth))
+    small = (step[:, :3].norm(dim=-1) <= max_m) & (step[:, 3:].norm(dim=-1) <= max_rad)
+    used = kw.used & mask & finite & small  # a window that diverged or jumps further than drift changes nothing
     u4 = used[:, None, None, None]
     store.T_world_kf = torch.where(u4 & has_lm[..., None, None], kw.T_world_kf, store.T_world_kf)
     lm.world = torch.where(u4, kw.world_kf, lm.world)

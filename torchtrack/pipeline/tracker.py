@@ -316,7 +316,8 @@ class Tracker:
         world = transform_points(s.T_world_obj, s.points_obj.double())
         ref = refine_at_reselection(self.landmarks, self.keyframes, self.landmarks.refiner, acq, s.pixels, keep & has,
                                     X_tr, world, self.landmarks.survivor_ident, s.T_world_depth, v_pix, v_xyz, frame.K,
-                                    frame.T_color_depth, mask)  # fmt: skip
+                                    frame.T_color_depth, mask, self.landmarks.max_correction_m,
+                                    self.landmarks.max_correction_rad)  # fmt: skip
         T_cam_obj = torch.where(ref.used[:, None, None], T_inv(ref.T_world_depth) @ s.T_world_obj, s.T_cam_obj)
         self.backend.set_pose(T_cam_obj, ref.used)
         s = replace(s, T_cam_obj=T_cam_obj)
