@@ -282,6 +282,21 @@ class RegistrationBackendConfig:
     estimator: Any = None
 
 
+@dataclass
+class WindowConfig:
+    """:class:`torchtrack.estimators.window.WindowRefiner`: robust LM over the last K keyframe poses and landmarks."""
+
+    _target_: str = "torchtrack.estimators.window.WindowRefiner"
+    iters: int = 10  # Levenberg-Marquardt iterations with the robust (IRLS) weights
+    polish_iters: int = 5  # ... then Gauss-Newton iterations on the inliers alone (unweighted by the loss)
+    loss: str = "huber"  # huber | cauchy | l2: on each block's whitened norm (3D point, pixel)
+    robust_quantile: float = 0.95  # the loss's scale: this chi-square quantile of the block's dof, in sigmas
+    inlier_quantile: float = 0.999  # a block is an inlier when its whitened squared norm is below this quantile
+    fix_first: bool = True  # gauge: the first (oldest) pose is fixed; else the poses' priors must fix it
+    damping: float = 1.0e-3  # initial LM damping (Marquardt: times the normal matrix's diagonal)
+    tol: float = 1.0e-10  # a window stops when its largest step (m, rad) is below this
+
+
 # --- the pipeline and its stages ------------------------------------------------------------------------------
 # The tracker (torchtrack.pipeline.Tracker) is composed of stage objects, each built by the factory from its own group:
 # the per-frame stages above (region, select, flow, weighting, tracker = the back end) and the policy stages below
@@ -352,6 +367,13 @@ class LandmarkConfig:
     converge_px: float = 0.5  # a second LK started probe_px away must end within this of the first
     probe_px: float = 3.0
     every: int = 0  # also every this many frames into the current model (0: only at re-selections)
+    # issue 24 (measured on and off in RESULTS.md): the re-acquired landmarks enter the back end's update (a second
+    # update of the frame, dt = 0, their variance the frame's plus their stored position's) instead of ``correct``'s
+    # re-fit outside the filter (``correct`` is then not applied)
+    measure: bool = False
+    warp: bool = False  # re-track them from pose-warped templates (plane homography, normal from the keyframe depth)
+    warp_crop: int = 96  # ... the side (px) of the warped crops
+    refine: bool = False  # at a re-selection, refine the keyframe window (torchtrack.pipeline.landmark_window)
 
 
 @dataclass

@@ -23,8 +23,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.config import LandmarkConfig, ReselectConfig
+from torchtrack.config import LandmarkConfig, PaperWeightingConfig, ReselectConfig
 from torchtrack.estimators.backends import Observation
+from torchtrack.estimators.window import WindowRefiner
 from torchtrack.filter.models import measure_points
 from torchtrack.frontend import PreparedFrame
 from torchtrack.geometry import (
@@ -37,8 +38,10 @@ from torchtrack.geometry import (
     se3_log,
     transform_points,
 )
-from torchtrack.image.flow import FlowFrame, prepare_frame
+from torchtrack.image.flow import FlowFrame, TrackResult, prepare_frame
+from torchtrack.image.warp import warped_landmark_tracks
 from torchtrack.pipeline.keyframes import KeyframeStore
+from torchtrack.pipeline.landmark_window import Identities
 from torchtrack.pipeline.reselect import far_from
 
 
@@ -56,6 +59,7 @@ class Reacquired(NamedTuple):
     cornerness: Tensor
     valid: Tensor
     T_world_depth: Tensor
+    var_world: Tensor | None = None  # (B, C) m^2: the variance of the stored positions (their keyframe's 3D variance)
 
     def observation(self, T_world_obj: Tensor, dt: Tensor, K: Tensor, T_color_depth: Tensor) -> Observation:
         """The re-acquired landmarks as measurements of the model frame ``T_world_obj`` (B, 4, 4): model points
@@ -117,6 +121,10 @@ class LandmarkMap:
         converge_px: float = LandmarkConfig.converge_px,
         probe_px: float = LandmarkConfig.probe_px,
         every: int = LandmarkConfig.every,
+        measure: bool = LandmarkConfig.measure,
+        warp: bool = LandmarkConfig.warp,
+        warp_crop: int = LandmarkConfig.warp_crop,
+        refine: bool = LandmarkConfig.refine,
     ) -> None:
         if per_keyframe < 1 or max_candidates < 1:
             raise ValueError(f"LandmarkMap: per_keyframe and max_candidates must be >= 1, got "
@@ -131,6 +139,8 @@ class LandmarkMap:
         if every < 0:
             raise ValueError(f"landmarks.every must be >= 0, got {every}")
         self.every = every
+        self.measure, self.warp, self.warp_crop = measure, warp, warp_crop
+        self.refiner = WindowRefiner() if refine else None  # the keyframe window (torchtrack.pipeline.landmark_window)
         self.reset()
 
     def reset(self) -> None:
@@ -138,6 +148,10 @@ class LandmarkMap:
         self.gray = self.sim = None  # (S, B, 1, H, W) the keyframes' LK images, per slot of the keyframe store
         self.pyramids: dict[int, FlowFrame] = {}  # LK pyramids of the slots, built on first use
         self.pixels = self.world = self.cornerness = self.valid = None  # (B, S, P, ...) the keyframes' features
+        self.depth = None  # (S, B, 1, H, W) the keyframes' depth (registered to colour), with ``warp``
+        self.var_kf = None  # (B, S) m^2 the keyframes' 3D variance: their landmarks' position variance
+        self.ids: Identities | None = None  # with ``refine``: landmark identities across keyframes
+        self.last_ident = self.survivor_ident = None  # of the last re-acquisition's landmarks (B, C) and survivors
 
     def _allocate(self, S: int, gray: Tensor, sim: Tensor | None) -> None:
         P, B, dev = self.P, gray.shape[0], gray.device
@@ -147,12 +161,16 @@ class LandmarkMap:
         self.world = torch.zeros(B, S, P, 3, dtype=torch.float64, device=dev)
         self.cornerness = torch.zeros(B, S, P, 2, device=dev)
         self.valid = torch.zeros(B, S, P, dtype=torch.bool, device=dev)
+        self.var_kf = torch.full((B, S), PaperWeightingConfig.sigma2_xyz, dtype=torch.float64, device=dev)
+        self.ids = Identities(B, S, P, dev) if self.refiner is not None else None
 
     def add(self, store: KeyframeStore, slot: Tensor, cur: PreparedFrame, pixels: Tensor, points_world: Tensor,
-            cornerness: Tensor, valid: Tensor) -> None:  # fmt: skip
+            cornerness: Tensor, valid: Tensor, var_xyz: Tensor | None = None) -> None:  # fmt: skip
         """Attach the current frame's LK images and features to the model keyframes ``slot`` (B,) of ``store`` just
-        took (-1: none; a tracked keyframe's slot is not one): pixels (B, N, 2), points_world (B, N, 3) in the tracker's world, cornerness (B, N, 2), valid (B, N)
-        (the first ``per_keyframe`` valid ones are kept)."""
+        took (-1: none; a tracked keyframe's slot is not one): pixels (B, N, 2), points_world (B, N, 3) in the
+        tracker's world, cornerness (B, N, 2), valid (B, N) (the first ``per_keyframe`` valid ones are kept); var_xyz
+        (B,) m^2: the frame's mean 3D variance, the variance of these landmarks' positions (default: the weighting's
+        nominal one)."""
         if pixels.shape[:2] != valid.shape or points_world.shape[:2] != valid.shape or slot.shape != valid.shape[:1]:
             raise ValueError(f"LandmarkMap.add: pixels, points_world (B, N, .), valid (B, N), slot (B,); got "
                              f"{tuple(pixels.shape)}, {tuple(points_world.shape)}, {tuple(valid.shape)}, {tuple(slot.shape)}")  # fmt: skip
@@ -173,6 +191,16 @@ class LandmarkMap:
         self.world[rows, slot] = _take(points_world.double(), order, self.P)[rows]
         self.cornerness[rows, slot] = _take(cornerness.float(), order, self.P)[rows]
         self.valid[rows, slot] = _take(valid, order, self.P)[rows]
+        if var_xyz is not None:
+            self.var_kf[rows, slot] = var_xyz.double()[rows]
+        if self.ids is not None:
+            self.ids.assign(rows, slot, self.pixels[rows, slot], self.valid[rows, slot], self.world[rows, slot],
+                            store.T_world_kf[rows, slot])  # fmt: skip
+        if self.warp:  # the normals of the warped templates come from the keyframe's depth
+            if self.depth is None:
+                self.depth = torch.zeros(self.gray.shape[0], *cur.depth.shape, dtype=cur.depth.dtype,
+                                         device=cur.depth.device)  # fmt: skip
+            self.depth[slot, rows] = cur.depth[rows]
 
     def candidates(self, store: KeyframeStore, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor, T_world_depth: Tensor,
                    tracked: Tensor, tracked_valid: Tensor, mask: Tensor):  # fmt: skip
@@ -251,8 +279,11 @@ class LandmarkMap:
             # eq. (10), from the keyframe, started at the projection and (second half) probe_px away from it: a second
             # start must converge there too. One call for both (every point's track is independent of the others).
             n = kf_pix.shape[1]
-            both = flow(kf, cur.flow, kf_pix.repeat(1, 2, 1), sel.repeat(1, 2), with_residual=True,
-                        init=torch.cat([proj, proj + self.probe_px], 1))  # fmt: skip
+            if self.warp:
+                both = self._warped(s, flow, cur, K, T_color_depth, store, T_world_depth, index, kf_pix, proj, sel)
+            else:
+                both = flow(kf, cur.flow, kf_pix.repeat(1, 2, 1), sel.repeat(1, 2), with_residual=True,
+                            init=torch.cat([proj, proj + self.probe_px], 1))  # fmt: skip
             tr_points, probe_points = both.points.float().split(n, 1)
             tr_valid, probe_valid = both.valid.split(n, 1)
             same = torch.linalg.vector_norm(tr_points - probe_points, dim=-1) <= self.converge_px
@@ -269,7 +300,7 @@ class LandmarkMap:
         world = self.world.reshape(B, S * P, 3).gather(1, index[..., None].expand(-1, -1, 3))
         corner = self.cornerness.reshape(B, S * P, 2).gather(1, index[..., None].expand(-1, -1, 2))
         T_world_depth = T_world_depth.double()
-        if self.correct:
+        if self.correct and not self.measure:
             n = good.shape[1]
             if tracked_world is not None:  # the current model's features: the prior of the fit
                 X_tr, has = measure_points(cur.depth, K, T_color_depth, tracked)
@@ -280,7 +311,37 @@ class LandmarkMap:
                 pixels_fit, X_fit, good_fit = pixels, X_meas, good
             T_world_depth, inl = self._corrected(K, T_color_depth, T_world_depth, world, pixels_fit, X_fit, good_fit, n)
             world, good = world[:, :n], inl[:, :n]
-        return Reacquired(pixels, world, X_meas, corner, good, T_world_depth)
+        var_world = self.var_kf.gather(1, slot)
+        if self.ids is not None:  # the identities the next keyframe's features carry (survivors, re-acquired)
+            self.last_ident = self.ids.ident.reshape(B, S * P).gather(1, index)
+            newest = torch.where(self.valid.any(-1), store.stamp, -1).argmax(1)  # the current model's keyframe
+            rows = torch.arange(B, device=index.device)
+            tw = tracked_world if tracked_world is not None else torch.full((*tracked.shape[:2], 3), torch.inf)
+            self.survivor_ident = self.ids.note(tracked, tw, tracked_valid, self.world[rows, newest],
+                                                self.ids.ident[rows, newest], self.valid[rows, newest], pixels,
+                                                self.last_ident, good & mask[:, None])  # fmt: skip
+        return Reacquired(pixels, world, X_meas, corner, good, T_world_depth, var_world)
+
+    def _warped(self, s: int, flow: Callable, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor,
+                store: KeyframeStore, T_world_depth: Tensor, index: Tensor, kf_pix: Tensor, proj: Tensor,
+                sel: Tensor) -> TrackResult:  # fmt: skip
+        """Keyframe slot ``s``'s landmarks ``sel`` (B, C) re-tracked from pose-warped templates
+        (:func:`~torchtrack.image.warp.warped_landmark_tracks`, intensity), from the projection and ``probe_px`` away,
+        as the (B, 2C) :class:`TrackResult` of the combined tracker's call (both starts; the TIM check applied)."""
+        B, C = sel.shape
+        world = self.world.reshape(B, -1, 3).gather(1, index[..., None].expand(-1, -1, 3))
+        lk = {k: v for k, v in getattr(flow, "kwargs", {}).items() if k in ("window", "levels", "iters", "eps",
+                                                                                "min_eig", "ic_iters")}  # fmt: skip
+        r = warped_landmark_tracks(self.gray[s], self.depth[s], cur.flow.images[0], K, T_color_depth,
+                                   store.T_world_kf[:, s], T_world_depth, world, kf_pix,
+                                   torch.stack([proj, proj + self.probe_px], 2), sel, crop=self.warp_crop, **lk)  # fmt: skip
+        tim = getattr(flow, "kwargs", {}).get("tim_threshold", 1.0)
+        ok = r.status & (r.d_tim <= tim)
+        cat = lambda x: torch.cat([x[:, :, 0], x[:, :, 1]], 1)  # noqa: E731
+        inf = torch.full((B, 2 * C), float("inf"), device=sel.device)
+        return TrackResult(cat(r.pixels).float(), cat(ok), cat(r.d_tim).float(), inf, inf,
+                           torch.zeros(B, 2 * C, dtype=torch.long, device=sel.device), cat(ok), cat(ok) & False,
+                           cat(r.residual).float())  # fmt: skip
 
     def reacquire_into(self, store: KeyframeStore, flow: Callable, cur: PreparedFrame, K: Tensor,
                        T_color_depth: Tensor, state, keep: Tensor, mask: Tensor) -> Reacquired:  # fmt: skip

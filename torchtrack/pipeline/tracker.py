@@ -26,6 +26,7 @@ from torchtrack.config import PipelineConfig
 from torchtrack.data.frame import FrameBatch
 from torchtrack.estimators.backends import Observation, PoseBackend
 from torchtrack.estimators.base import masked_mean
+from torchtrack.estimators.landmark_update import landmark_update, landmark_variances
 from torchtrack.filter.models import measure_points
 from torchtrack.filter.weighting import WeightingInputs
 from torchtrack.frontend import FrontEnd, PreparedFrame
@@ -33,6 +34,7 @@ from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, s
 from torchtrack.image.flow import TrackResult
 from torchtrack.learn.cues import stack_cues
 from torchtrack.pipeline.keyframes import KeyframeStore
+from torchtrack.pipeline.landmark_window import refine_at_reselection
 from torchtrack.pipeline.landmarks import LandmarkMap
 from torchtrack.pipeline.outliers import ResidualDrop, feature_residuals
 from torchtrack.pipeline.relocalise import Relocalisation, Relocaliser
@@ -98,6 +100,7 @@ class Tracker:
         self.landmarks, self.relocaliser = landmarks, relocaliser
         self.predict_init, self.record = predict_init, record
         self.state = TrackerState()
+        self._frame_var = None  # (Variances (B, N), valid (B, N)) of the last tracked frame
 
     @property
     def wants_cues(self) -> bool:
@@ -136,6 +139,7 @@ class Tracker:
         # more measurements of the current model join ``obs`` (and ``var``) here, e.g. re-acquired landmarks
         # (:meth:`~torchtrack.pipeline.landmarks.Reacquired.observation`), so that the back end weighs them in its update
         est = self.backend.step(obs, var, active=frame.active)  # eqs. (2)-(7), (15)
+        self._frame_var = (var, valid)  # the landmarks' measurements and keyframes take this frame's mean variances
         tracked = self._advanced(s, frame, cur, track.points, valid, est.T_cam_obj.double())  # and the outlier drop
         if self.landmarks is not None and self.landmarks.every > 0:
             tracked = self._reanchored(tracked, frame, cur)  # every k frames: landmarks back into the current model
@@ -215,6 +219,7 @@ class Tracker:
     # ---------------------------------------------------------------------------------------------- the model
     def _start(self, frame: FrameBatch, cur: PreparedFrame) -> StepResult:
         """First frame: every sequence takes it as its model; the world is the first camera."""
+        self._frame_var = None
         B, dev = frame.rgb.shape[0], frame.rgb.device
         eye = torch.eye(4, dtype=torch.float64, device=dev).expand(B, 4, 4).clone()
         zero = torch.zeros(B, 6, dtype=torch.float64, device=dev)
@@ -282,6 +287,16 @@ class Tracker:
         if self.landmarks is None:
             return kept, None, s
         acq = self.landmarks.reacquire_into(self.keyframes, self.flow, cur, frame.K, frame.T_color_depth, s, keep, mask)
+        if self.landmarks.measure and self._frame_var is not None and hasattr(self.backend, "ekf"):  # issue 24: fused
+            # by the filter in a second update of this frame (dt = 0); a registration baseline keeps the frame's pose
+            var, valid = self._frame_var
+            lm_var = landmark_variances(acq.points_cam, acq.var_world, var, valid, frame.K)
+            upd = landmark_update(self.backend, s.T_cam_obj, s.T_world_obj, acq.points_world, acq.points_cam,
+                                  acq.pixels, acq.valid & mask[:, None], lm_var, frame.K, frame.T_color_depth)  # fmt: skip
+            s = replace(s, T_cam_obj=upd.T_cam_obj)
+            acq = acq._replace(valid=acq.valid & (upd.used | ~upd.updated[:, None]), T_world_depth=s.T_world_depth)
+        if self.landmarks.refiner is not None and self._frame_var is not None:  # issue 24: the keyframe window
+            s, acq = self._refined(s, acq, frame, cur, keep, mask)
         T_world_depth = torch.where(mask[:, None, None], acq.T_world_depth, s.T_world_depth)
         found = acq.valid & mask[:, None]
         n_found = found.sum(1)
@@ -289,6 +304,24 @@ class Tracker:
         points = transform_points(T_inv(T_world_depth), acq.points_world).float()  # the ORIGINAL world positions
         return kept.cat(Kept(acq.pixels, points, found, torch.zeros_like(found, dtype=torch.long), acq.cornerness)), \
             n_found, s  # fmt: skip
+
+    def _refined(self, s: TrackerState, acq, frame: FrameBatch, cur: PreparedFrame, keep: Tensor, mask: Tensor):
+        """``s`` and ``acq`` after the keyframe window's refinement (:mod:`torchtrack.pipeline.landmark_window`): the
+        refined camera becomes the back end's pose (``set_pose``), the re-acquired landmarks take their refined
+        positions and inliers."""
+        var, valid = self._frame_var
+        n = valid.sum(1).clamp_min(1)
+        v_pix, v_xyz = (var.var_pix * valid).sum(1) / n, (var.var_xyz * valid).sum(1) / n
+        X_tr, has = measure_points(cur.depth, frame.K, frame.T_color_depth, s.pixels)
+        world = transform_points(s.T_world_obj, s.points_obj.double())
+        ref = refine_at_reselection(self.landmarks, self.keyframes, self.landmarks.refiner, acq, s.pixels, keep & has,
+                                    X_tr, world, self.landmarks.survivor_ident, s.T_world_depth, v_pix, v_xyz, frame.K,
+                                    frame.T_color_depth, mask, self.landmarks.max_correction_m,
+                                    self.landmarks.max_correction_rad)  # fmt: skip
+        T_cam_obj = torch.where(ref.used[:, None, None], T_inv(ref.T_world_depth) @ s.T_world_obj, s.T_cam_obj)
+        self.backend.set_pose(T_cam_obj, ref.used)
+        s = replace(s, T_cam_obj=T_cam_obj)
+        return s, acq._replace(points_world=ref.points_world, valid=ref.valid, T_world_depth=s.T_world_depth)
 
     def _relocalised(self, frame: FrameBatch, cur: PreparedFrame, res: StepResult, dec: Relocalisation) -> StepResult:
         """Apply the relocaliser's decision: the sequences it relocalised take the current frame as a new model at the
@@ -316,7 +349,11 @@ class Tracker:
         if self.landmarks is not None:  # a model keyframe's features are landmarks at their world positions
             world = transform_points(s.T_world_obj, s.points_obj.double())
             model_slot = torch.where(reselected, slot, -1)
-            self.landmarks.add(self.keyframes, model_slot, cur, s.pixels, world, s.cornerness, s.valid)
+            var_xyz = None
+            if self._frame_var is not None:  # the frame's mean 3D variance: the landmarks' position variance
+                var, valid = self._frame_var
+                var_xyz = (var.var_xyz * valid).sum(1) / valid.sum(1).clamp_min(1)
+            self.landmarks.add(self.keyframes, model_slot, cur, s.pixels, world, s.cornerness, s.valid, var_xyz)
         if self.relocaliser is not None:
             self.relocaliser.add(slot, frame, cur, s.T_world_depth)
 

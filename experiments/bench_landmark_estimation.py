@@ -1,0 +1,60 @@
+"""Cost of the issue-24 landmark switches (landmarks.measure / warp / refine) against the default, in one process.
+
+Each configuration tracks the same frames (decoded once, kept in memory), runs interleaved round by round; prints the
+median ms per frame and its ratio to the default's, and the torch thread count.
+
+    python experiments/bench_landmark_estimation.py --root ../shared/data/sun3d_fragment1 --frames 50 --repeats 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+import torch
+from hydra import compose, initialize_config_dir
+
+from torchtrack.config import CONF_DIR
+from torchtrack.factory import build_sequences, build_tracker
+
+CONFIGS = {
+    "default": [],
+    "measure": ["landmarks.measure=true"],
+    "warp": ["landmarks.warp=true"],
+    "refine": ["landmarks.measure=true", "landmarks.refine=true"],
+    "all": ["landmarks.measure=true", "landmarks.warp=true", "landmarks.refine=true"],
+}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--root", type=Path, required=True)
+    ap.add_argument("--frames", type=int, default=50)
+    ap.add_argument("--repeats", type=int, default=3)
+    a = ap.parse_args()
+    torch.set_num_threads(1)
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfgs = {k: compose("config", overrides=["data=tum", f"data.root={a.root}", f"data.max_frames={a.frames}", *v])
+                for k, v in CONFIGS.items()}  # fmt: skip
+    from torchtrack.data.batching import iterate_batched
+
+    frames = list(iterate_batched(build_sequences(cfgs["default"].data)))
+    times: dict[str, list[float]] = {k: [] for k in CONFIGS}
+    for _ in range(a.repeats):
+        for k, cfg in cfgs.items():
+            tracker = build_tracker(cfg)
+            t = time.perf_counter()
+            for f in frames:
+                tracker.step(f)
+            times[k].append((time.perf_counter() - t) * 1000 / len(frames))
+    base = statistics.median(times["default"])
+    print(f"{a.root.name}, {len(frames)} frames, {torch.get_num_threads()} torch thread(s), {a.repeats} rounds")
+    for k, v in times.items():
+        m = statistics.median(v)
+        print(f"{k:8s} {m:7.1f} ms/frame  ratio {m / base:.2f}  (rounds: {', '.join(f'{x:.1f}' for x in v)})")
+
+
+if __name__ == "__main__":
+    main()
