@@ -36,7 +36,7 @@ from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, s
 from torchtrack.image.flow import FlowFrame, TrackResult, prepare_frame
 from torchtrack.keyframes import KeyframeAligner, set_backend_pose
 from torchtrack.landmarks import LandmarkMap, far_from
-from torchtrack.learn.cues import stack_cues
+from torchtrack.learn.cues import stack_cues, window_cues
 from torchtrack.metrics import reprojection_errors
 
 
@@ -431,7 +431,8 @@ class Tracker:
             sim_value=sim,  # nearest pixel of the SI map: masked (planar, no depth) pixels carry its fill value
             track_age=s.age + 1,
             prev_reproj=torch.where(s.age > 0, s.residuals, 0.0),  # a new feature has no previous frame
-            u_norm=track.points[..., 0] / W, v_norm=track.points[..., 1] / H,
+            u_norm=track.points[..., 0] / W, v_norm=track.points[..., 1] / H, fb_error=track.d_tim,
+            **window_cues(cur.depth, track.points, s.prev.gray, s.pixels, self.flow.kwargs["window"]),
         )  # fmt: skip
         return torch.where(valid[..., None], cues, 0.0)
 

@@ -60,6 +60,10 @@ CUE_TRANSFORMS: dict[str, tuple[str, float]] = {
     "prev_reproj": ("log1p", 0.1),  # px
     "u_norm": ("id", 1.0),  # [0, 1]
     "v_norm": ("id", 1.0),  # [0, 1]
+    "depth_step": ("log1p", 0.005),  # m; 5 mm (noise at ~1.5 m) -> 0.69, a 1 m edge -> 5.3
+    "depth_holes": ("id", 1.0),  # [0, 1]
+    "lk_min_eig": ("log1p", 1e-4),  # (1/px)^2 on [0, 1] intensities; 1e-4 ~ the LK tracker's min_eig
+    "fb_error": ("log1p", 0.1),  # px, as d_tim_*
 }
 if tuple(CUE_TRANSFORMS) != CUE_NAMES:  # a new or reordered cue needs a decision here, not a silent default
     raise ImportError(f"torchtrack.learn.model: CUE_TRANSFORMS {list(CUE_TRANSFORMS)} != CUE_NAMES {list(CUE_NAMES)}")
