@@ -378,12 +378,14 @@ def test_resume_skips_an_up_to_date_file_and_re_records_another_config(seq, tmp_
 def test_synthetic_set_definition():
     variants = synthetic_variants(config("+dataset=synthetic", name="record").dataset)
     names = [v.name for v in variants]
-    assert len(names) == len(set(names)) == 2 * 3 * 3 * 3
+    assert len(names) == len(set(names)) == 2 * 3 * 2 * 5
     assert {v.config.mode for v in variants} == {"scene", "object"}
     assert {v.region for v in variants if v.config.mode == "object"} == {"object"}
     assert {v.config.background for v in variants if v.name.startswith("object_bare")} == {False}
-    noisy = [v.config.kinect.sigma_a_m for v in variants if "kinect2x" in v.name]
-    assert set(noisy) == {0.0024} and {v.config.width for v in variants} == {640}
+    noisy = [v.config for v in variants if "kinect3x_flying" in v.name]
+    assert {(c.kinect.sigma_scale, c.effects.flying_pixel_prob) for c in noisy} == {(3.0, 0.5)}
+    misreg = {v.config.effects.depth_shift_px for v in variants if "misregistered" in v.name}
+    assert misreg == {(2, 1)} and {v.config.width for v in variants} == {640}
 
 
 def cli(args: list[str], env_cache: Path) -> subprocess.CompletedProcess:
