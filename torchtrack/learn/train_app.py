@@ -64,10 +64,10 @@ def train_from_config(cfg: DictConfig, out: Path, progress: bool = True) -> list
     train_seqs, val_seqs = split(sequences, cfg)
     tc = TrainConfig(**OmegaConf.to_container(cfg.train, resolve=True))
     need_gt = tc.loss == "supervised"  # the NLL needs no ground truth: unlabelled windows start at the estimate
-    train_w = windows_of(train_seqs, tc.window, tc.stride, need_ground_truth=need_gt)
+    train_w = windows_of(train_seqs, tc.span, tc.stride, need_ground_truth=need_gt)
     if train_w is None:
         raise DataError(_no_window(train_seqs, tc, "training"))
-    val_w = windows_of(val_seqs, tc.window, tc.stride, need_ground_truth=need_gt)
+    val_w = windows_of(val_seqs, tc.span, tc.stride, need_ground_truth=need_gt)
     if val_w is None and val_seqs:
         log.warning("%s", _no_window(val_seqs, tc, "validation"))
     log.info("training on %d windows of %d sequences, validating on %d windows of %d sequences",
@@ -98,10 +98,12 @@ def train_from_config(cfg: DictConfig, out: Path, progress: bool = True) -> list
 def _no_window(sequences: list[SequenceObservations], tc: TrainConfig, split: str) -> str:
     """One line: why ``sequences`` give no window (too short, or no ground truth for the supervised loss)."""
     names = ", ".join(s.sequence for s in sequences) or "none"
-    if tc.loss == "supervised" and all(s.frames > tc.window for s in sequences):
+    if tc.loss == "supervised" and all(s.frames > tc.span for s in sequences):
         return (f"no {split} window: train.loss=supervised needs ground truth and the {split} sequences ({names}) have "
                 "none; train.loss=nll needs none (calibration on unlabelled sequences)")  # fmt: skip
-    return f"no {split} window: the {split} sequences ({names}) have at most train.window={tc.window} frames"
+    return (
+        f"no {split} window: the {split} sequences ({names}) have at most train.window + train.burn_in={tc.span} frames"
+    )
 
 
 def export(src: Path, dst: Path) -> None:
