@@ -15,7 +15,7 @@ the rows above 1.05).
     python experiments/eval_weighting.py --checkpoint runs/train/model.pt  # the learned model to evaluate
     python experiments/eval_weighting.py --learned all=ckpt/all.pt --learned loo='ckpt/loo-{sequence}.pt'
     python experiments/eval_weighting.py --results experiments/RESULTS.md -- flow.backend=opencv
-    python experiments/eval_weighting.py --weightings paper --method 'scale=weighting=paper tracker.noise_scale=true'
+    python experiments/eval_weighting.py --weightings paper --method='scale=weighting=paper tracker.noise_scale=true'
 
 Weightings: ``fixed`` = ``weighting=fixed`` (the paper's EKF-3 ablation: the variances of
 conf/weighting/fixed.yaml for every feature), ``paper`` = ``weighting=paper`` (eqs. 11-14 with the default

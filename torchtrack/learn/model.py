@@ -108,7 +108,7 @@ class LearnedWeighting(nn.Module):
     Args:
         mode: ``"normalised"`` (mean variance over the valid features kept, as eqs. (11)/(14)) or ``"absolute"``.
         sigma2_pix: nominal pixel variance (px^2); sigma2_xyz: nominal 3D variance (m^2) at depth_ref.
-        hidden: width H of every hidden layer (H = 32: 5730 parameters).
+        hidden: width H of every hidden layer (H = 32: 5858 parameters with the 17 cues of cue version 2).
         depth_var_exponent: var_xyz x (z / depth_ref)^e after the network (0: none); as PaperWeighting.
         depth_ref: reference depth (m) of that prior.
         log_ratio_min, log_ratio_max: soft bounds of ``log(var / sigma2)`` per feature (before the depth prior);
