@@ -55,7 +55,10 @@ def check_cue_names(names, version: int, where: str) -> None:
     """Raise a one-line error when ``names``/``version`` (from a cache or a checkpoint) differ from this code's."""
     names = tuple(names)
     if names != CUE_NAMES or int(version) != CUE_VERSION:
-        i = next((i for i, (a, b) in enumerate(zip(names, CUE_NAMES, strict=False)) if a != b), min(len(names), len(CUE_NAMES)))
+        i = next(
+            (i for i, (a, b) in enumerate(zip(names, CUE_NAMES, strict=False)) if a != b),
+            min(len(names), len(CUE_NAMES)),
+        )
         theirs, ours = (n[i] if i < len(n) else "none" for n in (names, CUE_NAMES))
         raise ValueError(
             f"{where}: made with cue version {version} ({len(names)} cues); this torchtrack computes cue version "
