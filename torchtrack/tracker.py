@@ -432,7 +432,7 @@ class Tracker:
             track_age=s.age + 1,
             prev_reproj=torch.where(s.age > 0, s.residuals, 0.0),  # a new feature has no previous frame
             u_norm=track.points[..., 0] / W, v_norm=track.points[..., 1] / H, fb_error=track.d_tim,
-            **window_cues(cur.depth, track.points, s.prev.gray, s.pixels, self.flow.kwargs["window"]),
+            **window_cues(cur.depth, track.points, s.prev.gray, s.pixels),
         )  # fmt: skip
         return torch.where(valid[..., None], cues, 0.0)
 

@@ -34,7 +34,7 @@ CUE_NAMES: tuple[str, ...] = (
     "v_norm",  # pixel y / image height, [0, 1]
     "depth_step",  # m, max - min of the valid depths in the DEPTH_WINDOW^2 window at the tracked pixel; 0 if none valid
     "depth_holes",  # fraction of that window without depth (0 or outside the image), [0, 1]
-    "lk_min_eig",  # smallest eigenvalue of LK's gradient matrix over the LK window of the previous image, (1/px)^2
+    "lk_min_eig",  # smallest eigenvalue of LK's gradient matrix over LK_WINDOW^2 px of the previous image, (1/px)^2
     "fb_error",  # px, the winner's forward-backward error d_TIM (eq. 10); D_TIM_CAP where not tracked
 )
 CUE_INDEX = {name: i for i, name in enumerate(CUE_NAMES)}
@@ -68,6 +68,7 @@ def check_cue_names(names, version: int, where: str) -> None:
 
 
 DEPTH_WINDOW = 5  # px, side of the window of depth_step and depth_holes
+LK_WINDOW = 21  # px, the window of lk_min_eig: the default LK window (FlowConfig.window), fixed as part of the cue
 _SCHARR = torch.tensor([[-3.0, 0.0, 3.0], [-10.0, 0.0, 10.0], [-3.0, 0.0, 3.0]]) / 32.0  # d/dx per pixel
 
 
@@ -125,9 +126,9 @@ def min_eigenvalue(gray: Tensor, points: Tensor, window: int) -> Tensor:
     return ((a + c) / 2 - torch.sqrt(((a - c) / 2).square() + b.square())).clamp_min(0.0)
 
 
-def window_cues(depth: Tensor, points: Tensor, gray_prev: Tensor, points_prev: Tensor, window: int) -> dict:
+def window_cues(depth: Tensor, points: Tensor, gray_prev: Tensor, points_prev: Tensor, window: int = LK_WINDOW) -> dict:
     """The window cues as :func:`stack_cues` keywords: depth_step and depth_holes of ``depth`` (B, 1, H, W) at the
     tracked ``points`` (B, N, 2); lk_min_eig of ``gray_prev`` (B, 1, H, W) at ``points_prev`` (B, N, 2), where LK
-    took its template, over its ``window``."""
+    took its template, over ``window`` (a cue's meaning is part of a checkpoint's: it does not follow flow.window)."""
     step, holes = depth_window_cues(depth, points)
     return WindowCues(step, holes, min_eigenvalue(gray_prev, points_prev, window))._asdict()
