@@ -1,4 +1,10 @@
-"""Benchmark the combined LK + TIM tracker (issues 4 and 15): torch vs OpenCV on the same four LK passes.
+"""Benchmark LK (issues 4, 15, 25): one forward pass, then the combined LK + TIM tracker, torch vs OpenCV.
+
+One pass (issue 25): 300 Shi-Tomasi corners of a 640x480 intensity pair, one forward ``lk_track_flat``: the compiled
+operator (``lk_backend=cpp``), the pure-torch reference (``torch``), and ``cv2.calcOpticalFlowPyrLK`` (uint8 images;
+it builds both pyramids and the template's derivative images inside the call). The torch rows run on prepared
+pyramids; "cpp + pyramid" adds ``build_pyramid`` of the next image, the per-frame cost that compares with OpenCV's
+call. Target: cpp + pyramid within 1.5x OpenCV (CPU time, 1 thread).
 
 The combined tracker runs intensity and SIM LK forward and backward (4 passes) on 300 Shi-Tomasi corners of
 a 640x480 pair. OpenCV does the same four ``cv2.calcOpticalFlowPyrLK`` calls (same window, levels and
@@ -10,6 +16,7 @@ target: torch per frame within 1.5x OpenCV at B=1 (printed as met / NOT met).
 
     python experiments/bench_lk.py                     # 1 thread, 300 features, 40 repeats
     python experiments/bench_lk.py --threads 2 --repeats 100
+    python experiments/bench_lk.py --one-pass          # the one-pass table only
 
 Results and the machine's load: experiments/RESULTS.md, "Speed (issue 15)".
 """
@@ -32,8 +39,10 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from torchtrack.image.flow import CombinedTracker, prepare_frame  # noqa: E402
+from torchtrack.image.lk import lk_track_flat  # noqa: E402
+from torchtrack.image.pyramid import build_pyramid  # noqa: E402
 
-TARGET_RATIO = 1.5  # issue 15
+TARGET_RATIO = 1.5  # issues 15 and 25
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
@@ -78,6 +87,45 @@ def timed(fn) -> tuple[float, float]:
     return (time.perf_counter() - w) * 1e3, (time.thread_time() - c) * 1e3
 
 
+def bench_one_pass(data, args, levels, window, repeats) -> dict:
+    """One forward LK pass of sequence 0's points on intensity: cpp, torch, cpp + next pyramid, OpenCV; medians
+    (wall, cpu) in ms."""
+    gray0, _, gray1, _, pts = data
+    p0, p1 = build_pyramid(gray0[:1], levels, window=31), build_pyramid(gray1[:1], levels, window=31)
+    x0, img = pts[0].float(), torch.zeros(pts.shape[1], dtype=torch.int64)
+    u0, u1 = ((g[0, 0] * 255).round().clamp(0, 255).to(torch.uint8).numpy() for g in (gray0, gray1))
+    kw = dict(window=window, levels=levels, with_residual=False)
+    runs = {
+        "cpp": partial(lk_track_flat, p0, p1, x0, img, x0, backend="cpp", **kw),
+        "torch": partial(lk_track_flat, p0, p1, x0, img, x0, backend="torch", **kw),
+        "cpp + pyramid": lambda: lk_track_flat(p0, build_pyramid(gray1[:1], levels, window=31), x0, img, x0,
+                                               backend="cpp", **kw),
+        "OpenCV": partial(cv2.calcOpticalFlowPyrLK, u0, u1, x0.numpy().reshape(-1, 1, 2), None, **args),
+    }  # fmt: skip
+    for fn in runs.values():
+        fn()
+    rows = {k: [] for k in runs}
+    for _ in range(repeats):
+        for k, fn in runs.items():
+            rows[k].append(timed(fn))
+    return {k: np.median(np.array(v), axis=0) for k, v in rows.items()}
+
+
+def print_one_pass(data, args, a) -> None:
+    med = bench_one_pass(data, args, a.levels, a.window, a.repeats)
+    cv = med["OpenCV"]
+    print(f"\nOne forward LK pass, {data[4].shape[1]} points, intensity, {a.threads} thread(s); median of {a.repeats} "
+          "interleaved repeats, ms\n")  # fmt: skip
+    print("| implementation | CPU ms | wall ms | CPU / OpenCV | CPU / cpp |")
+    print("|---|---:|---:|---:|---:|")
+    for k, v in med.items():
+        print(f"| {k} | {v[1]:.2f} | {v[0]:.2f} | {v[1] / cv[1]:.2f} | {v[1] / med['cpp'][1]:.2f} |")
+    ratio = med["cpp + pyramid"][1] / cv[1]
+    print(f"\none pass: cpp + pyramid / OpenCV = {ratio:.2f}, cpp alone {med['cpp'][1] / cv[1]:.2f} (CPU time; target "
+          f"<= {TARGET_RATIO}: {'met' if ratio <= TARGET_RATIO else 'NOT met'}); torch reference / cpp = "
+          f"{med['torch'][1] / med['cpp'][1]:.1f}")  # fmt: skip
+
+
 def bench_batch(b, tracker, data, args, levels, repeats):
     gray0, sim0, gray1, sim1, pts = data
     f0, f1 = prepare_frame(gray0[:b], sim0[:b], levels), prepare_frame(gray1[:b], sim1[:b], levels)
@@ -109,6 +157,8 @@ def main() -> None:
     ap.add_argument("--seq", default="sun3d_fragment1")
     ap.add_argument("--window", type=int, default=21)
     ap.add_argument("--levels", type=int, default=3)
+    ap.add_argument("--lk-backend", default="auto", help="the combined tracker's LK: auto | cpp | torch")
+    ap.add_argument("--one-pass", action="store_true", help="only the one-pass table")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     cv2.setNumThreads(a.threads)
@@ -116,12 +166,17 @@ def main() -> None:
           f"{cv2.__version__}, {a.threads} thread(s), window {a.window}, levels {a.levels}, 30 iters, eps 0.01, "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")  # fmt: skip
     data = load_pairs(a.seq, 8, a.features)
-    tracker = CombinedTracker(window=a.window, levels=a.levels)
+    # policy min_tim: all four passes on every point, as the OpenCV side (the default fallback policy runs the SIM
+    # passes only where the intensity tracker failed)
+    tracker = CombinedTracker(window=a.window, levels=a.levels, lk_backend=a.lk_backend, policy="min_tim")
     args = dict(
         winSize=(a.window, a.window), maxLevel=a.levels - 1, minEigThreshold=1e-4,
         criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
     )  # fmt: skip
-    print(f"\n{a.seq}, {data[4].shape[1]} features per sequence, 640x480, combined tracker = 4 LK passes "
+    print_one_pass(data, args, a)
+    if a.one_pass:
+        return
+    print(f"\n{a.seq}, {data[4].shape[1]} features per sequence, 640x480, combined tracker (LK {a.lk_backend}) = 4 LK passes "
           f"(intensity and SIM, forward and backward). Median over {a.repeats} interleaved repeats, ms; "
           "CPU = this thread's CPU time (robust to other processes), wall = wall clock.\n")  # fmt: skip
     print("| B | torch: track (prepared frames) | torch: per frame (prepare + track) | OpenCV: 4 passes | "

@@ -36,7 +36,7 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
 class StepStub:
-    """What the mapper reads from a :class:`torchtrack.tracker.StepResult`."""
+    """What the mapper reads from a :class:`torchtrack.pipeline.StepResult`."""
 
     def __init__(self, T_world_depth: torch.Tensor, reselected: torch.Tensor):
         self.T_world_depth, self.reselected = T_world_depth, reselected

@@ -10,7 +10,7 @@ runs for an object) and the peers of :mod:`peers` on each, and prints one table 
 
     python experiments/object_case.py                                   # every case, the default configurations
     python experiments/object_case.py --cases slow,fast --peers o3d_color,cv2_rgbd
-    python experiments/object_case.py --ours default= object=region=object "noedge=region=object pipeline.edge_step=null"
+    python experiments/object_case.py --ours default= object=region=object "noedge=region=object reselect.edge_step=null"
     python experiments/object_case.py --roots ../shared/data/visp_castle_simu       # any TUM folder too
 
 Sequences are cached under ``--cache`` (default ``$TORCHTRACK_CACHE/object_case``, else

@@ -191,7 +191,7 @@ def recorded(tmp_path_factory):
     seq = TumSequence(ensure_sequence(synth, root / "synth"), T_color_depth=cam["T_color_depth"],
                       intrinsics_depth=(cam["fx"], cam["fy"], cam["cx"], cam["cy"]))  # fmt: skip
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose("config", overrides=["pipeline.min_features=57"])
+        cfg = compose("config", overrides=["reselect.min_features=57"])
     (path,) = record_sequences(cfg, [seq], root / "out", progress=False)
     return synth, load_observations(path)
 

@@ -42,8 +42,12 @@ from torchtrack.image.select import FeatureSelector, select_features
 from torchtrack.learn.checkpoint import save_checkpoint
 from torchtrack.learn.model import LearnedWeighting
 from torchtrack.mapping import PanoramaMapper
-from torchtrack.relocalise import Relocaliser
-from torchtrack.tracker import Tracker
+from torchtrack.pipeline import Tracker
+from torchtrack.pipeline.keyframes import KeyframeStore
+from torchtrack.pipeline.landmarks import LandmarkMap
+from torchtrack.pipeline.outliers import ResidualDrop
+from torchtrack.pipeline.relocalise import Relocaliser
+from torchtrack.pipeline.reselect import Reselection
 
 CONF = CONF_DIR
 EXPERIMENTS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
@@ -83,7 +87,8 @@ def test_every_experiment_composes_with_every_estimator_and_weighting(experiment
     assert isinstance(tracker_obj, Tracker)
     assert type(tracker_obj.backend).__name__ == ("EKFBackend" if tracker == "fusion_ekf" else "RegistrationBackend")
     if experiment and "paper" in experiment:  # the paper's policy whatever the estimator
-        assert tracker_obj.max_residual_px is None and tracker_obj.edge_step is None and not tracker_obj.keep_survivors
+        assert tracker_obj.outliers.max_residual_px is None and tracker_obj.reselect.edge_step is None
+        assert not tracker_obj.reselect.keep_survivors and tracker_obj.landmarks is None
         if tracker == "fusion_ekf":
             assert tracker_obj.backend.gate is None and tracker_obj.backend.refit is None
 
@@ -156,7 +161,8 @@ def test_paper_values_stay_reachable():
     """+experiment=paper is the one place of the paper's values: each it sets differs from the default."""
     ours, paper = config(), config("+experiment=paper")
     for group, keys in {
-        "pipeline": ("edge_step", "max_residual_px", "keep_survivors", "predict_init", "landmarks"),
+        "pipeline": ("predict_init",), "reselect": ("edge_step", "keep_survivors"), "outliers": ("max_residual_px",),
+        "landmarks": ("enabled",),
         "flow": ("policy",), "relocalise": ("recover",), "select": ("roi_fraction",),
         "weighting": ("sigma2_xyz", "depth_var_exponent"), "tracker": ("gate", "refit"),
     }.items():  # fmt: skip
@@ -181,7 +187,7 @@ def test_ranges_are_checked_by_validate(override, message):
         validate(cfg)
 
 
-@pytest.mark.parametrize("override", ["data.depth_scale=abc", "data.max_frames=x", "pipeline.keep_survivors=maybe"])
+@pytest.mark.parametrize("override", ["data.depth_scale=abc", "data.max_frames=x", "reselect.keep_survivors=maybe"])
 def test_types_are_checked_when_composing(override):
     with pytest.raises(ConfigCompositionException):
         config("data=tum", override)
@@ -243,7 +249,7 @@ def test_select_direct_equals_cli(cli):
     gray, depth, K, _ = _frame()
     roi = torch.zeros_like(depth, dtype=torch.bool)
     roi[..., 30:70, 40:100] = True  # a small region: roi_fraction (an improvement) shrinks the patches
-    ours = cli.select(gray, depth, K, roi=roi)
+    ours = cli.reselect.select(gray, depth, K, roi=roi)
     assert _same(ours, select_features(gray, depth, K, roi=roi))
     assert _same(ours, FeatureSelector()(gray, depth, K, roi=roi))
     assert not _same(ours, select_features(gray, depth, K, roi=roi, roi_fraction=None))  # the paper's differs
@@ -264,7 +270,8 @@ def test_frontend_and_region_direct_equal_cli(cli):
     assert _state(FrontEnd()) == _state(cli.frontend)
     _, depth, _, _ = _frame()
     depth = depth * (1 + (torch.arange(W_) > W_ // 2))  # two depth layers: the object is the near one
-    assert torch.equal(ObjectRegion()(depth), cli.region(depth)) and torch.equal(object_mask(depth), cli.region(depth))
+    region = cli.reselect.region
+    assert torch.equal(ObjectRegion()(depth), region(depth)) and torch.equal(object_mask(depth), region(depth))
 
 
 @pytest.mark.parametrize("weighting", ["paper", "fixed"])
@@ -303,9 +310,34 @@ def test_estimators_direct_equal_cli(name):
     assert torch.equal(direct(src, dst, valid, eye, None), backend.estimator(src, dst, valid, eye, None))
 
 
-def test_pipeline_relocaliser_and_mapper_direct_equal_cli(cli):
-    stages = dict(frontend=cli.frontend, region=cli.region, select=cli.select, flow=cli.flow,
-                  weighting=cli.weighting, backend=cli.backend, relocaliser=cli.relocaliser)  # fmt: skip
+def test_pipeline_stages_and_mapper_direct_equal_cli(cli):
+    """Every policy stage built directly equals the CLI's, and so does the tracker composed of the CLI's per-frame
+    stages with its policy stages left to their defaults."""
+    per_frame = dict(region=cli.reselect.region, select=cli.reselect.select)
+    stages = dict(frontend=cli.frontend, flow=cli.flow, weighting=cli.weighting, backend=cli.backend,
+                  reselect=Reselection(**per_frame), landmarks=cli.landmarks, relocaliser=cli.relocaliser)  # fmt: skip
     assert _state(Tracker(**stages)) == _state(cli)
+    assert _state(Reselection(**per_frame)) == _state(cli.reselect)
+    assert _state(ResidualDrop()) == _state(cli.outliers) and _state(KeyframeStore()) == _state(cli.keyframes)
+    assert _state(LandmarkMap()) == _state(cli.landmarks)
     assert _state(Relocaliser()) == _state(cli.relocaliser)
     assert _state(PanoramaMapper()) == _state(build_mapper(config("mapping=panorama")))
+
+
+def test_policy_stages_direct_equal_cli_in_behaviour(cli):
+    """The re-selection and outlier stages decide as the CLI's do on one input, and the paper's values decide
+    otherwise on it (so the input tells the two apart)."""
+    g = torch.Generator().manual_seed(1)
+    valid = torch.rand(3, 40, generator=g) < torch.tensor([[0.2], [0.4], [0.9]])
+    n_model, active = torch.full((3,), 40), torch.ones(3, dtype=torch.bool)
+    stages = dict(region=cli.reselect.region, select=cli.reselect.select)
+    ours = cli.reselect.needed(valid, n_model, active)
+    assert torch.equal(ours, Reselection(**stages).needed(valid, n_model, active))
+    assert not torch.equal(ours, Reselection(**stages, fraction=0.1, min_features=1).needed(valid, n_model, active))
+    residuals = 6 * torch.rand(3, 40, generator=g)
+    assert torch.equal(cli.outliers(residuals, valid), ResidualDrop()(residuals, valid))
+    assert not torch.equal(cli.outliers(residuals, valid), ResidualDrop(max_residual_px=None)(residuals, valid))
+    _, depth, _, _ = _frame()
+    depth = depth * (1 + (torch.arange(W_) > W_ // 2))  # a depth step: the edge rule removes its neighbourhood
+    assert torch.equal(cli.reselect.roi(depth), Reselection(**stages).roi(depth))
+    assert not torch.equal(cli.reselect.roi(depth), Reselection(**stages, edge_step=None).roi(depth))

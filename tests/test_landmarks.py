@@ -1,4 +1,4 @@
-"""Landmark re-acquisition (torchtrack.landmarks): the pose refinement against closed-form data, the keyframe ring, and
+"""Landmark re-acquisition (torchtrack.pipeline.landmarks): the pose refinement against closed-form data, the keyframe ring, and
 re-tracking from a keyframe on rendered frames with exact ground truth."""
 
 from __future__ import annotations
@@ -17,7 +17,8 @@ from torchtrack.frontend import FrontEnd, smooth_depth_mask
 from torchtrack.geometry import T_inv, backproject, make_T, project, se3_exp, se3_log, transform_points
 from torchtrack.image.flow import CombinedTracker
 from torchtrack.image.select import select_features
-from torchtrack.landmarks import LandmarkMap, refine_pose
+from torchtrack.pipeline.keyframes import KeyframeStore
+from torchtrack.pipeline.landmarks import LandmarkMap, refine_pose
 
 
 def random_scene(B: int, C: int, seed: int = 0):
@@ -83,7 +84,9 @@ class _Prepared:
 
 
 def test_ring_keeps_the_last_keyframes_per_sequence():
-    lm = LandmarkMap(keyframes=3, per_keyframe=4)
+    """The one store's ring (slots, order) and the landmarks attached to its slots, against hand-counted slots."""
+    store, lm = KeyframeStore(size=3, every=0), LandmarkMap(per_keyframe=4)
+    store.reset(2)
     eye = torch.eye(4, dtype=torch.float64).expand(2, 4, 4)
     for k in range(5):
         mask = torch.tensor([True, k % 2 == 0])  # sequence 1 takes a keyframe every other time
@@ -91,25 +94,50 @@ def test_ring_keeps_the_last_keyframes_per_sequence():
         world = torch.full((2, 6, 3), float(k), dtype=torch.float64)
         valid = torch.zeros(2, 6, dtype=torch.bool)
         valid[:, 1 : 1 + k + 1] = True  # k + 1 valid features (more than per_keyframe from k = 4)
-        lm.add(_Prepared(float(k)), torch.full((2,), float(k)), eye, pixels, world, torch.zeros(2, 6, 2), valid, mask)
-    assert lm.count.tolist() == [5, 3]
-    # sequence 0 holds keyframes 3, 4, 2 in slots 0, 1, 2; sequence 1 holds 0, 2, 4
+        slot = store.add(torch.full((2,), float(k)), eye, mask, torch.ones(2, dtype=torch.bool))
+        assert slot.tolist() == [k % 3, (k // 2) % 3 if k % 2 == 0 else -1]
+        lm.add(store, slot, _Prepared(float(k)), pixels, world, torch.zeros(2, 6, 2), valid)
+    assert store.count.tolist() == [5, 3]
+    # sequence 0 holds keyframes 3, 4, 2 in slots 0, 1, 2; sequence 1 holds 0, 2, 4; slot 3 (a tracked keyframe): none
     assert lm.gray[:, 0, 0, 0, 0].tolist() == [3.0, 4.0, 2.0] and lm.gray[:, 1, 0, 0, 0].tolist() == [0.0, 2.0, 4.0]
     assert lm.sim[:, 1, 0, 0, 0].tolist() == [-0.0, -2.0, -4.0]
-    assert lm.stamp.tolist() == [[3, 4, 2], [0, 1, 2]]
+    assert store.stamp.tolist() == [[3, 4, 2, -1], [0, 1, 2, -1]] and store.time[0, :3].tolist() == [3.0, 4.0, 2.0]
+    assert store.newest_first(0) == [1, 0, 2] and store.newest_first(1) == [2, 1, 0]
     assert lm.valid.sum(-1).tolist() == [[4, 4, 3], [1, 3, 4]]  # at most per_keyframe, valid ones first
     assert lm.world[0, 1, :, 0].tolist() == [4.0] * 4
-    lm.forget(torch.tensor([4.0, 4.0]), torch.tensor([True, False]))
-    assert lm.valid.sum(-1).tolist() == [[4, 0, 3], [1, 3, 4]]
+
+
+def test_keyframes_are_model_frames_and_every_kth_tracked_frame():
+    """``due``: a model frame is a keyframe; so is a tracked frame ``every`` frames after the last keyframe; an ended
+    sequence's frames are not counted. Model keyframes fill the ring, a tracked one the last slot (hand-counted)."""
+    store = KeyframeStore(size=2, every=3)
+    store.reset(2)
+    reselected = [[1, 1], [0, 0], [0, 1], [0, 0], [0, 0], [1, 0], [0, 0], [0, 0], [0, 0]]
+    active = [[1, 1]] * 6 + [[1, 0]] * 3
+    keys, slots = [], []
+    for k, (r, a) in enumerate(zip(reselected, active, strict=True)):
+        model = torch.tensor(r, dtype=torch.bool)
+        due = store.due(model, torch.tensor(a, dtype=torch.bool))
+        slots.append(store.add(torch.full((2,), float(k)), torch.eye(4, dtype=torch.float64).expand(2, 4, 4), due,
+                               model).tolist())  # fmt: skip
+        keys.append(due.tolist())
+    assert [k for k, d in enumerate(keys) if d[0]] == [0, 3, 5, 8]
+    assert [k for k, d in enumerate(keys) if d[1]] == [0, 2, 5]
+    assert [s[0] for s in slots if s[0] >= 0] == [0, 2, 1, 2] and [s[1] for s in slots if s[1] >= 0] == [0, 1, 2]
+    assert store.time[0].tolist() == [0.0, 5.0, 8.0] and store.newest_first(0) == [2, 1, 0]
+    assert KeyframeStore(every=0).every == 0
+    with pytest.raises(ValueError, match="keyframes.size must be >= 1"):
+        KeyframeStore(size=0)
 
 
 def test_bad_arguments_raise():
-    with pytest.raises(ValueError, match="keyframes, per_keyframe and max_candidates must be >= 1"):
-        LandmarkMap(keyframes=0)
-    lm = LandmarkMap()
+    with pytest.raises(ValueError, match="per_keyframe and max_candidates must be >= 1"):
+        LandmarkMap(per_keyframe=0)
+    lm, store = LandmarkMap(), KeyframeStore()
+    store.reset(2)
     with pytest.raises(ValueError, match="LandmarkMap.add"):
-        lm.add(_Prepared(0.0), torch.zeros(2), torch.eye(4).expand(2, 4, 4), torch.zeros(2, 5, 2),
-               torch.zeros(2, 4, 3), torch.zeros(2, 5, 2), torch.zeros(2, 5, dtype=torch.bool), torch.ones(2))  # fmt: skip
+        lm.add(store, torch.zeros(2, dtype=torch.long), _Prepared(0.0), torch.zeros(2, 5, 2), torch.zeros(2, 4, 3),
+               torch.zeros(2, 5, 2), torch.zeros(2, 5, dtype=torch.bool))  # fmt: skip
 
 
 # ------------------------------------------------------------------------------------------------ rendered frames
@@ -139,20 +167,22 @@ def rendered():
 
 def landmarks_of(r, lm: LandmarkMap):
     """The keyframe's features (eq. 9, off depth edges, as the tracker selects them) as landmarks at their exact world
-    positions (the render's depth and pose)."""
+    positions (the render's depth and pose), in a new keyframe store (``r["store"]``)."""
     feats = select_features(r["kf"].gray, r["kf"].depth, r["K"], roi=smooth_depth_mask(r["kf"].depth, 0.03),
                             sim=r["kf"].sim)  # fmt: skip
     pix = feats.pixels[:, feats.valid[0]].float()
     z = r["kf"].depth[0, 0, pix[0, :, 1].round().long(), pix[0, :, 0].round().long()][None]
     world = transform_points(r["T_kf"][None], backproject(r["K"].double(), pix.double(), z.double()))
-    lm.add(r["kf"], torch.zeros(1), r["T_kf"][None], pix, world, torch.zeros(*pix.shape[:2], 2), z > 0,
-           torch.ones(1, dtype=torch.bool))  # fmt: skip
+    store = r["store"] = KeyframeStore()
+    store.reset(1)
+    slot = store.add(torch.zeros(1), r["T_kf"][None], torch.ones(1, dtype=torch.bool), torch.ones(1, dtype=torch.bool))
+    lm.add(store, slot, r["kf"], pix, world, torch.zeros(*pix.shape[:2], 2), z > 0)
     return world
 
 
 def reacquire(r, lm: LandmarkMap, T_world_depth):
     none = torch.zeros(1, 0, 2)
-    return lm.reacquire(CombinedTracker(), r["cur"], r["K"], torch.eye(4)[None], T_world_depth, none,
+    return lm.reacquire(r["store"], CombinedTracker(), r["cur"], r["K"], torch.eye(4)[None], T_world_depth, none,
                         torch.zeros(1, 0, dtype=torch.bool), torch.ones(1, dtype=torch.bool))  # fmt: skip
 
 
@@ -197,7 +227,7 @@ def test_occluded_and_far_views_are_not_candidates(rendered):
     lm = LandmarkMap(per_keyframe=256)
     world = landmarks_of(r, lm)
     T = r["T_cur"][None]
-    args = (r["cur"], r["K"], torch.eye(4)[None], T, torch.zeros(1, 0, 2), torch.zeros(1, 0, dtype=torch.bool),
+    args = (r["store"], r["cur"], r["K"], torch.eye(4)[None], T, torch.zeros(1, 0, 2), torch.zeros(1, 0, dtype=torch.bool),
             torch.ones(1, dtype=torch.bool))  # fmt: skip
     index, ok, _, _ = lm.candidates(*args)
     assert ok.sum() >= 45  # measured: 55 of 77
@@ -206,7 +236,7 @@ def test_occluded_and_far_views_are_not_candidates(rendered):
     lm.world[0, 0, : world.shape[1]] = world[0] + 0.3 * ray[0] / ray[0].norm(dim=-1, keepdim=True)
     assert not lm.candidates(*args)[1].any()
     lm.world[0, 0, : world.shape[1]] = world[0]
-    lm.T_world_kf[0, 0] = (
+    r["store"].T_world_kf[0, 0] = (
         r["T_kf"]
         @ make_T(torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64))
         @ se3_exp(torch.tensor([0, 0, 0, 0, 0.4, 0], dtype=torch.float64))

@@ -3,7 +3,9 @@
 Oracles: an analytic texture rendered exactly at shifted / affinely warped positions (no image
 interpolation in the ground truth); OpenCV's calcOpticalFlowPyrLK and pyrDown on the same inputs;
 d_TIM = 0 on identical images; batched, chunked and channel-stacked calls equal looped ones within
-tests/tolerances.py. No autograd here (LK is not differentiated), so no gradient check.
+tests/tolerances.py. No autograd here (LK is not differentiated), so no gradient check. These run the default
+backend (the compiled operator where it builds); tests pinned to ``backend="torch"`` test the reference's own
+machinery, and tests/test_lk_op.py holds the operator to the reference.
 """
 
 from __future__ import annotations
@@ -224,9 +226,9 @@ def test_float64_index_arithmetic_for_large_buffers(monkeypatch):
     import torchtrack.image.lk as lk
 
     i0, i1, pts, _ = warped_pair(np.eye(2), np.array([0.8, -1.9]), n=40)
-    ref = pyramidal_lk(i0, i1, pts)
+    ref = pyramidal_lk(i0, i1, pts, backend="torch")  # the reference's sampler (the operator indexes in int64)
     monkeypatch.setattr(lk, "_EXACT_F32", 16)
-    out = pyramidal_lk(i0, i1, pts)
+    out = pyramidal_lk(i0, i1, pts, backend="torch")
     torch.testing.assert_close(out.points, ref.points, atol=1e-5, rtol=0)
     assert (out.status == ref.status).all()
 
@@ -263,8 +265,8 @@ def test_chunks_track_as_one_call():
     pts = torch.cat([pts[0], torch.tensor([[-3.0, 5.0], [500.0, 2.0]])])  # two points outside the image
     p0, p1 = build_pyramid(i0, 3), build_pyramid(i1, 3)
     img = torch.zeros(len(pts), dtype=torch.long)
-    one = lk_track_flat(p0, p1, pts, img, pts + 0.5, chunk=len(pts), with_residual=True)
-    chunked = lk_track_flat(p0, p1, pts, img, pts + 0.5, chunk=7, with_residual=True)
+    one = lk_track_flat(p0, p1, pts, img, pts + 0.5, chunk=len(pts), with_residual=True, backend="torch")
+    chunked = lk_track_flat(p0, p1, pts, img, pts + 0.5, chunk=7, with_residual=True, backend="torch")
     assert one[1].sum() >= 15 and not one[1][-2:].any() and (one[2][one[1]] > 0).all()
     torch.testing.assert_close(chunked[0], one[0], atol=LK_PX, rtol=0)
     assert torch.equal(chunked[1], one[1])  # status: a flip needs an update within rounding of eps (none here)

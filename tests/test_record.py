@@ -271,7 +271,7 @@ def test_age_cornerness_and_previous_residual_follow_the_feature(recorded):
 
 
 def test_survivors_keep_their_age_and_cornerness(seq):
-    tracker = build_tracker(config("pipeline.reselect_fraction=0.0", "pipeline.min_features=1"))  # no re-selection
+    tracker = build_tracker(config("reselect.fraction=0.0", "reselect.min_features=1"))  # no re-selection
     frames = list(iterate_batched([seq], prefetch=False))[:4]
     for f in frames:
         tracker.step(f)
@@ -279,7 +279,7 @@ def test_survivors_keep_their_age_and_cornerness(seq):
     keep = s().valid[0].clone()
     age, corner = s().age[0][keep], s().cornerness[0][keep]
     assert bool((age == 3).all())  # selected at frame 0, tracked through 3 frames
-    tracker._new_model(frames[-1], s().prev, torch.ones(1, dtype=torch.bool))
+    tracker.state, _ = tracker._new_model(s(), frames[-1], s().prev, torch.ones(1, dtype=torch.bool))
     k = len(age)
     assert torch.equal(s().age[0][:k], age) and torch.equal(s().cornerness[0][:k], corner)
     assert not s().age[0][k:].any(), "new features start at age 0"
@@ -366,7 +366,7 @@ def test_resume_skips_an_up_to_date_file_and_re_records_another_config(seq, tmp_
     assert calls == []
     record_sequences(config("weighting.sigma2_pix=2.0"), [seq], tmp_path, progress=False)
     assert calls == [[seq.name]]
-    record_sequences(config("pipeline.landmarks=false"), [seq], tmp_path, progress=False)  # the policy changes it too
+    record_sequences(config("landmarks.enabled=false"), [seq], tmp_path, progress=False)  # the policy changes it too
     assert calls == [[seq.name]] * 2
     record_sequences(config("relocalise.recover=false"), [seq], tmp_path, progress=False)
     assert calls == [[seq.name]] * 3

@@ -16,7 +16,7 @@ from torchtrack.data import TumSequence, read_tum_trajectory
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 from torchtrack.factory import build_tracker
 from torchtrack.geometry import T_inv, make_T, rotation_angle, so3_exp
-from torchtrack.relocalise import pnp_pose
+from torchtrack.pipeline.relocalise import pnp_pose
 from torchtrack.run import run_tracker
 
 GAP = (10, 20)  # frames removed

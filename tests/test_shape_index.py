@@ -100,7 +100,7 @@ def test_shapes_dtypes_and_range():
     assert s.si.dtype == torch.float32 and s.valid.dtype == torch.bool
     assert float(s.si.min()) >= 0.0 and float(s.si.max()) <= 1.0
     assert torch.all(s.si[~s.valid] == 0.5)  # masked pixels carry the fill
-    out = compute_sim(d, K)  # one image at a time: other shapes, so within float32 rounding
+    out = compute_sim(d, K, "torch")  # the reference, one image at a time: other shapes, so within float32 rounding
     assert isinstance(out, SIM)
     torch.testing.assert_close(out.si, s.si, atol=F32_UNIT, rtol=0)
     assert torch.equal(out.valid, s.valid)  # thresholds: a flip needs a value within rounding of one (none here)
@@ -239,7 +239,7 @@ def test_batched_equals_looped():
         one = shape_index(d[b : b + 1], Ks[b : b + 1])
         assert torch.equal(one.valid, batched.valid[b : b + 1])  # thresholds: no value within rounding of one here
         torch.testing.assert_close(one.si, batched.si[b : b + 1], atol=F32_UNIT, rtol=0)
-    sim = compute_sim(d, Ks)  # one image at a time (cache-sized temporaries): the batched map's values within rounding
+    sim = compute_sim(d, Ks, "torch")  # the reference, one image at a time (cache-sized temporaries): the batched map's values within rounding
     lean = shape_index(d, Ks, curvedness=False)
     torch.testing.assert_close(sim.si, lean.si, atol=F32_UNIT, rtol=0)
     assert torch.equal(sim.valid, lean.valid)

@@ -100,7 +100,7 @@ def test_an_ended_sequence_keeps_its_pose_in_the_tracker_and_the_back_end(synth)
 def test_reselection_keeps_trajectory_continuous(synth):
     """Re-selecting at every frame chains the poses without a jump and stays accurate."""
     seq = synth(seed=3, frames=8)
-    tracker = make_tracker("pipeline.min_features=100000")  # never enough features: re-select every frame
+    tracker = make_tracker("reselect.min_features=100000")  # never enough features: re-select every frame
     for frame in iterate_batched([seq], prefetch=False):
         res = tracker.step(frame)
         assert bool(res.reselected[0])
@@ -127,7 +127,7 @@ def test_keep_survivors_keeps_their_world_points_and_the_pose(synth):
     """A re-selection with keep_survivors re-expresses the tracked features in the new model frame (their world
     points and the camera pose do not move) and adds new features only away from them, up to the model's width."""
     seq = synth(seed=5, frames=4)
-    tracker = make_tracker("pipeline.keep_survivors=true", "pipeline.reselect_fraction=0.0")
+    tracker = make_tracker("reselect.keep_survivors=true", "reselect.fraction=0.0")
     frames = list(iterate_batched([seq], prefetch=False))
     for frame in frames:
         tracker.step(frame)
@@ -136,10 +136,10 @@ def test_keep_survivors_keeps_their_world_points_and_the_pose(synth):
     keep = s().valid[0].clone()
     pixels, points = s().pixels[0][keep], (world()[..., 0] + s().T_world_obj[:, None, :3, 3].float())[0][keep]
     pose = s().T_world_depth
-    n_select = len(tracker.select(s().prev.gray, s().prev.depth, frames[-1].K, sim=s().prev.sim).valid[0])
+    n_select = len(tracker.reselect.select(s().prev.gray, s().prev.depth, frames[-1].K, sim=s().prev.sim).valid[0])
     width = max(n_select, s().pixels.shape[1])  # the new model: the selector's width or the old model's
 
-    tracker._new_model(frames[-1], s().prev, torch.ones(1, dtype=torch.bool))
+    tracker.state, _ = tracker._new_model(s(), frames[-1], s().prev, torch.ones(1, dtype=torch.bool))
     valid = s().valid[0]
     new_pixels = s().pixels[0][valid]
     new_points = (world()[..., 0] + s().T_world_obj[:, None, :3, 3].float())[0][valid]
@@ -156,17 +156,19 @@ def test_keep_survivors_keeps_their_world_points_and_the_pose(synth):
 def test_keep_survivors_keeps_them_all_when_the_selection_is_poor(synth):
     """A re-selection frame where the selector finds only 5 features (blur, no texture) keeps every survivor."""
     seq = synth(seed=7, frames=3)
-    tracker = make_tracker("pipeline.keep_survivors=true", "pipeline.reselect_fraction=0.0")
+    tracker = make_tracker("reselect.keep_survivors=true", "reselect.fraction=0.0")
     frames = list(iterate_batched([seq], prefetch=False))
     for frame in frames:
         tracker.step(frame)
     survivors = int(tracker.state.valid.sum())
-    select = tracker.select
-    tracker.select = lambda *a, **k: select(*a, **k)._replace(
+    select = tracker.reselect.select
+    tracker.reselect.select = lambda *a, **k: select(*a, **k)._replace(
         **{
             f: getattr(select(*a, **k), f)[:, :5]
             for f in ("pixels", "points", "cornerness", "cornerness_int", "cornerness_sim", "valid")
         }
     )  # noqa: E501
-    tracker._new_model(frames[-1], tracker.state.prev, torch.ones(1, dtype=torch.bool))
+    tracker.state, _ = tracker._new_model(
+        tracker.state, frames[-1], tracker.state.prev, torch.ones(1, dtype=torch.bool)
+    )
     assert survivors > 5 and int(tracker.state.valid.sum()) >= survivors

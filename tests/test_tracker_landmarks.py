@@ -1,4 +1,4 @@
-"""Landmark re-acquisition inside the tracker (pipeline.landmarks) on rendered sequences with exact ground truth: a
+"""Landmark re-acquisition inside the tracker (landmarks.enabled) on rendered sequences with exact ground truth: a
 camera that pans away from a textured room corner and comes back."""
 
 from __future__ import annotations
@@ -19,10 +19,10 @@ from torchtrack.data.synthetic.render import render_frame
 from torchtrack.data.synthetic.scene import default_scene
 from torchtrack.factory import build_tracker
 from torchtrack.geometry import T_inv, make_T, so3_exp, transform_points
-from torchtrack.landmarks import LandmarkMap
+from torchtrack.pipeline.landmarks import LandmarkMap
 
-ON = ("pipeline.landmarks=true",)
-OFF = ("pipeline.landmarks=false",)
+ON = ("landmarks.enabled=true",)
+OFF = ("landmarks.enabled=false",)
 SIZE, FRAMES = (320, 240), 40
 
 
@@ -77,12 +77,12 @@ def run(frames: list[FrameBatch], poses: torch.Tensor, *overrides: str):
 
 
 def test_switch_on_by_default_and_off_in_paper():
-    assert compose_cfg().pipeline.landmarks is True
-    assert compose_cfg("+experiment=paper").pipeline.landmarks is False
+    assert compose_cfg().landmarks.enabled is True
+    assert compose_cfg("+experiment=paper").landmarks.enabled is False
     assert build_tracker(compose_cfg(*OFF)).landmarks is None
     assert isinstance(build_tracker(compose_cfg()).landmarks, LandmarkMap)
-    with pytest.raises(InstantiationException, match="landmark_every must be >= 0"):
-        build_tracker(compose_cfg(*ON, "pipeline.landmark_every=-1"))
+    with pytest.raises(InstantiationException, match="landmarks.every must be >= 0"):
+        build_tracker(compose_cfg(*ON, "landmarks.every=-1"))
 
 
 def test_returning_camera_finds_its_first_pass_accuracy(pan):
@@ -95,11 +95,11 @@ def test_returning_camera_finds_its_first_pass_accuracy(pan):
     poses, frames = pan
     off, _ = run(frames, poses, *OFF)
     on, tracker = run(frames, poses, *ON)
-    assert int(tracker.reacquired_total.sum()) > 50  # measured: 133
+    assert int(tracker.state.reacquired_total.sum()) > 50  # measured: 133
     first_pass = float(on[1:4].mean())
     assert float(on[-2:].mean()) < 1.5 * first_pass
     assert float(off[-2:].mean()) > 2.0 * float(on[-2:].mean())
-    every, _ = run(frames, poses, *ON, "pipeline.landmark_every=5")
+    every, _ = run(frames, poses, *ON, "landmarks.every=5")
     assert float(every[-2:].mean()) < 1.5 * first_pass
 
 
@@ -138,10 +138,10 @@ def test_reacquired_landmarks_keep_their_world_positions(pan, monkeypatch):
 def test_batched_equals_looped():
     a, b = out_and_back(25.0, 0.3, frames=24), out_and_back(-20.0, -0.2, frames=24)
     both = batches([a, b])
-    tracker = build_tracker(compose_cfg(*ON, "pipeline.landmark_every=4"))
+    tracker = build_tracker(compose_cfg(*ON, "landmarks.every=4"))
     batched = torch.stack([tracker.step(f).T_world_depth for f in both])  # F,B,4,4
     for i, poses in enumerate((a, b)):
-        alone = build_tracker(compose_cfg(*ON, "pipeline.landmark_every=4"))
+        alone = build_tracker(compose_cfg(*ON, "landmarks.every=4"))
         for f, frame in enumerate(batches([poses])):
             torch.testing.assert_close(batched[f, i], alone.step(frame).T_world_depth[0], atol=TRAJ, rtol=0)
-    assert int(tracker.reacquired_total.min()) > 0
+    assert int(tracker.state.reacquired_total.min()) > 0

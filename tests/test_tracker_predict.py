@@ -14,8 +14,8 @@ from torchtrack.config import CONF_DIR
 from torchtrack.data import iterate_batched
 from torchtrack.geometry import T_inv, se3_log
 
-# the landmarks' re-tracking from keyframes (pipeline.landmarks) calls the flow too: these tests spy on the tracking
-NO_LANDMARKS = ("pipeline.landmarks=false",)
+# the landmarks' re-tracking from keyframes (landmarks.enabled) calls the flow too: these tests spy on the tracking
+NO_LANDMARKS = ("landmarks.enabled=false",)
 
 
 class SpyFlow:
@@ -37,7 +37,7 @@ def test_init_is_the_constant_velocity_projection(synth):  # noqa: F811
     """init(t) = projection (cv2.projectPoints) of the model points under inv(T_wc(t-1)) T_wc(t-2) T_cam_obj: the
     last camera motion applied once more (equal time steps), re-selections included."""
     seq = fast(synth)
-    tracker = make_tracker("data=tum", "pipeline.predict_init=true", "pipeline.reselect_fraction=0.9", *NO_LANDMARKS)
+    tracker = make_tracker("data=tum", "pipeline.predict_init=true", "reselect.fraction=0.9", *NO_LANDMARKS)
     spy = tracker.flow = SpyFlow(tracker.flow)
     T_wc, checked, reselected = [], 0, []
     for frame in iterate_batched([seq], prefetch=False):
@@ -62,7 +62,7 @@ def test_velocity_is_the_camera_motion_and_survives_reselection(synth):  # noqa:
     """state.velocity = se3_log(inv(T_world_depth(t)) T_world_depth(t-1)) / dt at every frame, a re-selection included
     (the camera-frame motion does not depend on the model frame)."""
     seq = fast(synth, frames=8)
-    tracker = make_tracker("data=tum", "pipeline.predict_init=true", "pipeline.reselect_fraction=0.95", *NO_LANDMARKS)
+    tracker = make_tracker("data=tum", "pipeline.predict_init=true", "reselect.fraction=0.95", *NO_LANDMARKS)
     prev, reselections = None, 0
     for frame in iterate_batched([seq], prefetch=False):
         res = tracker.step(frame)

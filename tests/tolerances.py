@@ -40,3 +40,31 @@ TIM_PX = 3e-4
 # amplifies them, and a re-selection or LK stop decision that flips would not stay within this): keep real sequences
 # at ~10 frames. A batch that mixes sequences' frames, features or filter states is off by their difference: mm to cm.
 TRAJ = 1e-5
+
+# The compiled LK operator (torchtrack/image/csrc/lk.cpp) vs the pure-torch reference (issue 25): the same arithmetic
+# in float32, but the window sums run in another order (8-wide FMA lanes vs torch's bmm), so a step differs by
+# rounding and a track by ~LK_PX. Measured on 49,512 points of 5 real sequences (pairs 2 frames apart, 300 corners and
+# 200 random points each, forward and backward; 39,744 tracked by both): median 0, 99 % within 1.2e-4 px, 99.9 % within
+# 6.7e-4 px: hence LK_OP_PX. Beyond it: a stop decision (update <= eps = 0.01 px; a Newton step not halved) that
+# flips on that rounding ends a track one update away (~eps; measured max 0.011 px), and on repetitive texture a flip
+# at a coarse level can end in another minimum (an earlier build of the op, other roundings: once 49 px on
+# visp_castle_simu). Such points and status flips are counted: 27 of 49,512 (6 status flips, 21 beyond LK_OP_PX;
+# 9.3e-4 with the earlier build), so LK_OP_OUTLIERS = 5e-3 of the points may differ in status or beyond LK_OP_PX.
+# A broken rule or a wrong window moves many points (a Newton rule of 1.0 instead of 0.25: 8 of 400 on real frames;
+# gradients' 3/16 for 3/13: 288 of 400).
+LK_OP_PX = 1e-3
+LK_OP_OUTLIERS = 5e-3
+# d_TIM of the op vs the reference: a forward and a backward track, each within LK_OP_PX per coordinate.
+LK_OP_TIM = 3e-3
+
+# The compiled SIM operator (torchtrack/image/csrc/sim.cpp) vs shape_index.py (issue 25): the same float32 stages; the
+# blur is added in the reference's order without FMA, the curvatures are evaluated term by term. Measured on 12 depth
+# frames of 4 real sequences: SI within 1.8e-5 where both are valid (second derivatives of a smoothed surface amplify
+# rounding; an FMA in the blur alone moved SI by 2.6e-3), no valid flip, the 8-bit image one quantum (1/255) apart at
+# <= 2 of 307,200 pixels per frame (an SI on a rounding boundary); on the analytic sphere at full resolution (32 blur
+# passes of a very smooth surface) 2.1e-4, and 32 of 307,200 image pixels a quantum apart. So SIM_OP_SI = 1e-3, at
+# most SIM_OP_FLIPS = 1e-4 of the pixels may differ in validity and SIM_OP_QUANTA = 1e-3 by one quantum. A wrong stage
+# moves SI by ~1e-2 over whole regions (the oracles' bound: 0.05).
+SIM_OP_SI = 1e-3
+SIM_OP_FLIPS = 1e-4
+SIM_OP_QUANTA = 1e-3

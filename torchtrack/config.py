@@ -162,6 +162,7 @@ class FlowConfig:
     min_eig: float = 1.0e-4  # minimum eigenvalue of the 2x2 gradient matrix (normalised, as OpenCV)
     ic_iters: int = 3  # inverse-compositional iterations before Newton steps
     backend: str = "torch"  # torch | opencv (cv2.calcOpticalFlowPyrLK, reference)
+    lk_backend: str = "auto"  # auto | cpp | torch: torch LK as the compiled operator (auto: where it builds) or pure torch
     policy: str = "fallback"  # improvement (paper: min_tim): the SIM tracker only where the intensity tracker failed
 
 
@@ -172,6 +173,7 @@ class FrontendConfig:
     _target_: str = "torchtrack.frontend.FrontEnd"
     use_sim: bool = True  # compute the SIM (SIM-assisted tracking, lambda < 1 selection)
     sim_kwargs: dict[str, Any] | None = None
+    sim_backend: str = "auto"  # auto | cpp | torch: the SIM as the compiled operator (auto: where it builds) or pure torch
     ahead: bool = True  # prepare the next frame (SIM, pyramids) in a thread while this one is tracked; same results
 
 
@@ -280,58 +282,88 @@ class RegistrationBackendConfig:
     estimator: Any = None
 
 
-# --- the pipeline's policy --------------------------------------------------------------------------------------
+# --- the pipeline and its stages ------------------------------------------------------------------------------
+# The tracker (torchtrack.pipeline.Tracker) is composed of stage objects, each built by the factory from its own group:
+# the per-frame stages above (region, select, flow, weighting, tracker = the back end) and the policy stages below
+# (reselect, outliers, keyframes, landmarks, relocalise).
 
 
 @dataclass
 class PipelineConfig:
-    """:class:`torchtrack.tracker.Tracker`'s policy; its stages are the other nodes (see the factory)."""
+    """:class:`torchtrack.pipeline.Tracker` itself: what is not a stage of its own (see the factory)."""
 
-    _target_: str = "torchtrack.tracker.Tracker"
-    reselect_fraction: float = 0.5  # new model when fewer than this fraction of the model's features survive
+    _target_: str = "torchtrack.pipeline.Tracker"
+    predict_init: bool = True  # improvement (false = paper): LK starts at the constant-velocity prediction
+    record: bool = False  # compute every frame's per-feature cues (torchtrack-record)
+
+
+@dataclass
+class ReselectConfig:
+    """:class:`torchtrack.pipeline.reselect.Reselection`: when and how the tracker takes a new model (paper §III)."""
+
+    _target_: str = "torchtrack.pipeline.reselect.Reselection"
+    fraction: float = 0.5  # new model when fewer than this fraction of the model's features survive
     min_features: int = 12  # ... or fewer than this many
     edge_step: float | None = 0.03  # improvement (null = paper): no features where depth jumps > 3% in 5x5 px
-    max_residual_px: float | None = 3.0  # improvement (null = paper): drop features > 3 px from their reprojection
     keep_survivors: bool = True  # improvement (false = paper): a re-selection keeps the features still tracked
-    min_separation_px: float = 8.0  # ... and adds new ones only this far from a survivor
-    predict_init: bool = True  # improvement (false = paper): LK starts at the constant-velocity prediction
-    track_from_model: bool = False  # improvement (false = paper): LK from the model frame, not the previous one
-    ransac_threshold_m: float | None = None  # improvement (null = off): RANSAC (Horn) inliers within this x max(1,z^2)
-    ransac_min_motion_px: float = 0.0  # ... in frames whose median tracked displacement exceeds this
-    record: bool = False  # compute every frame's per-feature cues (torchtrack-record)
-    keyframe_align: bool = False  # improvement (false = paper; off while measured): dense alignment to a keyframe
-    keyframe_count: int = 5  # ... the last this many model frames kept per sequence
-    keyframe_factor: int = 4  # ... aligned on the input downsampled by this (640x480 -> 160x120), then by 2x that
-    keyframe_blend: float = 1.0  # ... 1 replaces the EKF's pose with the aligned one; < 1 that fraction of the way
-    keyframe_photometric: bool = True  # ... its grey-value term
-    keyframe_geometric: bool = True  # ... its point-to-plane term
-    keyframe_anchor: str = (
-        "older"  # ... corrections that move the model frame, not the pose: older (keyframe), all, none
-    )
-    landmarks: bool = True  # improvement (false = paper): re-selections re-acquire old model points from keyframes
-    landmark_keyframes: int = 8  # ... keyframes (model frames) kept per sequence
-    landmark_per_keyframe: int = 128  # ... landmarks kept per keyframe
-    landmark_correct: bool = True  # ... re-fit the camera pose to the re-acquired landmarks (and the model's features)
-    landmark_min_inliers: int = 8  # ... when at least this many agree
-    landmark_max_angle_deg: float = 15.0  # ... re-track only landmarks seen from within this angle (rotation, rays)
-    landmark_every: int = 0  # ... also every this many frames into the current model (0: only at re-selections)
-    reselect_coverage: float | None = None  # improvement (null = paper): the fraction rule re-selects only while the
-    # survivors occupy fewer than this fraction of the image's grid cells (min_features always re-selects)
-    reselect_grid: int = 4  # ... cells per side
+    min_separation_px: float = 8.0  # ... and adds new ones only this far from a survivor (or a re-acquired landmark)
+
+
+@dataclass
+class OutlierConfig:
+    """:class:`torchtrack.pipeline.outliers.ResidualDrop`: which tracked features leave the model after the update."""
+
+    _target_: str = "torchtrack.pipeline.outliers.ResidualDrop"
+    max_residual_px: float | None = 3.0  # improvement (null = paper): drop features > 3 px from their reprojection
+
+
+@dataclass
+class KeyframeConfig:
+    """:class:`torchtrack.pipeline.keyframes.KeyframeStore`: the one store of keyframes the landmarks and the
+    relocaliser share (each attaches its own content per keyframe)."""
+
+    _target_: str = "torchtrack.pipeline.keyframes.KeyframeStore"
+    size: int = 8  # keyframes kept per sequence, a ring (the oldest is replaced)
+    every: int = 10  # a keyframe at every model frame with a trusted pose, and at a trusted tracked frame this many
+    # frames after the last keyframe (a model can last long: the store must stay recent); 0: model frames only
+
+
+@dataclass
+class LandmarkConfig:
+    """:class:`torchtrack.pipeline.landmarks.LandmarkMap`: model points that outlive their model, re-acquired from the
+    keyframes that saw them (the tracker's ``landmarks``; none when ``enabled`` is false)."""
+
+    _target_: str = "torchtrack.pipeline.landmarks.LandmarkMap"
+    enabled: bool = True  # improvement (false = paper): re-selections re-acquire old model points from keyframes
+    per_keyframe: int = 128  # landmarks kept per keyframe
+    max_candidates: int = 256  # at most this many re-tracked per sequence at once (oldest keyframe first)
+    min_separation_px: float = "${reselect.min_separation_px}"  # not re-tracked this close to a tracked feature
+    max_residual: float = 0.1  # largest LK photometric residual (mean absolute grey difference, [0, 1])
+    max_shift_px: float = 30.0  # largest distance between the tracked pixel and the projection
+    max_offset_m: float = 0.1  # largest distance of the measured from the predicted 3D point, x max(1, z^2)
+    occlusion: float = 0.05  # occluded where the depth at the projection is nearer by this fraction
+    correct: bool = True  # re-fit the camera pose to the re-acquired landmarks (and the model's features)
+    inlier_m: float = 0.02  # ... the 3D residual's standard deviation in that fit, x max(1, z^2)
+    min_inliers: int = 8  # ... when at least this many agree
+    max_correction_m: float = 0.1  # ... a larger correction is not applied
+    max_correction_deg: float = 5.0
+    max_angle_deg: float = 15.0  # re-track only landmarks seen from within this angle (rotation, rays)
+    max_scale: float = 1.25  # ... and whose depth changed by at most this ratio
+    converge_px: float = 0.5  # a second LK started probe_px away must end within this of the first
+    probe_px: float = 3.0
+    every: int = 0  # also every this many frames into the current model (0: only at re-selections)
 
 
 @dataclass
 class RelocaliseConfig:
-    """:class:`torchtrack.relocalise.Relocaliser`: the loss check after each frame and relocalisation by ORB matches
-    against recent model frames + PnP RANSAC (the tracker's ``relocaliser``)."""
+    """:class:`torchtrack.pipeline.relocalise.Relocaliser`: the loss check after each frame and relocalisation by ORB
+    matches against recent model frames + PnP RANSAC (the tracker's ``relocaliser``)."""
 
-    _target_: str = "torchtrack.relocalise.Relocaliser"
+    _target_: str = "torchtrack.pipeline.relocalise.Relocaliser"
     recover: bool = True  # improvement (false = paper: lost frames are only marked and warned about): relocalise
     min_survival: float = 0.25  # lost: fewer than this fraction of the previous frame's features tracked with depth
     max_rejected: float = 0.95  # ... or the filter rejected more than this fraction of them
     max_pos_std: float = 0.01  # m, ... or the posterior position std exceeds this
-    keyframes: int = 8  # recent model frames kept per sequence
-    store_every: int = 10  # ... plus a tracked frame whenever this many passed since the last one stored
     orb_features: int = 1000
     ratio: float = 0.8  # Lowe's ratio test
     reprojection_px: float = 3.0  # RANSAC inlier threshold
@@ -386,6 +418,10 @@ SCHEMAS: dict[str, dict[str, type]] = {
     "tracker": {"ekf": EKFBackendConfig, "registration": RegistrationBackendConfig},
     "estimator": {"icp": ICPConfig, "cpd": CPDConfig, "horn": HornConfig},
     "pipeline": {"pipeline": PipelineConfig},
+    "reselect": {"reselect": ReselectConfig},
+    "outliers": {"outliers": OutlierConfig},
+    "keyframes": {"keyframes": KeyframeConfig},
+    "landmarks": {"landmarks": LandmarkConfig},
     "relocalise": {"relocalise": RelocaliseConfig},
     "mapping": {"mapping": MappingConfig},
 }

@@ -14,7 +14,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from torchtrack.data.errors import DataError
 from torchtrack.data.tum import TumSequence
-from torchtrack.tracker import Tracker
+from torchtrack.pipeline import Tracker
 
 
 class LoadFailure(NamedTuple):
@@ -80,22 +80,37 @@ def load_sequences(data: DictConfig) -> Sequences:
 
 
 def build_tracker(cfg: DictConfig, *, record: bool = False) -> Tracker:
-    """The pipeline (``cfg.pipeline``: the policy) with its stages, one node each; ``record``: see :class:`Tracker`."""
+    """The pipeline (``cfg.pipeline``) composed of its stages, each built from its own node; ``record``: see
+    :class:`Tracker`."""
     return instantiate(
         cfg.pipeline,
         frontend=instantiate(cfg.frontend, levels=cfg.flow.levels),
-        region=instantiate(cfg.region),
-        select=instantiate(cfg.select),
         flow=instantiate(cfg.flow),
         weighting=instantiate(cfg.weighting),
         backend=instantiate(cfg.tracker),
-        record=record or cfg.pipeline.record,
+        reselect=instantiate(cfg.reselect, region=instantiate(cfg.region), select=instantiate(cfg.select)),
+        outliers=instantiate(cfg.outliers),
+        keyframes=instantiate(cfg.keyframes),
+        landmarks=build_landmarks(cfg),
         relocaliser=build_relocaliser(cfg),
+        record=record or cfg.pipeline.record,
     )
 
 
+def build_landmarks(cfg: DictConfig):
+    """The tracker's landmark stage (:class:`torchtrack.pipeline.landmarks.LandmarkMap`) from ``cfg.landmarks``, or
+    None when ``landmarks.enabled`` is false."""
+    node = cfg.get("landmarks")
+    if node is None or not node.enabled:
+        return None
+    kwargs = OmegaConf.to_container(node, resolve=True)
+    kwargs.pop("enabled")
+    return instantiate(kwargs)
+
+
 def build_relocaliser(cfg: DictConfig):
-    """The tracker's loss check (:class:`torchtrack.relocalise.Relocaliser`) from ``cfg.relocalise``, if any."""
+    """The tracker's loss check (:class:`torchtrack.pipeline.relocalise.Relocaliser`) from ``cfg.relocalise``, if
+    any."""
     return instantiate(cfg.relocalise) if "relocalise" in cfg else None
 
 

@@ -29,7 +29,7 @@ from torchtrack.data.tum import TumSequence
 from torchtrack.data.tum_io import write_tum_trajectory
 from torchtrack.geometry.rig import color_poses, tracker_world
 from torchtrack.io import check_writable, write_json, write_text
-from torchtrack.tracker import StepResult, Tracker
+from torchtrack.pipeline import StepResult, Tracker
 from torchtrack.viz.overlay import TRAIL, draw_frame, save_strip, snapshot_indices
 
 log = logging.getLogger(__name__)

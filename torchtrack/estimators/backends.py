@@ -17,7 +17,7 @@ from torch import Tensor
 from torchtrack.config import EKFBackendConfig
 from torchtrack.filter.ekf import chi2_quantile, cholesky_jittered, symmetrize
 from torchtrack.filter.fusion import FilterState, FusionEKF
-from torchtrack.filter.models import measure, state_to_pose
+from torchtrack.filter.models import measure, pose_to_state, state_to_pose
 from torchtrack.filter.noise_scale import NoiseScale, ScaleState, residual_statistics, scaled
 from torchtrack.filter.weighting import Variances
 
@@ -58,6 +58,9 @@ class PoseBackend(Protocol):
 
     def reset(self, T_cam_obj: Tensor, mask: Tensor) -> None:
         """Start over at pose ``T_cam_obj`` (B, 4, 4) for the sequences where ``mask`` (B,) is True."""
+
+    def set_pose(self, T_cam_obj: Tensor, mask: Tensor) -> None:
+        """Move the current pose to ``T_cam_obj`` (B, 4, 4) where ``mask`` (B,), keeping the rest of the state."""
 
     def step(self, obs: Observation, var: Variances, active: Tensor | None = None) -> BackendResult:
         """One frame: observation and per-feature variances in, a named result with ``T_cam_obj`` (B, 4, 4) out.
@@ -288,6 +291,17 @@ class EKFBackend:
             torch.where(mask[:, None, None], init.cov, self.state.cov),
         )
 
+    def set_pose(self, T_cam_obj: Tensor, mask: Tensor) -> None:
+        """Move the mean pose of the sequences in ``mask`` (B,) to ``T_cam_obj`` (B, 4, 4), Euler angles unwrapped next
+        to the old ones; velocity and covariance kept (the pose is taken as the new mean, not fused as a measurement)."""
+        if self.state is None:
+            raise ValueError("EKFBackend: call reset(T_cam_obj, mask) before set_pose")
+        mean = self.state.mean
+        x, old = pose_to_state(T_cam_obj.to(mean.dtype))[:, :6], mean[:, :6]
+        ang = old[:, :3] + torch.remainder(x[:, :3] - old[:, :3] + torch.pi, 2 * torch.pi) - torch.pi
+        new = torch.cat([ang, x[:, 3:], mean[:, 6:]], 1)
+        self.state = FilterState(torch.where(mask[:, None], new, mean), self.state.cov)
+
     def step(self, obs: Observation, var: Variances, active: Tensor | None = None) -> FrameUpdate:
         """One frame: the named result of :func:`ekf_frame`; the posterior becomes the state of the sequences where
         ``active`` (B,) is True (default: all); ended sequences keep theirs (no prediction runs on without them), and
@@ -343,6 +357,12 @@ class RegistrationBackend:
         if self.T_prev is None:
             self.T_prev = T_cam_obj.clone()
         self.T_prev = torch.where(mask[:, None, None], T_cam_obj, self.T_prev)
+
+    def set_pose(self, T_cam_obj: Tensor, mask: Tensor) -> None:
+        """The previous pose of the sequences in ``mask`` (B,) becomes ``T_cam_obj`` (B, 4, 4) (no other state)."""
+        if self.T_prev is None:
+            raise ValueError("RegistrationBackend: call reset(T_cam_obj, mask) before set_pose")
+        self.T_prev = torch.where(mask[:, None, None], T_cam_obj.to(self.T_prev.dtype), self.T_prev)
 
     def step(self, obs: Observation, var: Variances, active: Tensor | None = None) -> Registration:
         """One frame; the result becomes the previous pose of the sequences where ``active`` (B,) is True."""

@@ -201,6 +201,7 @@ def combined_track(
     policy: Literal["min_tim", "fallback"] = FlowConfig.policy,
     with_residual: bool = False,
     init: Tensor | None = None,
+    lk_backend: Literal["auto", "cpp", "torch"] = FlowConfig.lk_backend,
 ) -> TrackResult:
     """Track features from prev to next with the combined intensity + SIM tracker (§III-C, eq. (10)).
 
@@ -220,6 +221,8 @@ def combined_track(
         init: (B, N, 2) where each forward pass starts in next (default: points, as the paper); the backward pass
             starts at the forward result minus the same prior displacement, and d_TIM is still measured against
             points.
+        lk_backend: the torch back end's LK: "cpp" (the compiled operator), "torch" (the pure-torch reference) or
+            "auto" (cpp where it builds); see :func:`torchtrack.image.lk.lk_track_flat`.
 
     Returns:
         TrackResult; d_tim_* and status_* of a tracker that did not run are +inf and False.
@@ -242,7 +245,7 @@ def combined_track(
     channels = _CHANNELS[mode]
     lk_kwargs = dict(window=window, levels=levels, iters=iters, eps=eps, min_eig=min_eig)
     if backend == "torch":
-        lk_kwargs["ic_iters"] = ic_iters
+        lk_kwargs.update(ic_iters=ic_iters, backend=lk_backend)
         track = partial(_track_torch, prev, next, points, lk_kwargs=lk_kwargs, with_residual=with_residual, init=init)
     elif backend == "opencv":
         track = partial(_track_opencv, prev, next, points, lk_kwargs=lk_kwargs, with_residual=with_residual, init=init)
@@ -288,13 +291,14 @@ class CombinedTracker:
         ic_iters: int = FlowConfig.ic_iters,
         backend: Literal["torch", "opencv"] = FlowConfig.backend,
         policy: Literal["min_tim", "fallback"] = FlowConfig.policy,
+        lk_backend: Literal["auto", "cpp", "torch"] = FlowConfig.lk_backend,
     ) -> None:
         if mode not in _CHANNELS or backend not in ("torch", "opencv"):
             raise ValueError(f"CombinedTracker: bad mode {mode!r} or backend {backend!r}")
         self.levels = levels
         self.kwargs = dict(
             mode=mode, tim_threshold=tim_threshold, window=window, levels=levels, iters=iters, eps=eps,
-            min_eig=min_eig, ic_iters=ic_iters, backend=backend, policy=policy,
+            min_eig=min_eig, ic_iters=ic_iters, backend=backend, policy=policy, lk_backend=lk_backend,
         )  # fmt: skip
 
     def prepare(self, gray: Tensor, sim: Tensor | None = None) -> FlowFrame:

@@ -25,6 +25,11 @@ fixed point; tracks agree to about 0.0002 px on real frames) is in the stopping:
 On CPU the per-iteration cost is dominated by the number of tensor operations, not by arithmetic, so the
 stopping rules matter as much as the sampling: they cut the iterations of a 300-point call from ~90 to ~20.
 
+Two implementations of the same arithmetic (``backend``, ``FlowConfig.lk_backend``): ``"cpp"``, the compiled operator
+``torch.ops.torchtrack.lk_track`` (csrc/lk.cpp, one C++ loop per point over all points, built on first use:
+:mod:`torchtrack.image.lk_op`), and ``"torch"``, the pure-torch functions below, the reference and the fallback
+(``"auto"``: the operator where it builds). Tracks agree within tests/tolerances.py's LK_OP_PX.
+
 References: J.-Y. Bouguet, "Pyramidal Implementation of the Lucas Kanade Feature Tracker", Intel, 2000;
 S. Baker, I. Matthews, "Lucas-Kanade 20 Years On", IJCV 2004; R. Liu et al., "Online Determination of
 Track Loss Using Template Inverse Matching", VS 2008 (d_TIM, paper eq. (10)).
@@ -38,6 +43,7 @@ import torch
 from torch import Tensor
 
 from torchtrack.config import FlowConfig
+from torchtrack.image import lk_op
 from torchtrack.image.pyramid import Pyramid, build_pyramid
 
 _EXACT_F32 = 2**24  # float32 index arithmetic is exact below this
@@ -256,6 +262,7 @@ def lk_track_flat(
     ic_iters: int = FlowConfig.ic_iters,
     with_residual: bool = True,
     chunk: int = _CHUNK,
+    backend: str = FlowConfig.lk_backend,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Pyramidal LK on a flat list of P points, each in its own image of the pyramids' batch.
 
@@ -263,7 +270,8 @@ def lk_track_flat(
         prev, next: pyramids of equal geometry (built with a window at least ``window``).
         points: (P, 2) level-0 positions in prev. image_index: (P,) int64 batch index of each point.
         init: (P, 2) initial guess of the positions in next.
-        chunk: points tracked together at most (each point's track is independent of the others).
+        chunk: points tracked together at most (each point's track is independent of the others; torch backend).
+        backend: "cpp" (the compiled operator), "torch" (the reference) or "auto" (cpp where it builds).
 
     Returns:
         points (P, 2) in next (the input where not tracked), status (P,) bool, residual (P,) (zeros unless
@@ -272,6 +280,8 @@ def lk_track_flat(
     if chunk < 1:
         raise ValueError(f"lk_track_flat: chunk must be >= 1, got {chunk}")
     kwargs = dict(window=window, levels=levels, iters=iters, eps=eps, min_eig=min_eig, ic_iters=ic_iters)
+    if use_cpp(backend):
+        return _track_op(prev, next, points, image_index, init, **kwargs, with_residual=with_residual)
     if points.shape[0] <= chunk:
         return _track_chunk(prev, next, points, image_index, init, **kwargs, with_residual=with_residual)
     size = -(-points.shape[0] // -(-points.shape[0] // chunk))  # equal chunks of at most ``chunk`` points
@@ -281,6 +291,47 @@ def lk_track_flat(
         for i in range(0, points.shape[0], size)
     ]  # fmt: skip
     return tuple(torch.cat(x) for x in zip(*parts, strict=True))
+
+
+def use_cpp(backend: str) -> bool:
+    """Whether ``backend`` ("auto", "cpp", "torch") runs the compiled operator; "cpp" raises where it cannot."""
+    if backend not in ("auto", "cpp", "torch"):
+        raise ValueError(f"lk: backend must be 'auto', 'cpp' or 'torch', got {backend!r}")
+    if backend == "torch":
+        return False
+    if not lk_op.available() and backend == "cpp":
+        raise RuntimeError(f"lk: backend 'cpp' asked, but the operator could not be built: {lk_op.error()}")
+    return lk_op.available()
+
+
+class _OpTables:
+    """The operator's tables of one pyramid, kept with it (``Pyramid.samplers``): base (L, B) int64 flat index of each
+    level's and image's pixel (0, 0), sizes (L, 2) int64 level sizes (H_l, W_l)."""
+
+    def __init__(self, pyr: Pyramid, levels: int):
+        self.base = ((pyr.row_start[:levels] + pyr.pad) * pyr.stride + pyr.pad).contiguous()
+        self.sizes = torch.tensor([pyr.size(level) for level in range(levels)], dtype=torch.int64)
+
+    @staticmethod
+    def of(pyr: Pyramid, levels: int) -> _OpTables:
+        if ("op", levels) not in pyr.samplers:
+            pyr.samplers[("op", levels)] = _OpTables(pyr, levels)
+        return pyr.samplers[("op", levels)]
+
+
+def _track_op(prev, next, points, image_index, init, *, window, levels, iters, eps, min_eig, ic_iters, with_residual):
+    """:func:`lk_track_flat` by the compiled operator (all points in one call)."""
+    if (prev.stride, prev.plane, prev.pad, prev.flat.numel()) != (next.stride, next.plane, next.pad, next.flat.numel()):
+        raise ValueError("lk_track_flat: prev and next pyramids must have the same geometry")
+    tables_prev, tables_next = _OpTables.of(prev, levels), _OpTables.of(next, levels)
+    base_prev, base_next, sizes = tables_prev.base, tables_next.base, tables_prev.sizes
+    f32 = dict(dtype=torch.float32, memory_format=torch.contiguous_format)
+    return lk_op.lk_track(
+        prev.flat.contiguous(), next.flat.contiguous(), base_prev, base_next, sizes, points.to(**f32),
+        image_index.to(torch.int64).contiguous(), init.to(**f32), stride=prev.stride, plane=prev.plane,
+        pad=prev.pad, window=window, iters=iters, ic_iters=ic_iters, eps=eps, min_eig=min_eig,
+        with_residual=with_residual,
+    )  # fmt: skip
 
 
 def _track_chunk(
@@ -358,6 +409,7 @@ def pyramidal_lk(
     min_eig: float = FlowConfig.min_eig,
     ic_iters: int = FlowConfig.ic_iters,
     with_residual: bool = True,
+    backend: str = FlowConfig.lk_backend,
 ) -> LKResult:
     """Track points from prev to next with pyramidal Lucas–Kanade (translation per window).
 
@@ -371,6 +423,7 @@ def pyramidal_lk(
         min_eig: threshold on the gradient matrix's smallest eigenvalue in OpenCV's units (minEigThreshold).
         ic_iters: inverse-compositional iterations per level before Newton steps (see the module docstring).
         with_residual: compute the residual (one more window sample per point); zeros otherwise.
+        backend: "cpp" (compiled operator), "torch" (reference) or "auto" (cpp where it builds); see lk_track_flat.
 
     Returns:
         LKResult(points (B, N, 2), status (B, N), residual (B, N)).
@@ -400,7 +453,7 @@ def pyramidal_lk(
     out[sel], status[sel], residual[sel] = lk_track_flat(
         prev_p, next_p, pts[sel], image_index[sel], guess[sel],
         window=window, levels=levels, iters=iters, eps=eps, min_eig=min_eig, ic_iters=ic_iters,
-        with_residual=with_residual,
+        with_residual=with_residual, backend=backend,
     )  # fmt: skip
     return LKResult(out.view(b, n, 2).to(points.dtype), status.view(b, n), residual.view(b, n))
 

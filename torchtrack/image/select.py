@@ -375,7 +375,7 @@ def _finish(
 
 class FeatureSelector:
     """Holds the selection parameters; ``__call__(gray, depth, K, roi=None, sim=None)`` delegates to
-    :func:`select_features` (the ``select`` stage of :class:`torchtrack.tracker.Tracker`)."""
+    :func:`select_features` (the ``select`` stage of :class:`torchtrack.pipeline.Tracker`)."""
 
     def __init__(
         self,

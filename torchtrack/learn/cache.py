@@ -47,7 +47,7 @@ belongs to model ``model_frame[t]``); the back end is reset to ``model_T_cam_obj
 end thus reproduces ``T_cam_obj_est``.
 
 The one approximation of replaying with other variances: the front end's decisions that depend on the pose are
-those of the recording run — features dropped for their reprojection residual (``pipeline.max_residual_px``), the
+those of the recording run — features dropped for their reprojection residual (``outliers.max_residual_px``), the
 survivors of a re-selection re-expressed in the new model frame through the then-current estimate, and the frames
 at which re-selections happen (the number of surviving features).
 """

@@ -24,8 +24,8 @@ from torchtrack.data.frame import FrameBatch
 from torchtrack.factory import build_tracker
 from torchtrack.learn.cache import SequenceObservations, load_observations, object_poses_gt, save_observations
 from torchtrack.learn.cues import CUE_NAMES
+from torchtrack.pipeline import StepResult
 from torchtrack.run import unique_names
-from torchtrack.tracker import StepResult
 
 log = logging.getLogger("torchtrack.record")
 
@@ -42,6 +42,10 @@ RECORDED_GROUPS = (
     "weighting",
     "tracker",
     "pipeline",
+    "reselect",
+    "outliers",
+    "keyframes",
+    "landmarks",
     "relocalise",
 )
 _DATA_LOCATION = ("root", "cache_dir")

@@ -125,7 +125,7 @@ class PanoramaMapper:
         return key & frame.active
 
     def add(self, frame: FrameBatch, res) -> None:
-        """Fuse this frame where it is a key frame; ``res`` a :class:`torchtrack.tracker.StepResult`."""
+        """Fuse this frame where it is a key frame; ``res`` a :class:`torchtrack.pipeline.StepResult`."""
         B = frame.rgb.shape[0]
         if self.map is None:
             self.map = VoxelPointMap(voxel_size=self.voxel_size, batch_size=B)

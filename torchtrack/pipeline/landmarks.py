@@ -1,8 +1,8 @@
 """Landmark re-acquisition: model points that outlive their model, re-tracked from the keyframe that saw them.
 
-Every model frame is a keyframe: its LK images (intensity and SIM) and its model features, each with its pixel there
-and its position in the tracker's world, are kept, the last ``keyframes`` per sequence (a ring; ``per_keyframe``
-features each). At a re-selection the landmarks are projected with the current camera pose; those inside the image,
+Every model keyframe of the tracker's one store (:class:`~torchtrack.pipeline.keyframes.KeyframeStore`, the last
+``keyframes.size`` per sequence) carries its LK images (intensity and SIM) and its model's features, each with its
+pixel there and its position in the tracker's world (``per_keyframe`` features each). At a re-selection the landmarks are projected with the current camera pose; those inside the image,
 in front of the camera, not occluded (the depth there is not nearer than the predicted one) and seen by their keyframe
 from about the current viewpoint are tracked from their keyframe into the current frame by the same combined LK + TIM
 tracker (eq. 10), starting at the projection, and kept only when the forward-backward check passes, a second start
@@ -23,6 +23,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchtrack.config import LandmarkConfig, ReselectConfig
+from torchtrack.estimators.backends import Observation
 from torchtrack.filter.models import measure_points
 from torchtrack.frontend import PreparedFrame
 from torchtrack.geometry import (
@@ -36,6 +38,8 @@ from torchtrack.geometry import (
     transform_points,
 )
 from torchtrack.image.flow import FlowFrame, prepare_frame
+from torchtrack.pipeline.keyframes import KeyframeStore
+from torchtrack.pipeline.reselect import far_from
 
 
 class Reacquired(NamedTuple):
@@ -53,12 +57,22 @@ class Reacquired(NamedTuple):
     valid: Tensor
     T_world_depth: Tensor
 
+    def observation(self, T_world_obj: Tensor, dt: Tensor, K: Tensor, T_color_depth: Tensor) -> Observation:
+        """The re-acquired landmarks as measurements of the model frame ``T_world_obj`` (B, 4, 4): model points
+        (their stored world positions in the object frame), the points measured from depth and their tracked
+        pixels (eqs. 6-7), with ``dt`` (B,) s, ``K`` (B, 3, 3), ``T_color_depth`` (B, 4, 4) as in the frame's
+        :class:`~torchtrack.estimators.backends.Observation`. Not valid rows carry zeros."""
+        points_obj = transform_points(T_inv(T_world_obj.double()), self.points_world).to(self.points_cam.dtype)
+        ok = self.valid[..., None]
+        return Observation(dt.to(self.points_cam.dtype), torch.where(ok, points_obj, 0.0),
+                           torch.where(ok, self.points_cam, 0.0), self.pixels, self.valid, K, T_color_depth)  # fmt: skip
+
 
 class LandmarkMap:
-    """The last ``keyframes`` model frames per sequence with their features as world landmarks, batched over B.
+    """The features of the model keyframes of the tracker's :class:`KeyframeStore` (its slots 0 .. size - 1) as world
+    landmarks, batched over B.
 
     Args:
-        keyframes: keyframes kept per sequence (a ring buffer; the oldest is replaced).
         per_keyframe: landmarks kept per keyframe (the model's first valid features: survivors and re-acquired first).
         max_candidates: at most this many landmarks per sequence are re-tracked at one re-selection (oldest keyframe
             first: the oldest anchors remove the most drift).
@@ -75,81 +89,80 @@ class LandmarkMap:
         max_angle_deg: re-track only landmarks whose keyframe's rotation and ray to the point are within this angle.
         max_scale: ... and whose depth changed by at most this ratio (LK tracks a translation of the window).
         converge_px, probe_px: a second LK started ``probe_px`` away must end within ``converge_px`` of the first.
+        every: > 0: the tracker also re-acquires landmarks into the current model every that many frames (no new
+            model); 0: only at re-selections.
+
+    The map is the tracker's ``landmarks`` stage: :meth:`reacquire_into` gives the landmarks found again in the current
+    frame (:class:`Reacquired`) and :meth:`Reacquired.observation` states them as back-end measurements of the
+    current model (eqs. 6-7), so that they can join the frame's update instead of a correction outside the filter.
     """
 
     def __init__(
         self,
         *,
-        keyframes: int = 8,
-        per_keyframe: int = 128,
-        max_candidates: int = 256,
-        min_separation_px: float = 8.0,
-        max_residual: float = 0.1,
-        max_shift_px: float = 30.0,
-        max_offset_m: float = 0.1,
-        occlusion: float = 0.05,
-        correct: bool = True,
-        inlier_m: float = 0.02,
-        min_inliers: int = 8,
-        max_correction_m: float = 0.1,
-        max_correction_deg: float = 5.0,
-        max_angle_deg: float = 15.0,
-        max_scale: float = 1.25,
-        converge_px: float = 0.5,
-        probe_px: float = 3.0,
+        per_keyframe: int = LandmarkConfig.per_keyframe,
+        max_candidates: int = LandmarkConfig.max_candidates,
+        min_separation_px: float = ReselectConfig.min_separation_px,
+        max_residual: float = LandmarkConfig.max_residual,
+        max_shift_px: float = LandmarkConfig.max_shift_px,
+        max_offset_m: float = LandmarkConfig.max_offset_m,
+        occlusion: float = LandmarkConfig.occlusion,
+        correct: bool = LandmarkConfig.correct,
+        inlier_m: float = LandmarkConfig.inlier_m,
+        min_inliers: int = LandmarkConfig.min_inliers,
+        max_correction_m: float = LandmarkConfig.max_correction_m,
+        max_correction_deg: float = LandmarkConfig.max_correction_deg,
+        max_angle_deg: float = LandmarkConfig.max_angle_deg,
+        max_scale: float = LandmarkConfig.max_scale,
+        converge_px: float = LandmarkConfig.converge_px,
+        probe_px: float = LandmarkConfig.probe_px,
+        every: int = LandmarkConfig.every,
     ) -> None:
-        if keyframes < 1 or per_keyframe < 1 or max_candidates < 1:
-            raise ValueError(f"LandmarkMap: keyframes, per_keyframe and max_candidates must be >= 1, got "
-                             f"{keyframes}, {per_keyframe}, {max_candidates}")  # fmt: skip
-        self.S, self.P, self.C = keyframes, per_keyframe, max_candidates
+        if per_keyframe < 1 or max_candidates < 1:
+            raise ValueError(f"LandmarkMap: per_keyframe and max_candidates must be >= 1, got "
+                             f"{per_keyframe}, {max_candidates}")  # fmt: skip
+        self.P, self.C = per_keyframe, max_candidates
         self.min_separation_px, self.max_residual, self.max_shift_px = min_separation_px, max_residual, max_shift_px
         self.max_offset_m, self.occlusion = max_offset_m, occlusion
         self.correct, self.inlier_m, self.min_inliers = correct, inlier_m, min_inliers
         self.max_correction_m, self.max_correction_rad = max_correction_m, math.radians(max_correction_deg)
         self.max_angle_deg, self.max_scale = max_angle_deg, max_scale
         self.converge_px, self.probe_px = converge_px, probe_px
+        if every < 0:
+            raise ValueError(f"landmarks.every must be >= 0, got {every}")
+        self.every = every
         self.reset()
 
     def reset(self) -> None:
-        self.gray = self.sim = None  # (S, B, 1, H, W) keyframe images
+        """No landmarks (the tracker's first frame)."""
+        self.gray = self.sim = None  # (S, B, 1, H, W) the keyframes' LK images, per slot of the keyframe store
         self.pyramids: dict[int, FlowFrame] = {}  # LK pyramids of the slots, built on first use
-        self.pixels = self.world = self.cornerness = self.valid = self.stamp = self.count = self.T_world_kf = None
+        self.pixels = self.world = self.cornerness = self.valid = None  # (B, S, P, ...) the keyframes' features
 
-    def forget(self, timestamp: Tensor, mask: Tensor) -> None:
-        """Drop the keyframes of the sequences in ``mask`` (B,) taken at ``timestamp`` (B,) or later: a frame found
-        lost after its model was taken must not leave landmarks at the lost pose."""
-        if self.valid is not None:
-            drop = mask[:, None] & (self.time >= timestamp.double()[:, None])  # B,S
-            self.valid &= ~drop[..., None]
+    def _allocate(self, S: int, gray: Tensor, sim: Tensor | None) -> None:
+        P, B, dev = self.P, gray.shape[0], gray.device
+        self.gray = torch.zeros(S, *gray.shape, dtype=gray.dtype, device=dev)
+        self.sim = None if sim is None else torch.zeros(S, *sim.shape, dtype=sim.dtype, device=dev)
+        self.pixels = torch.zeros(B, S, P, 2, device=dev)
+        self.world = torch.zeros(B, S, P, 3, dtype=torch.float64, device=dev)
+        self.cornerness = torch.zeros(B, S, P, 2, device=dev)
+        self.valid = torch.zeros(B, S, P, dtype=torch.bool, device=dev)
 
-    def _allocate(self, gray: Tensor, sim: Tensor | None) -> None:
-        S, P, B = self.S, self.P, gray.shape[0]
-        self.gray = torch.zeros(S, *gray.shape, dtype=gray.dtype)
-        self.sim = None if sim is None else torch.zeros(S, *sim.shape, dtype=sim.dtype)
-        self.pixels = torch.zeros(B, S, P, 2)
-        self.world = torch.zeros(B, S, P, 3, dtype=torch.float64)
-        self.cornerness = torch.zeros(B, S, P, 2)
-        self.valid = torch.zeros(B, S, P, dtype=torch.bool)
-        self.T_world_kf = torch.eye(4, dtype=torch.float64).repeat(B, S, 1, 1)  # keyframe (depth) camera poses
-        self.time = torch.full((B, S), -float("inf"), dtype=torch.float64)  # keyframe time stamps
-        self.stamp = torch.full((B, S), -1, dtype=torch.long)  # insertion order of each slot; -1 empty
-        self.count = torch.zeros(B, dtype=torch.long)
-
-    def add(self, cur: PreparedFrame, timestamp: Tensor, T_world_depth: Tensor, pixels: Tensor, points_world: Tensor,
-            cornerness: Tensor, valid: Tensor, mask: Tensor) -> None:  # fmt: skip
-        """Store the current frame (time stamps (B,)), its camera at ``T_world_depth`` (B, 4, 4), as a keyframe of the
-        sequences in ``mask`` (B,) with its model features: pixels (B, N, 2), points_world (B, N, 3) in the tracker's
-        world, cornerness (B, N, 2), valid (B, N)."""
-        if pixels.shape[:2] != valid.shape or points_world.shape[:2] != valid.shape or mask.shape != valid.shape[:1]:
-            raise ValueError(f"LandmarkMap.add: pixels, points_world (B, N, .), valid (B, N), mask (B,); got "
-                             f"{tuple(pixels.shape)}, {tuple(points_world.shape)}, {tuple(valid.shape)}, {tuple(mask.shape)}")  # fmt: skip
+    def add(self, store: KeyframeStore, slot: Tensor, cur: PreparedFrame, pixels: Tensor, points_world: Tensor,
+            cornerness: Tensor, valid: Tensor) -> None:  # fmt: skip
+        """Attach the current frame's LK images and features to the model keyframes ``slot`` (B,) of ``store`` just
+        took (-1: none; a tracked keyframe's slot is not one): pixels (B, N, 2), points_world (B, N, 3) in the tracker's world, cornerness (B, N, 2), valid (B, N)
+        (the first ``per_keyframe`` valid ones are kept)."""
+        if pixels.shape[:2] != valid.shape or points_world.shape[:2] != valid.shape or slot.shape != valid.shape[:1]:
+            raise ValueError(f"LandmarkMap.add: pixels, points_world (B, N, .), valid (B, N), slot (B,); got "
+                             f"{tuple(pixels.shape)}, {tuple(points_world.shape)}, {tuple(valid.shape)}, {tuple(slot.shape)}")  # fmt: skip
         gray, sim = cur.flow.images[0], (cur.flow.images[1] if cur.flow.has_sim else None)  # what LK tracks
         if self.gray is None:
-            self._allocate(gray, sim)
-        rows = mask.nonzero().squeeze(1)
+            self._allocate(store.size, gray, sim)
+        rows = (slot >= 0).nonzero().squeeze(1)
         if len(rows) == 0:
             return
-        slot = self.count[rows] % self.S
+        slot = slot[rows]
         for k in slot.unique().tolist():
             self.pyramids.pop(k, None)
         self.gray[slot, rows] = gray[rows]
@@ -160,12 +173,8 @@ class LandmarkMap:
         self.world[rows, slot] = _take(points_world.double(), order, self.P)[rows]
         self.cornerness[rows, slot] = _take(cornerness.float(), order, self.P)[rows]
         self.valid[rows, slot] = _take(valid, order, self.P)[rows]
-        self.T_world_kf[rows, slot] = T_world_depth.double()[rows]
-        self.time[rows, slot] = timestamp.double()[rows]
-        self.stamp[rows, slot] = self.count[rows]
-        self.count[rows] += 1
 
-    def candidates(self, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor, T_world_depth: Tensor,
+    def candidates(self, store: KeyframeStore, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor, T_world_depth: Tensor,
                    tracked: Tensor, tracked_valid: Tensor, mask: Tensor):  # fmt: skip
         """The landmarks worth re-tracking, at most ``max_candidates`` per sequence, oldest keyframe first:
         in front of the camera, inside the image (LK's border), not occluded, not near a tracked feature (B, N, 2)
@@ -183,9 +192,10 @@ class LandmarkMap:
         inside &= (proj[..., 1] >= border) & (proj[..., 1] <= H - 1 - border)
         d = sample_depth(cur.depth, proj).double()
         visible = (z > 0.1) & inside & (d > 0) & (d >= z * (1 - self.occlusion))  # nothing nearer in front of it
-        ok = self.valid.reshape(B, S * P) & visible & mask[:, None] & self._similar_view(T_world_depth, world, X_cam)
+        live = (self.valid & store.live[:, :S, None]).reshape(B, S * P)  # the model keyframes' slots: 0 .. S-1
+        ok = live & visible & mask[:, None] & self._similar_view(store, T_world_depth, world, X_cam)
         ok &= far_from(proj, tracked.float(), tracked_valid, self.min_separation_px)
-        age = self.stamp[:, :, None].expand(B, S, P).reshape(B, S * P)  # smaller = older keyframe
+        age = store.stamp[:, :S, None].expand(B, S, P).reshape(B, S * P)  # smaller = older keyframe
         key = torch.where(ok, age, torch.iinfo(torch.long).max)
         C = min(self.C, S * P)
         index = torch.sort(key, dim=1, stable=True).indices[:, :C]
@@ -193,27 +203,28 @@ class LandmarkMap:
         X_cam = X_cam.gather(1, index[..., None].expand(-1, -1, 3))
         # among themselves: keep a landmark only when no older (earlier in the order) one projects within the gap
         gap = torch.cdist(proj, proj)
-        earlier = torch.ones(C, C, dtype=torch.bool).tril(-1)
+        earlier = torch.ones(C, C, dtype=torch.bool, device=ok.device).tril(-1)
         clash = (gap < self.min_separation_px) & earlier & ok[:, None, :]
         return index, ok & ~clash.any(-1), proj, X_cam
 
-    def _similar_view(self, T_world_depth: Tensor, world: Tensor, X_cam: Tensor) -> Tensor:
+    def _similar_view(self, store: KeyframeStore, T_world_depth: Tensor, world: Tensor, X_cam: Tensor) -> Tensor:
         """(B, S * P) bool: the landmark's keyframe saw it from about the current viewpoint (LK tracks translations of
         a window): the cameras' rotation and the two rays to the point differ by at most ``max_angle_deg`` and its
         depth by at most the ``max_scale`` ratio, so its window looks about the same."""
         B, S, P = self.valid.shape
-        R_rel = T_world_depth[:, None, :3, :3].double().transpose(-1, -2) @ self.T_world_kf[..., :3, :3]  # B,S,3,3
+        T_world_kf = store.T_world_kf[:, :S]  # the model keyframes'
+        R_rel = T_world_depth[:, None, :3, :3].double().transpose(-1, -2) @ T_world_kf[..., :3, :3]  # B,S,3,3
         near = torch.rad2deg(rotation_angle(R_rel)) <= self.max_angle_deg  # B,S
-        X_kf = transform_points(T_inv(self.T_world_kf).reshape(B * S, 4, 4), world.reshape(B * S, P, 3))
+        X_kf = transform_points(T_inv(T_world_kf).reshape(B * S, 4, 4), world.reshape(B * S, P, 3))
         ratio = X_cam[..., 2] / X_kf.reshape(B, S * P, 3)[..., 2].clamp_min(1e-6)
         scale_ok = (ratio <= self.max_scale) & (ratio >= 1 / self.max_scale)
-        ray_kf = world.reshape(B, S, P, 3) - self.T_world_kf[:, :, None, :3, 3]  # from each camera to the point
+        ray_kf = world.reshape(B, S, P, 3) - T_world_kf[:, :, None, :3, 3]  # from each camera to the point
         ray_cur = world - T_world_depth[:, None, :3, 3].double()
         cos_ray = torch.nn.functional.cosine_similarity(ray_kf.reshape(B, S * P, 3), ray_cur, dim=-1)
         parallax_ok = cos_ray >= math.cos(math.radians(self.max_angle_deg))
         return near[:, :, None].expand(B, S, P).reshape(B, S * P) & scale_ok & parallax_ok
 
-    def reacquire(self, flow: Callable, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor, T_world_depth: Tensor,
+    def reacquire(self, store: KeyframeStore, flow: Callable, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor, T_world_depth: Tensor,
                   tracked: Tensor, tracked_valid: Tensor, mask: Tensor, tracked_world: Tensor | None = None,
                   ) -> Reacquired:  # fmt: skip
         """Re-track the visible landmarks of the sequences in ``mask`` (B,) from their keyframes into ``cur`` with
@@ -223,13 +234,14 @@ class LandmarkMap:
         the landmarks move the pose only as far as they outweigh the current model."""
         B = T_world_depth.shape[0]
         if self.gray is None:
-            self._allocate(cur.flow.images[0], cur.flow.images[1] if cur.flow.has_sim else None)
-        index, ok, proj, X_pred = self.candidates(cur, K, T_color_depth, T_world_depth, tracked, tracked_valid, mask)
-        S, P = self.S, self.P
+            self._allocate(store.size, cur.flow.images[0], cur.flow.images[1] if cur.flow.has_sim else None)
+        index, ok, proj, X_pred = self.candidates(store, cur, K, T_color_depth, T_world_depth, tracked, tracked_valid,
+                                                  mask)  # fmt: skip
+        S, P = store.size, self.P
         slot = index // P
         kf_pix = self.pixels.reshape(B, S * P, 2).gather(1, index[..., None].expand(-1, -1, 2))
         pixels, good = proj.clone(), torch.zeros_like(ok)
-        residual = torch.full(ok.shape, float("inf"))
+        residual = torch.full(ok.shape, float("inf"), device=ok.device)
         for s in slot[ok].unique().tolist():  # one LK call per keyframe slot, batched over B
             sel = ok & (slot == s)
             if s not in self.pyramids:
@@ -269,6 +281,15 @@ class LandmarkMap:
             T_world_depth, inl = self._corrected(K, T_color_depth, T_world_depth, world, pixels_fit, X_fit, good_fit, n)
             world, good = world[:, :n], inl[:, :n]
         return Reacquired(pixels, world, X_meas, corner, good, T_world_depth)
+
+    def reacquire_into(self, store: KeyframeStore, flow: Callable, cur: PreparedFrame, K: Tensor,
+                       T_color_depth: Tensor, state, keep: Tensor, mask: Tensor) -> Reacquired:  # fmt: skip
+        """:meth:`reacquire` for the tracker's model: the landmarks of the sequences in ``mask`` (B,) around the
+        features ``keep`` (B, N) of ``state`` (a :class:`~torchtrack.pipeline.state.TrackerState`: its camera pose,
+        pixels and model points at their world positions, which take part in the re-fit)."""
+        world = transform_points(state.T_world_obj, state.points_obj.double())
+        return self.reacquire(store, flow, cur, K, T_color_depth, state.T_world_depth, state.pixels, keep, mask,
+                              tracked_world=world)  # fmt: skip
 
     def _corrected(self, K: Tensor, T_color_depth: Tensor, T_world_depth: Tensor, world: Tensor, pixels: Tensor,
                    X_meas: Tensor, good: Tensor, n: int) -> tuple[Tensor, Tensor]:  # fmt: skip
@@ -318,7 +339,7 @@ def refine_pose(K: Tensor, T_color_world: Tensor, world: Tensor, pixels: Tensor,
     K = K.double()
     fx, fy, cx, cy = K[:, 0, 0, None], K[:, 1, 1, None], K[:, 0, 2, None], K[:, 1, 2, None]
     w = valid.double()
-    eye = torch.eye(6, dtype=torch.float64)
+    eye = torch.eye(6, dtype=torch.float64, device=T.device)
     for i in range(iters + 1):
         p = transform_points(T, world.double())  # B,C,3
         x, y, z = p.unbind(-1)
@@ -342,17 +363,9 @@ def refine_pose(K: Tensor, T_color_world: Tensor, world: Tensor, pixels: Tensor,
     return PoseFit(T, valid & (err <= inlier))
 
 
-def far_from(points: Tensor, others: Tensor, others_valid: Tensor, gap: float) -> Tensor:
-    """(B, C) bool: each of points (B, C, 2) is at least ``gap`` px from every valid one of others (B, N, 2)."""
-    if others.shape[1] == 0:
-        return torch.ones(points.shape[:2], dtype=torch.bool)
-    d = torch.cdist(points, others).masked_fill(~others_valid[:, None, :], float("inf"))
-    return d.amin(2) >= gap
-
-
 def _take(x: Tensor, order: Tensor, n: int) -> Tensor:
     """x (B, N, ...) at the indices order (B, M) along dim 1, padded to n with zeros (False)."""
     x = x.gather(1, order.view(*order.shape, *[1] * (x.dim() - 2)).expand(-1, -1, *x.shape[2:]))
     if x.shape[1] >= n:
         return x
-    return torch.cat([x, torch.zeros(x.shape[0], n - x.shape[1], *x.shape[2:], dtype=x.dtype)], 1)
+    return torch.cat([x, torch.zeros(x.shape[0], n - x.shape[1], *x.shape[2:], dtype=x.dtype, device=x.device)], 1)

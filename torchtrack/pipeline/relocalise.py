@@ -1,15 +1,15 @@
-"""Tracking loss: a per-frame health signal, and relocalisation against recent model frames.
+"""Tracking loss: a per-frame health signal, and relocalisation against recent keyframes.
 
 After each frame the tracker's result is checked (:func:`frame_health`): the fraction of the previous frame's
 features that LK still tracked with depth, the fraction of those the filter rejected (gate, refit), and the
 posterior position standard deviation. A frame failing a threshold is ``lost``. A lost sequence is relocalised:
-ORB features of the current frame are matched (Hamming, ratio test) against those of its recent model frames (and
-a tracked frame every ``store_every`` frames), whose 3D points in the tracker's world were stored when they were
-taken, and the camera pose follows from PnP with RANSAC (OpenCV), refined on the inliers and verified by the inlier
-count. Where it agrees with the tracked pose nothing
-changes; where it differs, the sequence takes a new model at the relocalised pose. Where it fails, the frame's pose
-is not trusted (``interrupted``) and every following frame tries again until one relocalises; interrupted frames
-never become model frames of the store.
+ORB features of the current frame are matched (Hamming, ratio test) against those of its keyframes (the tracker's one
+:class:`~torchtrack.pipeline.keyframes.KeyframeStore`: model frames, and a tracked frame every ``keyframes.every``
+frames), whose 3D points in the tracker's world were attached when they were taken, and the camera pose follows from
+PnP with RANSAC (OpenCV), refined on the inliers and verified by the inlier count. Where it agrees with the tracked
+pose nothing changes; where it differs, the decision (:class:`Relocalisation`) tells the tracker to take a new model
+at the relocalised pose. Where it fails, the frame's pose is not trusted (``interrupted``) and every following frame
+tries again until one relocalises; frames whose pose is not trusted never become keyframes.
 
 References:
     E. Rublee et al., "ORB: an efficient alternative to SIFT or SURF", ICCV 2011.
@@ -18,7 +18,6 @@ References:
 
 from __future__ import annotations
 
-from collections import deque
 from typing import NamedTuple
 
 import cv2
@@ -28,7 +27,9 @@ from torch import Tensor
 
 from torchtrack.config import RelocaliseConfig
 from torchtrack.filter.models import measure_points
+from torchtrack.frontend import PreparedFrame
 from torchtrack.geometry import T_inv, rotation_angle
+from torchtrack.pipeline.keyframes import KeyframeStore
 
 
 class Health(NamedTuple):
@@ -57,6 +58,16 @@ class LossCheck(NamedTuple):
     health: Health
 
 
+class Relocalisation(NamedTuple):
+    """The loss check's decision for one frame, for the tracker to apply: ``T_world_depth`` (B, 4, 4) the camera poses
+    found where ``relocalised`` (B,) (a new model is to be taken there; other rows: the tracked pose) and the
+    frame's :class:`LossCheck` ``loss``."""
+
+    T_world_depth: Tensor
+    relocalised: Tensor
+    loss: LossCheck
+
+
 class Keyframe(NamedTuple):
     """A model frame's ORB descriptors (M, 32) uint8 and their 3D points (M, 3) float64 in the tracker's world."""
 
@@ -66,7 +77,7 @@ class Keyframe(NamedTuple):
 
 def frame_health(n_prev: Tensor, result) -> Health:
     """Health of a tracked frame from ``n_prev`` (B,) the previous frame's feature count and its
-    :class:`~torchtrack.tracker.StepResult` (with ``observation`` and ``estimate``)."""
+    :class:`~torchtrack.pipeline.state.StepResult` (with ``observation`` and ``estimate``)."""
     tracked = result.observation.valid.sum(1)
     survival = torch.where(n_prev > 0, tracked / n_prev.clamp_min(1), torch.zeros_like(tracked, dtype=torch.float32))
     used = getattr(result.estimate, "used_xyz", None)
@@ -111,7 +122,9 @@ def pnp_pose(
 
 
 class Relocaliser:
-    """The loss check and relocalisation of :mod:`torchtrack.relocalise`, called by the tracker after each frame.
+    """The loss check and relocalisation of :mod:`torchtrack.pipeline.relocalise`, the tracker's ``relocaliser`` stage:
+    after each frame :meth:`check` returns a :class:`Relocalisation` that the tracker applies; where the tracker then
+    takes a keyframe, :meth:`add` attaches its ORB descriptors to it.
 
     Args:
         recover: False (the paper): the loss check only marks lost frames (and warns); no relocalisation, the
@@ -119,9 +132,6 @@ class Relocaliser:
         min_survival: lost when fewer than this fraction of the previous frame's features were tracked with depth.
         max_rejected: ... or when the filter rejected more than this fraction of them.
         max_pos_std: m, ... or when the posterior position standard deviation exceeds this.
-        keyframes: recent model frames kept per sequence for matching.
-        store_every: a tracked frame also enters the store when this many frames passed since the last one stored
-            (a model can last long: the store must stay recent).
         orb_features: ORB keypoints per image.
         ratio: Lowe's ratio test on the two nearest descriptors.
         reprojection_px: RANSAC inlier threshold.
@@ -136,8 +146,6 @@ class Relocaliser:
         min_survival: float = RelocaliseConfig.min_survival,
         max_rejected: float = RelocaliseConfig.max_rejected,
         max_pos_std: float = RelocaliseConfig.max_pos_std,
-        keyframes: int = RelocaliseConfig.keyframes,
-        store_every: int = RelocaliseConfig.store_every,
         orb_features: int = RelocaliseConfig.orb_features,
         ratio: float = RelocaliseConfig.ratio,
         reprojection_px: float = RelocaliseConfig.reprojection_px,
@@ -147,25 +155,23 @@ class Relocaliser:
     ) -> None:
         self.recover = recover
         self.min_survival, self.max_rejected, self.max_pos_std = min_survival, max_rejected, max_pos_std
-        self.keyframes, self.store_every, self.n_orb, self.ratio = keyframes, store_every, orb_features, ratio
+        self.n_orb, self.ratio = orb_features, ratio
         self.reprojection_px, self.min_inliers = reprojection_px, min_inliers
         self.agree_m, self.agree_rad = agree_m, float(np.deg2rad(agree_deg))
-        self.store: list[deque[Keyframe]] = []
-        self.interrupted: Tensor | None = None
-        self.since_stored: Tensor | None = None  # (B,) frames since each sequence's last stored frame
+        self.reset(0, 0)
 
-    def __call__(self, tracker, n_prev: Tensor | None, frame, result):
-        """Check the frame ``result`` (a StepResult) that ``tracker`` just produced from ``frame``; relocalise the
-        lost sequences (through ``tracker.relocalise``); store new model frames. Returns the result with ``loss``
-        set and, where relocalised, the new pose."""
-        from dataclasses import replace
+    def reset(self, B: int, slots: int) -> None:
+        """Nothing stored for B sequences of a keyframe store with ``slots`` slots each (the tracker's first frame)."""
+        self.orb: list[list[Keyframe | None]] = [[None] * slots for _ in range(B)]  # per keyframe slot
+        self.interrupted = torch.zeros(B, dtype=torch.bool)
 
-        B = frame.rgb.shape[0]
-        if len(self.store) != B:
-            self.store = [deque(maxlen=self.keyframes) for _ in range(B)]
-            self.interrupted = torch.zeros(B, dtype=torch.bool)
-            self.since_stored = torch.full((B,), self.store_every, dtype=torch.long)
-        zeros = torch.zeros(B)
+    def check(self, store: KeyframeStore, frame, cur: PreparedFrame, result, n_prev: Tensor | None) -> Relocalisation:
+        """The loss check of the frame ``result`` (a :class:`~torchtrack.pipeline.state.StepResult`) that the tracker
+        made of ``frame`` (prepared as ``cur``; ``n_prev`` (B,) the previous frame's feature count, None on the first
+        frame), and the relocalisation of the lost sequences against the keyframes of ``store``: the decision, for
+        the tracker to apply."""
+        B, dev = frame.rgb.shape[0], frame.rgb.device
+        zeros = torch.zeros(B, device=dev)
         health = frame_health(n_prev, result) if result.observation is not None else Health(zeros + 1, zeros, zeros)
         lost = frame.active & (
             (health.survival < self.min_survival)
@@ -173,67 +179,70 @@ class Relocaliser:
             | (health.pos_std > self.max_pos_std)
         )
         retry = (lost | (self.interrupted & frame.active)) & self.recover
-        relocalised, inliers = torch.zeros(B, dtype=torch.bool), torch.zeros(B, dtype=torch.long)
+        relocalised = torch.zeros(B, dtype=torch.bool, device=dev)
+        inliers = torch.zeros(B, dtype=torch.long, device=dev)
+        self.interrupted = self.interrupted.to(dev)
         T_new = result.T_world_depth.clone()
         for b in retry.nonzero()[:, 0].tolist():
-            T, inliers[b] = self._relocalise(tracker, frame, b)
+            T, inliers[b] = self._relocalise(store, frame, cur, b)
             if T is None:
                 continue
             self.interrupted[b] = False
             if not self._agrees(T, result.T_world_depth[b]):
                 T_new[b], relocalised[b] = T, True
         self.interrupted |= retry & (inliers < self.min_inliers)
-        if relocalised.any():  # a new model at the found pose; T_cam_obj stays the frame as tracked (old model)
-            T_model = tracker.relocalise(frame, T_new, relocalised)
-            m3 = relocalised[:, None, None]
-            model = T_model if result.model_T_cam_obj is None else torch.where(m3, T_model, result.model_T_cam_obj)
-            result = replace(
-                result, T_world_depth=torch.where(m3, tracker.state.T_world_depth, result.T_world_depth),
-                reselected=result.reselected | relocalised, model_T_cam_obj=model,
-            )  # fmt: skip
-        self.since_stored += frame.active.long()
-        due = result.reselected | (self.since_stored >= self.store_every)
-        keep = frame.active & due & ~self.interrupted & (~lost | relocalised) & self.recover
-        for b in keep.nonzero()[:, 0].tolist():
-            self._store(tracker, frame, b, result.T_world_depth[b])
-            self.since_stored[b] = 0
         check = LossCheck(lost, relocalised, self.interrupted & frame.active, inliers, health)
-        return replace(result, loss=check)
+        return Relocalisation(T_new, relocalised, check)
+
+    @staticmethod
+    def trusted(decision: Relocalisation) -> Tensor:
+        """(B,) bool: the frame's pose is trusted after the decision (not lost, or relocalised, and not interrupted):
+        only such a frame may become a keyframe."""
+        loss = decision.loss
+        return ~loss.interrupted & (~loss.lost | loss.relocalised)
+
+    def add(self, slot: Tensor, frame, cur: PreparedFrame, T_world_depth: Tensor) -> None:
+        """Attach the ORB descriptors of the current frame (prepared as ``cur``, camera ``T_world_depth`` (B, 4, 4)) and
+        their 3D points in the tracker's world to the keyframes ``slot`` (B,) the store just took (-1: none); only
+        when relocalisation is on (``recover``)."""
+        for b in (slot >= 0).nonzero()[:, 0].tolist():
+            self.orb[b][int(slot[b])] = self._describe(frame, cur, b, T_world_depth[b]) if self.recover else None
 
     # ---------------------------------------------------------------------------------------------- internals
     def _agrees(self, T_a: Tensor, T_b: Tensor) -> bool:
         E = T_inv(T_a.double()) @ T_b.double()
         return bool(E[:3, 3].norm() <= self.agree_m) and bool(rotation_angle(E[:3, :3]) <= self.agree_rad)
 
-    def _points(self, tracker, frame, b: int, pixels: np.ndarray) -> tuple[Tensor, Tensor]:
+    @staticmethod
+    def _points(frame, cur: PreparedFrame, b: int, pixels: np.ndarray) -> tuple[Tensor, Tensor]:
         """3D points (M, 3) in sequence b's depth camera at colour ``pixels`` (M, 2), and has-depth (M,)."""
-        px = torch.from_numpy(pixels)[None]
-        p, ok = measure_points(
-            tracker.state.prev.depth[b : b + 1], frame.K[b : b + 1], frame.T_color_depth[b : b + 1], px
-        )
+        px = torch.from_numpy(pixels)[None].to(cur.depth.device)
+        p, ok = measure_points(cur.depth[b : b + 1], frame.K[b : b + 1], frame.T_color_depth[b : b + 1], px)
         return p[0].double(), ok[0]
 
-    def _store(self, tracker, frame, b: int, T_world_depth: Tensor) -> None:
-        """Sequence b's current frame (a model frame with a trusted pose) into its store."""
-        pixels, desc = orb_features(tracker.state.prev.gray[b, 0], self.n_orb)
+    def _describe(self, frame, cur: PreparedFrame, b: int, T_world_depth: Tensor) -> Keyframe | None:
+        """Sequence b's current frame (a keyframe) as ORB descriptors and world points; None with too few."""
+        pixels, desc = orb_features(cur.gray[b, 0], self.n_orb)
         if desc is None:
-            return
-        points, ok = self._points(tracker, frame, b, pixels)
-        world = (points @ T_world_depth[:3, :3].T.double() + T_world_depth[:3, 3].double())[ok].numpy()
-        if len(world) >= self.min_inliers:
-            self.store[b].append(Keyframe(desc[ok.numpy()], world))
+            return None
+        points, ok = self._points(frame, cur, b, pixels)
+        world = (points @ T_world_depth[:3, :3].T.double() + T_world_depth[:3, 3].double())[ok].cpu().numpy()
+        return Keyframe(desc[ok.cpu().numpy()], world) if len(world) >= self.min_inliers else None
 
-    def _relocalise(self, tracker, frame, b: int) -> tuple[Tensor | None, int]:
-        """Sequence b's camera pose T_world_depth (4, 4) from its current frame against its stored model frames, newest
-        first; (None, best inlier count) when none verifies."""
-        pixels, desc = orb_features(tracker.state.prev.gray[b, 0], self.n_orb)
-        if desc is None or not self.store[b]:
+    def _relocalise(self, store: KeyframeStore, frame, cur: PreparedFrame, b: int) -> tuple[Tensor | None, int]:
+        """Sequence b's camera pose T_world_depth (4, 4) from its current frame against its keyframes, newest first;
+        (None, best inlier count) when none verifies."""
+        keyframes = [self.orb[b][s] for s in store.newest_first(b) if self.orb[b][s] is not None]
+        if not keyframes:
             return None, 0
-        K = frame.K[b].double().numpy()
-        T_depth_color = T_inv(frame.T_color_depth[b].double())
+        pixels, desc = orb_features(cur.gray[b, 0], self.n_orb)
+        if desc is None:
+            return None, 0
+        K = frame.K[b].double().cpu().numpy()
+        T_depth_color = T_inv(frame.T_color_depth[b].double().cpu())
         best = 0
         matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
-        for kf in reversed(self.store[b]):
+        for kf in keyframes:
             pairs = [m for m in matcher.knnMatch(desc, kf.descriptors, k=2) if len(m) == 2]
             good = [m[0] for m in pairs if m[0].distance < self.ratio * m[1].distance]
             if len(good) < self.min_inliers:
@@ -243,5 +252,5 @@ class Relocaliser:
             best = max(best, n)
             if T_color_world is not None and n >= self.min_inliers:
                 T_cam_world = T_depth_color @ torch.from_numpy(T_color_world)
-                return T_inv(T_cam_world).to(frame.T_world_color_gt.dtype), n
+                return T_inv(T_cam_world).to(frame.T_world_color_gt), n
         return None, best

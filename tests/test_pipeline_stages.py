@@ -1,0 +1,108 @@
+"""The tracker's stage interfaces (issue 23): a back end's ``set_pose``, the relocaliser's decision applied by the
+tracker, and re-acquired landmarks stated as back-end measurements. Oracles: the pose that was set or decided, and
+exact world positions."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from test_tracker import make_tracker, synth  # noqa: F401  (fixture)
+from tolerances import F64_UNIT
+
+from torchtrack.data import iterate_batched
+from torchtrack.estimators.backends import EKFBackend, Observation, RegistrationBackend
+from torchtrack.estimators.horn import HornEstimator
+from torchtrack.filter.fusion import FusionEKF
+from torchtrack.filter.weighting import Variances
+from torchtrack.geometry import make_T, so3_exp, transform_points
+from torchtrack.pipeline.landmarks import Reacquired
+from torchtrack.pipeline.relocalise import LossCheck, Relocalisation, Relocaliser
+
+
+def _pose(yaw_deg: float, t) -> torch.Tensor:
+    R = so3_exp(torch.tensor([0.0, 0.0, math.radians(yaw_deg)], dtype=torch.float64))
+    return make_T(R, torch.tensor(t, dtype=torch.float64))
+
+
+def _empty_observation(B: int) -> tuple[Observation, Variances]:
+    z = torch.zeros(B, 3, 3, dtype=torch.float64)
+    K = torch.tensor([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]], dtype=torch.float64).expand(B, 3, 3)
+    obs = Observation(torch.full((B,), 1 / 30, dtype=torch.float64), z + 0.1, z + 0.1, torch.zeros(B, 3, 2,
+                      dtype=torch.float64), torch.zeros(B, 3, dtype=torch.bool), K, torch.eye(4, dtype=torch.float64)
+                      .expand(B, 4, 4))  # fmt: skip
+    ones = torch.ones(B, 3, dtype=torch.float64)
+    return obs, Variances(ones, ones * 1e-4)
+
+
+def test_ekf_set_pose_moves_the_mean_pose_of_the_masked_sequences_only():
+    """After set_pose a step with no features (zero velocity: the prediction stays) returns the pose that was set,
+    also across the Euler angles' wrap at 180 degrees; the other sequence and the covariance are untouched."""
+    backend = EKFBackend(FusionEKF())
+    T0 = torch.stack([_pose(179.0, [0.1, 0.0, 1.0]), _pose(10.0, [0.0, 0.2, 2.0])])
+    backend.reset(T0, torch.ones(2, dtype=torch.bool))
+    cov = backend.state.cov.clone()
+    T1 = torch.stack([_pose(-179.0, [0.12, -0.01, 1.03]), _pose(-50.0, [5.0, 5.0, 5.0])])
+    backend.set_pose(T1, torch.tensor([True, False]))
+    assert torch.equal(backend.state.cov, cov)
+    out = backend.step(*_empty_observation(2)).T_cam_obj
+    torch.testing.assert_close(out[0], T1[0], atol=F64_UNIT, rtol=0)
+    torch.testing.assert_close(out[1], T0[1], atol=F64_UNIT, rtol=0)
+
+
+def test_registration_set_pose_is_the_next_start():
+    backend = RegistrationBackend(HornEstimator())
+    T0 = torch.stack([_pose(0.0, [0, 0, 1]), _pose(5.0, [0, 0, 2])])
+    backend.reset(T0, torch.ones(2, dtype=torch.bool))
+    T1 = torch.stack([_pose(30.0, [1, 0, 1]), _pose(-5.0, [0, 1, 2])])
+    backend.set_pose(T1, torch.tensor([False, True]))
+    assert torch.equal(backend.T_prev[0], T0[0]) and torch.equal(backend.T_prev[1], T1[1])
+
+
+class Decides(Relocaliser):
+    """A relocaliser whose check finds sequence 0 lost at frame ``at`` and relocalised at the camera pose ``T``."""
+
+    def __init__(self, at: int, T: torch.Tensor) -> None:
+        super().__init__()
+        self.at, self.T, self.frames = at, T, 0
+
+    def check(self, store, frame, cur, result, n_prev) -> Relocalisation:
+        hit = torch.tensor([self.frames == self.at])
+        self.frames += 1
+        zero = torch.zeros(1)
+        loss = LossCheck(hit, hit, torch.zeros(1, dtype=torch.bool), zero.long(), None)
+        return Relocalisation(torch.where(hit[:, None, None], self.T, result.T_world_depth), hit, loss)
+
+
+def test_the_tracker_applies_the_relocalisers_decision(synth):  # noqa: F811
+    """At the decided frame the camera pose is the decided one exactly, a new model is taken there, and that frame
+    (trusted: relocalised) becomes a keyframe at that pose."""
+    seq = synth(seed=2, frames=5)
+    T = _pose(20.0, [0.3, -0.2, 0.1])[None]
+    tracker = make_tracker("data=tum")
+    tracker.relocaliser = Decides(3, T)
+    for k, frame in enumerate(iterate_batched([seq], prefetch=False)):
+        res = tracker.step(frame)
+        if k == 3:
+            torch.testing.assert_close(res.T_world_depth, T, atol=F64_UNIT, rtol=0)
+            torch.testing.assert_close(tracker.state.T_world_depth, T, atol=F64_UNIT, rtol=0)
+            assert bool(res.reselected[0]) and bool(res.loss.relocalised[0])
+            newest = tracker.keyframes.newest_first(0)[0]
+            torch.testing.assert_close(tracker.keyframes.T_world_kf[0, newest], T[0], atol=F64_UNIT, rtol=0)
+            assert float(tracker.keyframes.time[0, newest]) == float(frame.timestamp[0])
+
+
+def test_reacquired_landmarks_as_measurements_of_the_model():
+    """The observation's model points are the stored world positions in the model frame: mapped back by T_world_obj
+    they are the world positions (float32 rounding); not valid rows are zeros."""
+    g = torch.Generator().manual_seed(0)
+    world = torch.randn(2, 5, 3, generator=g, dtype=torch.float64) + torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64)
+    valid = torch.tensor([[True, True, False, True, True], [False, True, True, True, False]])
+    acq = Reacquired(torch.rand(2, 5, 2, generator=g) * 100, world, world.float(), torch.zeros(2, 5, 2), valid,
+                     torch.eye(4, dtype=torch.float64).expand(2, 4, 4))  # fmt: skip
+    T_world_obj = torch.stack([_pose(30.0, [0.1, 0.2, 0.3]), _pose(-60.0, [1.0, 0.0, -1.0])])
+    K = torch.eye(3).expand(2, 3, 3)
+    obs = acq.observation(T_world_obj, torch.full((2,), 0.1), K, torch.eye(4).expand(2, 4, 4))
+    back = transform_points(T_world_obj, obs.points_obj.double())
+    torch.testing.assert_close(back[valid], world[valid], atol=1e-6, rtol=0)
+    assert not obs.points_obj[~valid].any() and torch.equal(obs.valid, valid) and torch.equal(obs.pixels, acq.pixels)

@@ -1,0 +1,138 @@
+"""The compiled operators ``torch.ops.torchtrack.lk_track`` (csrc/lk.cpp, the LK inner loop) and
+``torch.ops.torchtrack.shape_index_map`` (csrc/sim.cpp, the SIM): one library, built on first use, cached, with fake
+kernels; :mod:`torchtrack.image.lk` and :mod:`torchtrack.image.shape_index` fall back to their pure-torch references
+where it cannot be built.
+
+Build: ``torch.utils.cpp_extension.load`` (ninja, the system C++ compiler, ``-O3``) into
+``$TORCHTRACK_CACHE/ext/lk_<hash>`` (default ``~/.cache/torchtrack``), where the hash covers the source, the flags
+and the torch version: a changed source builds anew, an unchanged one loads in milliseconds. Concurrent first use
+(two pytest workers, CI) is safe: torch's loader holds a file baton (``lock`` in the build folder) while one process
+builds; the others wait for it and then load the same library. Nothing is built at pip-install time (an isolated
+build environment would fetch another torch). ``TORCHTRACK_NO_BUILD=1`` disables the build (the fallback, tested).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import time
+import warnings
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+SOURCE = Path(__file__).with_name("csrc") / "lk.cpp"
+SOURCES = [SOURCE, SOURCE.with_name("sim.cpp")]
+# -fopenmp compiles at::parallel_for's OpenMP region; it is not linked: the symbols resolve to torch's own OpenMP
+# runtime (linking the system libgomp would load a second one).
+CFLAGS = ["-O3", "-fopenmp", "-fno-math-errno"]
+_state: dict = {}
+
+
+def cache_dir() -> Path:
+    """$TORCHTRACK_CACHE, else ~/.cache/torchtrack (the data cache's root, config.DataConfig.cache_dir)."""
+    return Path(os.environ.get("TORCHTRACK_CACHE") or Path.home() / ".cache" / "torchtrack").expanduser()
+
+
+def build_key() -> str:
+    h = hashlib.sha256(b"".join(s.read_bytes() for s in SOURCES))
+    h.update(" ".join(CFLAGS + [torch.__version__]).encode())
+    return h.hexdigest()[:16]
+
+
+def _build() -> float:
+    """Build (or load the cached build of) the operator; returns the seconds it took. A finished build (the library
+    there and no build holding the lock) loads directly: torch's loader would import cpp_extension and run the
+    compiler's and ninja's checks first (~0.5-1 s of start-up)."""
+    key = build_key()
+    folder = cache_dir() / "ext" / f"lk_{key}"
+    t0 = time.perf_counter()
+    library = folder / f"torchtrack_lk_{key}.so"
+    if library.is_file() and not (folder / "lock").exists():
+        try:
+            torch.ops.load_library(str(library))
+            return time.perf_counter() - t0
+        except OSError:  # unreadable: build it again below
+            pass
+    from torch.utils.cpp_extension import load
+
+    folder.mkdir(parents=True, exist_ok=True)
+    load(name=f"torchtrack_lk_{key}", sources=[str(s) for s in SOURCES], extra_cflags=CFLAGS, build_directory=str(folder),
+         is_python_module=False, verbose=False)  # fmt: skip
+    return time.perf_counter() - t0
+
+
+def available() -> bool:
+    """Whether the operator is loaded, building it on the first call; where it cannot be built (no compiler, no
+    ninja, ``TORCHTRACK_NO_BUILD=1``) one warning line, once, and False."""
+    if "ok" not in _state:
+        try:
+            if os.environ.get("TORCHTRACK_NO_BUILD", "") not in ("", "0"):
+                raise RuntimeError("TORCHTRACK_NO_BUILD is set")
+            _state["build_s"] = _build()
+            _register_fake()
+            _state["ok"] = True
+        except Exception as e:  # any build failure: the reference path still works
+            _state["ok"], _state["error"] = False, f"{type(e).__name__}: {str(e).strip().splitlines()[-1:]}"
+            warnings.warn(f"torchtrack: compiled LK operator unavailable ({_state['error']}); using the pure-torch "
+                          "LK and SIM (slower)", RuntimeWarning, stacklevel=3)  # fmt: skip
+    return _state["ok"]
+
+
+def error() -> str | None:
+    """Why the operator is unavailable (None where it loaded or was not tried)."""
+    return _state.get("error")
+
+
+def _register_fake() -> None:
+    if _state.get("fake"):
+        return
+
+    @torch.library.register_fake("torchtrack::lk_track")
+    def _(prev, next, base_prev, base_next, sizes, points, image_index, init, *args) -> tuple[Tensor, Tensor, Tensor]:
+        n = points.shape[0]
+        return points.new_empty(n, 2), points.new_empty(n, dtype=torch.bool), points.new_empty(n)
+
+    @torch.library.register_fake("torchtrack::shape_index_map")
+    def _(depth, K, *args) -> tuple[Tensor, Tensor, Tensor]:
+        return torch.empty_like(depth), torch.empty_like(depth, dtype=torch.bool), torch.empty_like(depth)
+
+    _state["fake"] = True
+
+
+def lk_track(
+    prev_flat: Tensor,
+    next_flat: Tensor,
+    base_prev: Tensor,
+    base_next: Tensor,
+    sizes: Tensor,
+    points: Tensor,
+    image_index: Tensor,
+    init: Tensor,
+    *,
+    stride: int,
+    plane: int,
+    pad: int,
+    window: int,
+    iters: int,
+    ic_iters: int,
+    eps: float,
+    min_eig: float,
+    with_residual: bool,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``torch.ops.torchtrack.lk_track``: pyramidal LK of P points, each in its own image of the pyramids' batch.
+
+    Args:
+        prev_flat, next_flat: the pyramids' flat float32 buffers (``Pyramid.flat``), equal geometry.
+        base_prev, base_next: (L, B) int64 flat index of pixel (0, 0) of level l of image b.
+        sizes: (L, 2) int64 (H_l, W_l). points, init: (P, 2) float32 level-0 start and guess. image_index: (P,) int64.
+
+    Returns:
+        points (P, 2) in next (the input where not tracked), status (P,) bool, residual (P,) (zeros unless
+        with_residual).
+    """  # fmt: skip
+    return torch.ops.torchtrack.lk_track(
+        prev_flat, next_flat, base_prev, base_next, sizes, points, image_index, init,
+        stride, plane, pad, window, iters, ic_iters, eps, min_eig, with_residual,
+    )  # fmt: skip

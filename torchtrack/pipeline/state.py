@@ -1,0 +1,128 @@
+"""What the tracker carries from frame to frame (:class:`TrackerState`) and what it returns per frame
+(:class:`StepResult`), both batched over B sequences; helpers for the per-feature (B, N, ...) layout."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from torchtrack.estimators.backends import BackendResult, Observation
+from torchtrack.filter.weighting import Variances
+from torchtrack.frontend import PreparedFrame
+from torchtrack.geometry import T_inv
+
+
+@dataclass
+class StepResult:
+    """Per-frame outputs, each batched over B.
+
+    Attributes:
+        T_cam_obj: (B, 4, 4) float64 object pose in the depth camera: the back end's estimate of the frame as
+            tracked, under the model it was tracked with (also at a re-selection or a relocalisation).
+        T_world_depth: (B, 4, 4) float64 the DEPTH camera's pose (camera-to-world) for a static object/scene, in the
+            tracker's world (its first depth camera is the identity; at a relocalisation the relocalised pose).
+            :func:`torchtrack.geometry.rig.color_poses` turns it into the colour camera's pose in ground truth's
+            world, as the runner writes it.
+        pixels: (B, N, 2) tracked feature pixels in the colour image; valid (B, N).
+        winner: (B, N) 0 where the intensity tracker won, 1 where the SIM tracker won, -1 unknown.
+        points_obj: (B, N, 3) model points; reprojection_error (B,) eq. (16) in pixels.
+        n_features: (B,) surviving features; reselected (B,) bool: a new model was taken this frame.
+        d_tim: (B, N) d_TIM of each feature's winning tracker (eq. 10), px; zeros on the first frame.
+        observation: what the back end saw this frame (None on the first frame). Its features are those of
+            ``pixels``/``valid`` BEFORE the outlier drop (``outliers.max_residual_px``); a re-selection comes after.
+        variances: the weighting's output that went with ``observation`` (None on the first frame).
+        cues: (B, N, C) float32 cues (:data:`torchtrack.learn.cues.CUE_NAMES`) of the observation's features,
+            zeros where not valid; only when the weighting needs them or the tracker records (else None).
+        model_T_cam_obj: (B, 4, 4) float64, where ``reselected``: the pose the back end was reset to when the new
+            model was taken at the end of this frame (other rows: the current pose); None when no re-selection.
+        estimate: the back end's result for this frame (None on the first frame): the loss check reads it.
+        loss: the loss check's :class:`torchtrack.pipeline.relocalise.LossCheck` (None without a relocaliser).
+    """
+
+    T_cam_obj: Tensor
+    T_world_depth: Tensor
+    pixels: Tensor
+    valid: Tensor
+    winner: Tensor
+    points_obj: Tensor
+    reprojection_error: Tensor
+    n_features: Tensor
+    reselected: Tensor
+    d_tim: Tensor
+    observation: Observation | None = None
+    variances: Variances | None = None
+    cues: Tensor | None = None
+    model_T_cam_obj: Tensor | None = None
+    estimate: BackendResult | None = None
+    loss: Any = None
+
+
+@dataclass
+class TrackerState:
+    """What the tracker carries from one frame to the next, batched over B; empty (all None) before the first frame.
+    The tracker is its only owner: it replaces it once per step (and once more where the relocaliser's decision
+    takes a new model); the stages return values and never write it.
+
+    Attributes:
+        prev: the previous frame as the front end prepared it; timestamp (B,) its time stamps.
+        pixels: (B, N, 2) the model's features, tracked to the previous frame (colour pixels); valid (B, N).
+        points_obj: (B, N, 3) their model points X_o (object frame).
+        age: (B, N) frames since selection; cornerness (B, N, 2) intensity and SIM cornerness of eq. (9) at selection.
+        residuals: (B, N) reprojection error (eq. 16) of each feature under ``T_cam_obj``; inf where undefined.
+        n_model: (B,) features of the current model when it was taken (the re-selection criterion).
+        T_cam_obj: (B, 4, 4) float64 current object pose in the depth camera.
+        T_world_obj: (B, 4, 4) float64 the model frame in the tracker's world (first camera = identity).
+        velocity: (B, 6) float64 twist per second (v, omega) of the last frame-to-frame motion of the object in the
+            camera, ``se3_log(T_cam_obj(t) inv(T_cam_obj(t-1))) / dt``: independent of the model frame, so it
+            survives a re-selection (the EKF's velocity restarts at zero there). Zero before the second frame.
+        since_landmarks: (B,) long, frames since the last model or landmark re-acquisition (``landmarks.every``).
+        reacquired_total: (B,) long, landmarks re-acquired so far.
+    """
+
+    prev: PreparedFrame | None = None
+    timestamp: Tensor | None = None
+    pixels: Tensor | None = None
+    valid: Tensor | None = None
+    points_obj: Tensor | None = None
+    age: Tensor | None = None
+    cornerness: Tensor | None = None
+    residuals: Tensor | None = None
+    n_model: Tensor | None = None
+    T_cam_obj: Tensor | None = None
+    T_world_obj: Tensor | None = None
+    velocity: Tensor | None = None
+    since_landmarks: Tensor | None = None
+    reacquired_total: Tensor | None = None
+
+    @property
+    def started(self) -> bool:
+        return self.prev is not None
+
+    @property
+    def T_world_depth(self) -> Tensor:
+        """(B, 4, 4) the current depth camera in the tracker's world (static object/scene)."""
+        return self.T_world_obj @ T_inv(self.T_cam_obj)
+
+
+FEATURE_FIELDS = ("pixels", "valid", "points_obj", "age", "cornerness")  # (B, N, ...) per-feature state
+
+
+def pad_to(x: Tensor, n: int) -> Tensor:
+    """Pad (or keep) the feature dimension (dim 1) of x to n with zeros (False for masks)."""
+    if x.shape[1] >= n:
+        return x
+    pad = torch.zeros(x.shape[0], n - x.shape[1], *x.shape[2:], dtype=x.dtype, device=x.device)
+    return torch.cat([x, pad], dim=1)
+
+
+def where_rows(mask: Tensor, new: Tensor, old: Tensor) -> Tensor:
+    """Rows of ``new`` where ``mask`` (B,), else of ``old``; any trailing shape."""
+    return torch.where(mask.view(-1, *([1] * (new.dim() - 1))), new, old)
+
+
+def valid_first(valid: Tensor, width: int) -> Tensor:
+    """(B, width) indices that put the True entries of ``valid`` (B, N) first, in order (a stable sort)."""
+    return torch.sort((~valid).to(torch.uint8), dim=1, stable=True).indices[:, :width]
