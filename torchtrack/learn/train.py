@@ -196,7 +196,7 @@ def window_loss(ekf: FusionEKF, model: Callable, win: Windows, cfg: TrainConfig)
         m = win.gt_valid
         n_gt, n_used = float(m.sum()), float(out.n_used.sum())
         sums = {
-            "loss": (float(loss) * (n_used if nll else n_gt), n_used if nll else n_gt),
+            "loss": (float(out.nll.sum()), n_used) if nll else (float(loss) * n_gt, n_gt),  # nll: the sum itself
             "trans_mm": (1e3 * float(e_t[m].sum()), n_gt),
             "rot_deg": (math.degrees(float(e_r[m].sum())), n_gt),
             "nll": (float(out.nll.sum()), n_used if nll else 0.0),
