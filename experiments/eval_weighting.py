@@ -6,13 +6,16 @@ reversed playback, photometric change, noisier depth with holes), this runs torc
 the CLI composes it (in-process, ``experiments/evaluate.py``'s ``compose_config`` + ``run_ours``) once per
 weighting, reads ATE, RPE and the mean reprojection error back from each run's ``metrics.json`` and prints a
 markdown table (rows: sequences and variants; columns: each weighting's numbers and the learned / paper ATE ratio)
-with a summary (mean ATE per weighting over the real sequences and over the variants, wins and losses).
+with a summary (mean ATE per weighting over the real sequences and over the variants, wins and losses, and the
+target's numbers: the geometric mean of the ATE ratios, the real sequences at their median over the jitter runs, and
+the rows above 1.05).
 
     python experiments/eval_weighting.py                                   # fixed, paper, learned; 4 variants
     python experiments/eval_weighting.py --weightings fixed,paper --max-frames 300 --runs 3
     python experiments/eval_weighting.py --checkpoint runs/train/model.pt  # the learned model to evaluate
     python experiments/eval_weighting.py --learned all=ckpt/all.pt --learned loo='ckpt/loo-{sequence}.pt'
     python experiments/eval_weighting.py --results experiments/RESULTS.md -- flow.backend=opencv
+    python experiments/eval_weighting.py --weightings paper --method='scale=weighting=paper tracker.noise_scale=true'
 
 Weightings: ``fixed`` = ``weighting=fixed`` (the paper's EKF-3 ablation: the variances of
 conf/weighting/fixed.yaml for every feature), ``paper`` = ``weighting=paper`` (eqs. 11-14 with the default
@@ -68,6 +71,7 @@ BASE = {"fixed": ["weighting=fixed"], "paper": ["weighting=paper"]}
 COLUMNS = (("ate_rmse_m", "ATE mm", 1e3, 2), ("rpe_trans_m", "RPE mm", 1e3, 2), ("rpe_rot_deg", "RPE deg", 1, 3))
 COLUMNS += (("mean_reprojection_px", "reproj px", 1, 3),)
 NOISE_K = 2.0  # |ATE_a - ATE_b| <= NOISE_K sqrt(std_a^2 + std_b^2): within run-to-run noise
+TARGET_MAX = 1.05  # the target's largest ATE ratio per row (issue 22); its geometric mean is to be <= 0.80
 
 
 # ----------------------------------------------------------------------------------------------- weightings
@@ -103,8 +107,12 @@ def default_checkpoint() -> Path:
     return Path(DEFAULT_CHECKPOINT)
 
 
-def resolve_methods(weightings: list[str], checkpoint: str | None, learned: list[str]) -> tuple[list[Method], list]:
-    """The methods to run and notes on learned models that cannot run (printed and put under the table)."""
+def resolve_methods(
+    weightings: list[str], checkpoint: str | None, learned: list[str], custom: list[str] = ()
+) -> tuple[list[Method], list]:
+    """The methods to run and notes on learned models that cannot run (printed and put under the table); ``custom``:
+    ``NAME=OVERRIDES`` columns (space-separated Hydra overrides, e.g. ``learned_off=weighting=learned
+    tracker.noise_scale=false``), run with the configured model where they select ``weighting=learned``."""
     unknown = sorted(set(weightings) - {"fixed", "paper", "learned"})
     if unknown:
         raise SystemExit(f"eval_weighting: unknown weighting(s) {unknown}; choose from fixed, paper, learned")
@@ -131,6 +139,11 @@ def resolve_methods(weightings: list[str], checkpoint: str | None, learned: list
             )
             continue
         methods.append(method)
+    for spec in custom:
+        name, _, text = spec.partition("=")
+        if not name or not text or not re.fullmatch(r"[\w.-]+", name) or name in {m.label for m in methods}:
+            raise SystemExit(f"eval_weighting: --method takes a new NAME=OVERRIDES, got {spec!r}")
+        methods.append(Method(name, shlex.split(text)))
     return methods, notes
 
 
@@ -207,7 +220,8 @@ def ate(run: dict) -> float | None:
 
 
 def comparisons(labels: list[str]) -> list[tuple[str, str]]:
-    """(a, b) pairs shown as ATE ratio a/b and wins of a over b: every learned model vs paper, else paper vs fixed."""
+    """(a, b) pairs shown as ATE ratio a/b and wins of a over b: every learned model (or --method column) vs paper,
+    else paper vs fixed."""
     learned = [lbl for lbl in labels if lbl not in BASE]
     if "paper" in labels and learned:
         return [(lbl, "paper") for lbl in learned]
@@ -274,6 +288,7 @@ def summary(rows: list[dict], labels: list[str]) -> str:
         means = [np.mean([ate(r["runs"][lbl]) for r in complete]) if complete else None for lbl in labels]
         lines.append(f"| {name} | {len(complete)} | " + " | ".join(fmt(m, 1e3, 2) for m in means) + " |")
     lines += [""] + [f"- {wins_losses(rows, a, b)}" for a, b in comparisons(labels)]
+    lines += [f"- target: {target(rows, a, b)}" for a, b in comparisons(labels)]
     return "\n".join(lines)
 
 
@@ -299,6 +314,33 @@ def wins_losses(rows: list[dict], a: str, b: str) -> str:
         f"{a} vs {b} (ATE): real sequences {w} wins / {lo} losses{noise}; variants {vw} wins / {vl} losses; "
         f"total {w + vw} / {lo + vl}"
     )
+
+
+def typical_ate(row: dict, label: str) -> float | None:
+    """The row's ATE of ``label``: the median over the unperturbed run and its jitter re-runs where there are any
+    (real sequences with --runs), else the one run's."""
+    values = [x for x in (row.get("noise") or {}).get(label, []) if x is not None and math.isfinite(x)]
+    return float(np.median(values)) if values else ate(row["runs"].get(label, {}))
+
+
+def target(rows: list[dict], a: str, b: str, limit: float = TARGET_MAX) -> str:
+    """The target's numbers for ``a`` over ``b``: the geometric mean of the per-row ATE ratios (medians over the
+    jitter runs where there are any) and the rows above ``limit``, those beyond the run-to-run spread marked."""
+    ratios, above = [], []
+    for r in rows:
+        x, y = typical_ate(r, a), typical_ate(r, b)
+        if x is None or y is None or y <= 0:
+            continue
+        ratios.append(x / y)
+        if x / y > limit:
+            sa, sb = (spread((r.get("noise") or {}).get(k, [])) for k in (a, b))
+            within = sa and sb and abs(x - y) <= NOISE_K * math.hypot(sa[1], sb[1])
+            above.append(f"{r['sequence']}/{r['variant']} {x / y:.2f}" + (" (within spread)" if within else ""))
+    if not ratios:
+        return f"{a}/{b}: no row with both ATEs"
+    gm = math.exp(float(np.mean(np.log(ratios))))
+    return (f"{a}/{b}: geometric mean of the ATE ratio {gm:.3f} over {len(ratios)} rows (median {np.median(ratios):.2f}, "
+            f"max {max(ratios):.2f}); above {limit:g}: {', '.join(above) if above else 'none'}")  # fmt: skip
 
 
 def noise_table(rows: list[dict], labels: list[str], runs: int) -> str:
@@ -383,6 +425,13 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     ap.add_argument("--weightings", default="fixed,paper,learned", help="comma-separated: fixed, paper, learned")
     ap.add_argument("--checkpoint", default=None, help="the learned model (default: the shipped one)")
     ap.add_argument("--learned", action="append", default=[], metavar="NAME=PATH", help="a learned model column")
+    ap.add_argument(
+        "--method",
+        action="append",
+        default=[],
+        metavar="NAME=OVERRIDES",
+        help="a column of its own Hydra overrides, e.g. 'scale=weighting=paper tracker.noise_scale=true'",
+    )
     ap.add_argument("--max-frames", type=int, default=None, help="first N frames of every sequence")
     ap.add_argument("--runs", type=int, default=0, help="R jittered re-runs per real sequence: run-to-run spread")
     ap.add_argument("--out", type=Path, default=REPO / "outputs" / "eval_weighting", help="output folder")
@@ -404,7 +453,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     args, overrides = parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(name)s: %(message)s")
-    methods, notes = resolve_methods(args.weightings, args.checkpoint, args.learned)
+    methods, notes = resolve_methods(args.weightings, args.checkpoint, args.learned, args.method)
     for n in notes:
         print(f"eval_weighting: {n}", file=sys.stderr, flush=True)
     if not methods:

@@ -117,3 +117,24 @@ def test_learned_checkpoint_pattern_per_sequence(tmp_path):
 )
 def test_replace_section(text, expected):
     assert ew.replace_section(text, ew.HEADING, "new\n") == expected
+
+
+def test_target_is_the_geometric_mean_of_median_ratios():
+    """Planted rows: the real row's ATE is its median over the jitter runs, the variant's its one run; the summary
+    line has exp(mean log ratio) and names the rows above 1.05, marking a difference within the spread."""
+
+    def run(x):
+        return {"metrics": {"ate_rmse_m": x}}
+
+    rows = [
+        {"sequence": "a", "variant": "real", "runs": {"new": run(1.0), "paper": run(2.0)},
+         "noise": {"new": [1.0, 3.0, 1.2], "paper": [2.0, 2.1, 1.9]}},  # medians 1.2 / 2.0
+        {"sequence": "a", "variant": "skip3", "runs": {"new": run(3.0), "paper": run(2.0)}},
+        {"sequence": "b", "variant": "real", "runs": {"new": run(1.1), "paper": run(1.0)},
+         "noise": {"new": [1.1, 1.3, 0.9], "paper": [1.0, 1.2, 0.8]}},  # 1.1 / 1.0, within the spread
+    ]  # fmt: skip
+    assert ew.typical_ate(rows[0], "new") == 1.2 and ew.typical_ate(rows[1], "new") == 3.0
+    gm = (0.6 * 1.5 * 1.1) ** (1 / 3)
+    line = ew.target(rows, "new", "paper")
+    assert f"geometric mean of the ATE ratio {gm:.3f} over 3 rows" in line
+    assert "above 1.05: a/skip3 1.50, b/real 1.10 (within spread)" in line

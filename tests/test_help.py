@@ -17,7 +17,7 @@ from torchtrack.learn.dataset import synthetic_variants
 
 # Groups that are wiring, not choices a user makes on the command line (learn's dataset/train, the method's
 # per-weighting and per-estimator values, Hydra's own).
-INTERNAL = {"dataset", "train", "method_tracker", "method_weighting", "hydra"}
+INTERNAL = {"dataset", "train", "method_tracker", "method_weighting", "weighting_tracker", "hydra"}
 
 
 @pytest.fixture(scope="module")
@@ -174,10 +174,10 @@ def test_tool_help_examples_compose(tool_help):
 
 
 def test_train_help_states_the_set_sizes():
-    """The default set is the 54 sequences the help and the README state; the small example is 2 of them."""
+    """The default set is the 60 sequences the help and the README state; the small example is 2 of them."""
     text = subprocess.run(
         [sys.executable, "-m", "torchtrack.learn.train_app", "--help"], capture_output=True, text=True, timeout=120
     ).stdout
     small = next(shlex.split(ln)[1:] for ln in section(text, "Examples") if "train.epochs=1" in ln)
-    assert len(synthetic_variants(_composed("learn").dataset)) == 54 and "54 synthetic sequences" in text
+    assert len(synthetic_variants(_composed("learn").dataset)) == 60 and "60 synthetic sequences" in text
     assert len(synthetic_variants(_composed("learn", small).dataset)) == 2

@@ -37,8 +37,9 @@ def make_inputs(B=2, N=12, seed=0, dtype=torch.float32, valid=None) -> Weighting
         d_tim_int=u(0, 2), d_tim_sim=d_sim, sim_won=(u(0, 1) > 0.5).to(F64), lk_residual=u(0, 0.05),
         depth=pts[..., 2], centroid_dist=(pts - pts.mean(1, keepdim=True)).norm(dim=-1), cornerness_int=u(0, 1),
         cornerness_sim=u(0, 1), sim_value=u(0, 1), track_age=u(0, 40).floor(), prev_reproj=u(0, 2),
-        u_norm=u(0, 1), v_norm=u(0, 1),
+        u_norm=u(0, 1), v_norm=u(0, 1), depth_step=u(0, 0.3), depth_holes=u(0, 1), lk_min_eig=u(0, 1e-3),
     )  # fmt: skip
+    c["fb_error"] = torch.minimum(c["d_tim_int"], d_sim)
     cues = torch.stack([c[n] for n in CUE_NAMES], -1).to(dtype)
     v = torch.ones(B, N, dtype=torch.bool) if valid is None else valid
     d_tim = torch.minimum(c["d_tim_int"], d_sim).to(dtype)
@@ -236,8 +237,10 @@ def test_checkpoint_mismatches_raise(tmp_path):
         torch.save({**blob, **changes}, bad := tmp_path / "bad.pt")
         return bad
 
-    with pytest.raises(ValueError, match=r"bad\.pt.*\['depth', 'd_tim_int'.*cue version 1.*this torchtrack has"):
+    with pytest.raises(ValueError, match=r"bad\.pt: made with cue version 2 .*column 0: 'depth' there, 'd_tim_int' here\)"):
         load_checkpoint(write(cue_names=["depth", "d_tim_int", *CUE_NAMES[2:]]))
+    with pytest.raises(ValueError, match=r"bad\.pt: made with cue version 1 \(13 cues\).*column 13: 'none' there"):
+        load_checkpoint(write(cue_names=list(CUE_NAMES[:13]), cue_version=1))  # a cue-version-1 model: one line
     with pytest.raises(ValueError, match=rf"bad\.pt.*cue version {CUE_VERSION + 1}.*cue version {CUE_VERSION}"):
         load_checkpoint(write(cue_version=CUE_VERSION + 1))
     with pytest.raises(ValueError, match=r"bad\.pt: checkpoint version 99; this torchtrack reads version 1"):

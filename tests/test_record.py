@@ -38,14 +38,14 @@ from torchtrack.learn.record import record_sequences
 
 CONF = CONF_DIR
 
-# Cue version 1, written out from the documented layout (learn/cues.py's comments, DESIGN.md "Learned weighting"):
+# Cue version 2, written out from the documented layout (learn/cues.py's comments, DESIGN.md "Learned weighting"):
 # the literal column of each cue in a recording and in a checkpoint's input. A reorder without a version bump fails.
 COL = {
     "d_tim_int": 0, "d_tim_sim": 1, "sim_won": 2, "lk_residual": 3, "depth": 4, "centroid_dist": 5,
     "cornerness_int": 6, "cornerness_sim": 7, "sim_value": 8, "track_age": 9, "prev_reproj": 10, "u_norm": 11,
-    "v_norm": 12,
+    "v_norm": 12, "depth_step": 13, "depth_holes": 14, "lk_min_eig": 15, "fb_error": 16,
 }  # fmt: skip
-D_TIM_CAP = 100.0  # px, "did not track" (cue version 1)
+D_TIM_CAP = 100.0  # px, "did not track" (cue version 2)
 TIM_THRESHOLD = 1.0  # px, the default flow config's step IV of eq. (10) (checked against the config below)
 
 
@@ -107,17 +107,17 @@ def test_recorded_rows_are_what_the_back_end_saw_without_recording(seq, recorded
 
 # ---------------------------------------------------------------------------------------------- cues
 def columns(obs) -> dict[str, torch.Tensor]:
-    """The recorded cues by name, at the literal column positions of cue version 1 (:data:`COL`)."""
+    """The recorded cues by name, at the literal column positions of cue version 2 (:data:`COL`)."""
     return {name: obs.cues[..., i] for name, i in COL.items()}
 
 
-def test_cue_layout_is_version_1():
+def test_cue_layout_is_version_2():
     """The module's names, index and version against the layout written out above; stack_cues puts each named cue
     in its literal column."""
-    assert cue_module.CUE_NAMES == tuple(COL) and cue_module.CUE_VERSION == 1 and cue_module.D_TIM_CAP == D_TIM_CAP
+    assert cue_module.CUE_NAMES == tuple(COL) and cue_module.CUE_VERSION == 2 and cue_module.D_TIM_CAP == D_TIM_CAP
     assert cue_module.CUE_INDEX == COL
     stacked = cue_module.stack_cues(**{name: torch.full((1, 2), float(i)) for name, i in COL.items()})
-    assert stacked.shape == (1, 2, 13) and torch.equal(stacked[0, 0], torch.arange(13, dtype=torch.float32))
+    assert stacked.shape == (1, 2, 17) and torch.equal(stacked[0, 0], torch.arange(17, dtype=torch.float32))
 
 
 def test_cues_follow_their_definitions(recorded):
@@ -172,6 +172,25 @@ def test_depth_cue_is_the_depth_image_at_the_feature(seq, recorded):
             assert z == pytest.approx(depth_at(depth, u, v), rel=1e-6, abs=0), (t, u, v)
             checked += 1
     assert checked >= 50
+
+
+def test_window_cues_are_the_depth_png_around_the_feature(seq, recorded):
+    """depth_step and depth_holes against the depth PNG read here, over the 5 x 5 window at the nearest pixel; the
+    forward-backward error is the winner's d_TIM, the smaller of the two trackers' (eq. 10, step III)."""
+    obs, c = recorded, columns(recorded)
+    checked = 0
+    for t in range(1, obs.frames):
+        depth = np.pad(np.asarray(Image.open(seq.depth_paths[t]), dtype=np.float64) / seq.depth_scale, 2)
+        for (u, v), s, h in zip(obs.pixels[t][obs.valid[t]].double().tolist(), c["depth_step"][t][obs.valid[t]].tolist(),
+                                c["depth_holes"][t][obs.valid[t]].tolist(), strict=True):  # fmt: skip
+            win = depth[round(v) : round(v) + 5, round(u) : round(u) + 5]
+            ok = win[win > 0]
+            assert s == pytest.approx(ok.max() - ok.min(), abs=1e-6) and h == pytest.approx(1 - ok.size / 25, abs=1e-6)
+            checked += 1
+    assert checked >= 50 and bool((c["depth_step"][obs.valid] > 0).all())
+    v = obs.valid
+    torch.testing.assert_close(c["fb_error"][v], torch.minimum(c["d_tim_int"], c["d_tim_sim"])[v], atol=0, rtol=0)
+    assert bool((c["lk_min_eig"][v] > 0).all())
 
 
 def test_sim_cue_is_the_shape_index_map_at_the_nearest_pixel(seq):
@@ -359,12 +378,14 @@ def test_resume_skips_an_up_to_date_file_and_re_records_another_config(seq, tmp_
 def test_synthetic_set_definition():
     variants = synthetic_variants(config("+dataset=synthetic", name="record").dataset)
     names = [v.name for v in variants]
-    assert len(names) == len(set(names)) == 2 * 3 * 3 * 3
+    assert len(names) == len(set(names)) == 2 * 3 * 2 * 5
     assert {v.config.mode for v in variants} == {"scene", "object"}
     assert {v.region for v in variants if v.config.mode == "object"} == {"object"}
     assert {v.config.background for v in variants if v.name.startswith("object_bare")} == {False}
-    noisy = [v.config.kinect.sigma_a_m for v in variants if "kinect2x" in v.name]
-    assert set(noisy) == {0.0024} and {v.config.width for v in variants} == {640}
+    noisy = [v.config for v in variants if "kinect3x_flying" in v.name]
+    assert {(c.kinect.sigma_scale, c.effects.flying_pixel_prob) for c in noisy} == {(3.0, 0.5)}
+    misreg = {v.config.effects.depth_shift_px for v in variants if "misregistered" in v.name}
+    assert misreg == {(2, 1)} and {v.config.width for v in variants} == {640}
 
 
 def cli(args: list[str], env_cache: Path) -> subprocess.CompletedProcess:

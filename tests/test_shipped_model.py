@@ -100,12 +100,12 @@ def nll_per_measurement(weighting, obs, cfg, recipe) -> float:
 
 
 def test_default_model_keeps_its_validation_gain_on_held_out_sequences(held_out):
-    """Recorded: validation NLL per measurement -2.013 (the shipped epoch) vs -1.709 for eqs. (11)-(14), a gain of
-    0.30. Required here: a gain of at least a third of that over the paper weighting and over the untrained model
-    (zero last layer: constant nominal variances with the depth prior). Measured (seed 2): scene -1.551 vs paper
-    -1.349, untrained -1.309; object -2.784 vs -2.478, -2.454; held-out scenes of seeds 3 and 4 and the bare object
-    gain 0.16-0.31 likewise. Checked to fail (scene): weights not loaded -1.309, every layer re-initialised -1.273,
-    cue columns permuted -0.710, last layer negated -0.450, the 2-epoch model of test_train_app (gain -0.007)."""
+    """Recorded: validation NLL per measurement -2.286 (the shipped epoch) vs -2.040 for eqs. (11)-(14), a gain of
+    0.246. Required here: a gain of at least a third of that over the paper weighting and over the untrained model
+    (zero last layer: constant nominal variances with the depth prior). Measured (seed 2): scene -1.522 vs paper
+    -1.349, untrained -1.309; object -2.658 vs -2.478, -2.454. Weights not loaded give the untrained numbers, which
+    fail it (the earlier model of cue version 1 was also checked with re-initialised, permuted-cue and negated
+    weights)."""
     model = learned_weighting()
     _, meta = load_checkpoint(DEFAULT_CHECKPOINT)
     seen = meta["train_sequences"] + meta["val_sequences"]
@@ -113,7 +113,7 @@ def test_default_model_keeps_its_validation_gain_on_held_out_sequences(held_out)
     recipe = yaml.safe_load(meta["config"])["train"]
     best = min(meta["history"], key=lambda h: h["val_loss"])
     required = (meta["val_paper"]["loss"] - best["val_loss"]) / 3
-    assert required > 0.09
+    assert required > 0.07  # recorded: -2.286 vs -2.040 (the normalised model of cue version 2): 0.082
     untrained = LearnedWeighting(**model.config)
     paper = instantiate(load_option("weighting", "paper"))
     for name, obs, cfg in held_out:

@@ -106,3 +106,24 @@ def test_bad_config_raises():
         TrainConfig(loss="mse")
     with pytest.raises(ValueError, match="window"):
         TrainConfig(window=0)
+
+
+def test_burn_in_scores_only_the_frames_after_it():
+    """burn_in = k: the batch replays all k + window frames from the window's start and the loss is the NLL per
+    measurement of the last ``window`` frames only (the definition, on the rollout's own numbers); its counts too."""
+    from torchtrack.learn.rollout import nll_loss
+    from torchtrack.learn.train import window_loss
+
+    oracle = oracle_windows(B=8, T=5, N=20, seed=6)
+    ekf, model = FusionEKF(jacobian="analytic"), LearnedWeighting(mode="absolute", depth_var_exponent=0.0)
+    cfg = TrainConfig(window=3, burn_in=2, loss="nll", gate=None, refit=None)
+    assert cfg.span == 5
+    with torch.no_grad():
+        out = rollout(ekf, model, oracle.windows, with_nll=True)
+        loss, sums = window_loss(ekf, model, oracle.windows, cfg)
+        whole = window_loss(ekf, model, oracle.windows, TrainConfig(window=5, loss="nll", gate=None, refit=None))[0]
+    tail = out.nll[2:].sum() / out.n_used[2:].sum()
+    assert float(loss) == pytest.approx(float(tail), rel=1e-12) and float(whole) == pytest.approx(float(nll_loss(out)))
+    assert sums["loss"][1] == float(out.n_used[2:].sum()) and abs(float(tail) - float(whole)) > 1e-3
+    with pytest.raises(ValueError, match="burn_in"):
+        TrainConfig(burn_in=-1)

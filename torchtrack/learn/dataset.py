@@ -11,8 +11,10 @@ variants (file, region, full SyntheticConfig). Missing renders are made by ``ren
     torchtrack-record +dataset=synthetic out=DIR        # the default set
     torchtrack-record +dataset=synthetic_tiny out=DIR   # 2 sequences of 6 frames at 160 x 120 (tests)
 
-The renderer has no photometric change over time (lighting is fixed to each rigid group, so brightness constancy
-holds exactly); the only photometric variation is the colour noise of the Kinect model (``kinect.rgb_sigma``).
+A noise entry is a sensor model: :class:`~torchtrack.data.synthetic.KinectNoise` parameters and the renderer's
+real-sensor effects (``effects``: :class:`~torchtrack.data.synthetic.config.SensorEffects`: misregistration, flying
+pixels, motion blur, a lighting gain over time). The sequences of ``photometric_seeds`` are recorded from their
+photometric variant (:mod:`torchtrack.data.perturb`) instead.
 """
 
 from __future__ import annotations
@@ -89,7 +91,7 @@ def build_synthetic_set(cfg: DictConfig, out_dir: str | Path, progress: bool = T
     variants = synthetic_variants(spec)
     cache, workers = Path(spec.cache_dir).expanduser(), int(spec.get("render_workers") or 1)
     folders = render_variants(variants, cache, workers, progress)
-    for i, v in enumerate(variants):  # the renderer's lighting is fixed: photometric change comes from perturb
+    for i, v in enumerate(variants):  # perturb's photometric walk, beside the renderer's own lighting effect
         if v.photometric:
             folders[i] = make_variant(folders[i], "photometric", cache / "perturbed", seed=v.config.seed)
     paths: list[Path | None] = [None] * len(variants)

@@ -60,6 +60,10 @@ CUE_TRANSFORMS: dict[str, tuple[str, float]] = {
     "prev_reproj": ("log1p", 0.1),  # px
     "u_norm": ("id", 1.0),  # [0, 1]
     "v_norm": ("id", 1.0),  # [0, 1]
+    "depth_step": ("log1p", 0.005),  # m; 5 mm (noise at ~1.5 m) -> 0.69, a 1 m edge -> 5.3
+    "depth_holes": ("id", 1.0),  # [0, 1]
+    "lk_min_eig": ("log1p", 1e-4),  # (1/px)^2 on [0, 1] intensities; 1e-4 ~ the LK tracker's min_eig
+    "fb_error": ("log1p", 0.1),  # px, as d_tim_*
 }
 if tuple(CUE_TRANSFORMS) != CUE_NAMES:  # a new or reordered cue needs a decision here, not a silent default
     raise ImportError(f"torchtrack.learn.model: CUE_TRANSFORMS {list(CUE_TRANSFORMS)} != CUE_NAMES {list(CUE_NAMES)}")
@@ -104,7 +108,7 @@ class LearnedWeighting(nn.Module):
     Args:
         mode: ``"normalised"`` (mean variance over the valid features kept, as eqs. (11)/(14)) or ``"absolute"``.
         sigma2_pix: nominal pixel variance (px^2); sigma2_xyz: nominal 3D variance (m^2) at depth_ref.
-        hidden: width H of every hidden layer (H = 32: 5730 parameters).
+        hidden: width H of every hidden layer (H = 32: 5858 parameters with the 17 cues of cue version 2).
         depth_var_exponent: var_xyz x (z / depth_ref)^e after the network (0: none); as PaperWeighting.
         depth_ref: reference depth (m) of that prior.
         log_ratio_min, log_ratio_max: soft bounds of ``log(var / sigma2)`` per feature (before the depth prior);

@@ -39,7 +39,15 @@ from torchtrack.io import write_atomic
 from torchtrack.learn.cache import SequenceObservations
 from torchtrack.learn.checkpoint import load_checkpoint, save_checkpoint
 from torchtrack.learn.model import LearnedWeighting
-from torchtrack.learn.rollout import Windows, concat_windows, nll_loss, pose_errors, rollout, supervised_loss
+from torchtrack.learn.rollout import (
+    Rollout,
+    Windows,
+    concat_windows,
+    nll_loss,
+    pose_errors,
+    rollout,
+    supervised_loss,
+)
 
 log = logging.getLogger(__name__)
 LOSSES = ("supervised", "nll")
@@ -59,6 +67,9 @@ class TrainConfig:
         seed: torch seed of the initialisation and the window order.
         model: :class:`~torchtrack.learn.model.LearnedWeighting` arguments (mode, hidden, sigma2_pix, ...).
         max_windows: cap on the training windows per epoch (random subset each epoch; None = all).
+        burn_in: frames replayed before each window's ``window`` scored ones, outside the loss (0: none): the
+            window starts ``burn_in`` frames earlier, so that the filter's velocity and covariance have settled
+            from the zero velocity and initial covariance every window starts with.
     """
 
     window: int = 8
@@ -76,6 +87,7 @@ class TrainConfig:
     jacobian: str = "analytic"
     seed: int = 0
     max_windows: int | None = None
+    burn_in: int = 0
     model: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -83,6 +95,13 @@ class TrainConfig:
             raise ValueError(f"train.loss must be one of {LOSSES}, got {self.loss!r}")
         if self.window < 1 or self.stride < 1 or self.batch < 1 or self.epochs < 0 or self.lr <= 0:
             raise ValueError("train: window, stride, batch must be >= 1, epochs >= 0 and lr > 0")
+        if self.burn_in < 0:
+            raise ValueError(f"train.burn_in must be >= 0, got {self.burn_in}")
+
+    @property
+    def span(self) -> int:
+        """Frames replayed per window: the burn-in and the scored window."""
+        return self.burn_in + self.window
 
 
 # -- windows ---------------------------------------------------------------------------------------------
@@ -142,6 +161,15 @@ def select_windows(win: Windows, index: Tensor) -> Windows:
     })  # fmt: skip
 
 
+def frames_from(win: Windows, t0: int) -> Windows:
+    """The frames t0.. of every window (per-window fields kept)."""
+    if t0 == 0:
+        return win
+    per_window = ("start_T_cam_obj", "K", "T_color_depth", "focal")
+    return Windows(**{f.name: getattr(win, f.name) if f.name in per_window else getattr(win, f.name)[t0:]
+                      for f in fields(Windows)})  # fmt: skip
+
+
 def windows_of(
     sequences: list[SequenceObservations], window: int, stride: int, *, need_ground_truth: bool = True
 ) -> Windows | None:
@@ -161,13 +189,14 @@ def window_loss(ekf: FusionEKF, model: Callable, win: Windows, cfg: TrainConfig)
     ground truth, the NLL over the used measurements. :func:`summarise` turns them into means."""
     nll = cfg.loss == "nll"
     out = rollout(ekf, model, win, gate=cfg.gate, refit=cfg.refit, with_nll=nll)
+    out, win = Rollout(*(x[cfg.burn_in :] for x in out)), frames_from(win, cfg.burn_in)  # the scored frames
     loss = nll_loss(out) if nll else supervised_loss(out, win, cfg.w_trans, cfg.w_rot)
     with torch.no_grad():
         e_t, e_r = pose_errors(out.T_cam_obj, win.T_cam_obj_gt.to(out.T_cam_obj.dtype))
         m = win.gt_valid
         n_gt, n_used = float(m.sum()), float(out.n_used.sum())
         sums = {
-            "loss": (float(loss) * (n_used if nll else n_gt), n_used if nll else n_gt),
+            "loss": (float(out.nll.sum()), n_used) if nll else (float(loss) * n_gt, n_gt),  # nll: the sum itself
             "trans_mm": (1e3 * float(e_t[m].sum()), n_gt),
             "rot_deg": (math.degrees(float(e_r[m].sum())), n_gt),
             "nll": (float(out.nll.sum()), n_used if nll else 0.0),

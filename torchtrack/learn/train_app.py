@@ -64,10 +64,10 @@ def train_from_config(cfg: DictConfig, out: Path, progress: bool = True) -> list
     train_seqs, val_seqs = split(sequences, cfg)
     tc = TrainConfig(**OmegaConf.to_container(cfg.train, resolve=True))
     need_gt = tc.loss == "supervised"  # the NLL needs no ground truth: unlabelled windows start at the estimate
-    train_w = windows_of(train_seqs, tc.window, tc.stride, need_ground_truth=need_gt)
+    train_w = windows_of(train_seqs, tc.span, tc.stride, need_ground_truth=need_gt)
     if train_w is None:
         raise DataError(_no_window(train_seqs, tc, "training"))
-    val_w = windows_of(val_seqs, tc.window, tc.stride, need_ground_truth=need_gt)
+    val_w = windows_of(val_seqs, tc.span, tc.stride, need_ground_truth=need_gt)
     if val_w is None and val_seqs:
         log.warning("%s", _no_window(val_seqs, tc, "validation"))
     log.info("training on %d windows of %d sequences, validating on %d windows of %d sequences",
@@ -98,10 +98,12 @@ def train_from_config(cfg: DictConfig, out: Path, progress: bool = True) -> list
 def _no_window(sequences: list[SequenceObservations], tc: TrainConfig, split: str) -> str:
     """One line: why ``sequences`` give no window (too short, or no ground truth for the supervised loss)."""
     names = ", ".join(s.sequence for s in sequences) or "none"
-    if tc.loss == "supervised" and all(s.frames > tc.window for s in sequences):
+    if tc.loss == "supervised" and all(s.frames > tc.span for s in sequences):
         return (f"no {split} window: train.loss=supervised needs ground truth and the {split} sequences ({names}) have "
                 "none; train.loss=nll needs none (calibration on unlabelled sequences)")  # fmt: skip
-    return f"no {split} window: the {split} sequences ({names}) have at most train.window={tc.window} frames"
+    return (
+        f"no {split} window: the {split} sequences ({names}) have at most train.window + train.burn_in={tc.span} frames"
+    )
 
 
 def export(src: Path, dst: Path) -> None:
@@ -134,16 +136,17 @@ Records the training set's front end once (the synthetic set by default: no real
 windows of recorded frames through the filter and fits a small network that maps per-feature cues to pixel and 3D
 variances. The run folder gets metrics.csv, loss.png, last.pt and best.pt; track with the result:
 torchtrack weighting=learned weighting.checkpoint=RUN/best.pt.
-The default set is 54 synthetic sequences of 60 frames at 640x480. The first run renders and records them into the
-cache ($TORCHTRACK_CACHE, else ~/.cache/torchtrack; about 2.7 GB) and then trains 30 epochs: about 10 minutes on 2
-cores. Later runs reuse the cache.
+The default set is 60 synthetic sequences of 60 frames at 640x480 (five sensor models: conf/dataset/synthetic.yaml).
+The first run renders and records them into the cache ($TORCHTRACK_CACHE, else ~/.cache/torchtrack) and then trains
+30 epochs: about half an hour on 2 loaded cores (half of it, seed 0: 8 min recording, 7 min training). Later runs
+reuse the cache.
 
 Usage: torchtrack-train [key=value ...]   (or: python -m torchtrack.learn.train_app ...)
 
 == Examples ==
   torchtrack-train
       the default: the synthetic set, 30 epochs of the innovation likelihood (train.loss=nll)
-  torchtrack-train 'dataset.seeds=[0]' '~dataset.modes.object' '~dataset.speeds.slow' '~dataset.speeds.fast' '~dataset.noises.kinect2x' '~dataset.noises.none' train.epochs=1 val_fraction=0.5
+  torchtrack-train 'dataset.seeds=[0]' '~dataset.modes.object' '~dataset.speeds.fast' '~dataset.noises.kinect3x_flying' '~dataset.noises.misregistered' '~dataset.noises.blur_light' '~dataset.noises.none' train.epochs=1 val_fraction=0.5
       a small run: 2 synthetic sequences (a scene and a bare object, medium speed, Kinect noise), one epoch (minutes)
   torchtrack-train train.loss=supervised export=runs/supervised.pt
       the pose-error loss against ground truth; best.pt also copied to runs/supervised.pt
@@ -155,8 +158,8 @@ Usage: torchtrack-train [key=value ...]   (or: python -m torchtrack.learn.train_
       Validation reports the held-out NLL; pose errors only where ground truth exists
 
 == Keys ==
-  dataset=synthetic         the synthetic set recorded and trained on: synthetic (54 sequences: 2 seeds x scene,
-                            object, bare object x slow, medium, fast x 3 noise levels) | synthetic_tiny (2
+  dataset=synthetic         the synthetic set recorded and trained on: synthetic (60 sequences: 2 seeds x scene,
+                            object, bare object x medium, fast x 5 sensor models) | synthetic_tiny (2
                             sequences of 6 frames at 160x120, for tests: set train.window to 3, stride to 1); keys:
                             dataset.seeds, dataset.modes, dataset.speeds, dataset.noises (~dataset.KEY.NAME drops
                             an entry), dataset.base.width|height|frames, dataset.batch, dataset.render_workers
@@ -179,10 +182,11 @@ Usage: torchtrack-train [key=value ...]   (or: python -m torchtrack.learn.train_
   train.stride=4            frames between window starts
   train.batch=32            windows per optimiser step
   train.max_windows=null    a random subset of this many training windows per epoch (null: all)
+  train.burn_in=0           frames replayed before each window's scored ones, outside the loss (settles the velocity)
   train.gate=0.999          the filter's chi-square gate during training, as in the tracker; train.refit=0.999 likewise
   train.jacobian=analytic   the filter's Jacobian while training (forward: autograd, equal to 1e-10, slower)
   train.seed=0              initialisation, window order and the validation split
-  train.model.mode=absolute absolute variances | normalised (their mean kept as eqs. 11-14 do); train.model.hidden=32
+  train.model.mode=normalised  relative variances (their mean kept as eqs. 11-14 do) | absolute; train.model.hidden=32
                             (width), train.model.sigma2_pix, sigma2_xyz, depth_var_exponent, depth_ref (nominal values)
 
 Every torchtrack config group and key applies and sets the pipeline that records the sequences and the filter that

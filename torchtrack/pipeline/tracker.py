@@ -32,7 +32,7 @@ from torchtrack.filter.weighting import WeightingInputs
 from torchtrack.frontend import FrontEnd, PreparedFrame
 from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, se3_log, transform_points
 from torchtrack.image.flow import TrackResult
-from torchtrack.learn.cues import stack_cues
+from torchtrack.learn.cues import stack_cues, window_cues
 from torchtrack.pipeline.keyframes import KeyframeStore
 from torchtrack.pipeline.landmark_window import refine_at_reselection
 from torchtrack.pipeline.landmarks import LandmarkMap
@@ -175,7 +175,8 @@ class Tracker:
             sim_value=sim,  # nearest pixel of the SI map: masked (planar, no depth) pixels carry its fill value
             track_age=s.age + 1,
             prev_reproj=torch.where(s.age > 0, s.residuals, 0.0),  # a new feature has no previous frame
-            u_norm=track.points[..., 0] / W, v_norm=track.points[..., 1] / H,
+            u_norm=track.points[..., 0] / W, v_norm=track.points[..., 1] / H, fb_error=track.d_tim,
+            **window_cues(cur.depth, track.points, s.prev.gray, s.pixels),
         )  # fmt: skip
         return torch.where(valid[..., None], cues, 0.0)
 

@@ -45,6 +45,44 @@ class KinectNoise:
     min_depth_m: float = 0.4
     max_depth_m: float = 6.0
     rgb_sigma: float = 0.01
+    sigma_scale: float = 1.0  # the axial noise is sigma_scale * sigma(z): a sensor noisier or cleaner than the fit
+
+
+@dataclass
+class SensorEffects:
+    """Effects of real RGB-D sensors beyond :class:`KinectNoise` (:mod:`torchtrack.data.synthetic.effects`), each
+    off at its default. Frame i's time is ``t_i = i / fps``; ground truth stays the colour camera's pose at t_i.
+
+    * ``depth_shift_px = (dx, dy)``: depth misregistered against colour by whole pixels,
+      ``depth_out[v, u] = depth[v - dy, u - dx]`` (0 where that falls outside), as a miscalibrated extrinsic.
+    * ``depth_time_offset_s``: the depth image is taken at ``t_i + offset`` (unsynchronised streams, e.g. 7-Scenes).
+    * ``flying_pixel_prob``: each pixel at a depth edge (the clean depth of its 3 x 3 neighbourhood spans more than
+      ``KinectNoise.edge_jump_m``) reads, with this probability, ``lo + a (hi - lo)``, a ~ U(0, 1), lo/hi the
+      neighbourhood's smallest/largest clean depth: a mixed return between the two surfaces (after the noise, so
+      it also fills the edge holes the Kinect model cuts).
+    * ``blur_exposure_s``: colour averaged over ``blur_samples`` poses evenly spaced over
+      ``[t_i - e / 2, t_i + e / 2]`` (motion blur; depth is not blurred).
+    * ``light_gain_amplitude = A``: colour (before its noise) times ``1 + A sin(2 pi t_i / light_period_s)``,
+      clamped to [0, 1]: a global lighting change over time (brightness constancy broken).
+    """
+
+    depth_shift_px: tuple[int, int] = (0, 0)
+    depth_time_offset_s: float = 0.0
+    flying_pixel_prob: float = 0.0
+    blur_exposure_s: float = 0.0
+    blur_samples: int = 5
+    light_gain_amplitude: float = 0.0
+    light_period_s: float = 4.0
+
+    def __post_init__(self) -> None:
+        self.depth_shift_px = tuple(int(v) for v in self.depth_shift_px)
+        if len(self.depth_shift_px) != 2:
+            raise ValueError(f"SensorEffects.depth_shift_px must be (dx, dy), got {self.depth_shift_px}")
+        if not 0 <= self.flying_pixel_prob <= 1 or self.blur_exposure_s < 0 or self.blur_samples < 1:
+            raise ValueError(f"SensorEffects: need flying_pixel_prob in [0, 1], blur_exposure_s >= 0, blur_samples >= 1: "
+                             f"{self}")  # fmt: skip
+        if not 0 <= self.light_gain_amplitude < 1 or self.light_period_s <= 0:
+            raise ValueError(f"SensorEffects: need light_gain_amplitude in [0, 1), light_period_s > 0: {self}")
 
 
 @dataclass
@@ -86,10 +124,13 @@ class SyntheticConfig:
     depth_camera: dict | None = None
     object: str = "compound"
     object_distance_m: float | None = None
+    effects: SensorEffects = field(default_factory=SensorEffects)
 
     def __post_init__(self) -> None:
         if isinstance(self.kinect, dict):  # from JSON / Hydra
             self.kinect = KinectNoise(**self.kinect)
+        if isinstance(self.effects, dict):
+            self.effects = SensorEffects(**self.effects)
         if self.mode not in MODES:
             raise ValueError(f"SyntheticConfig.mode must be one of {MODES}, got {self.mode!r}")
         if self.object not in OBJECTS:
@@ -114,7 +155,7 @@ class SyntheticConfig:
         if self.fx <= 0 or self.fy <= 0:
             raise ValueError(f"SyntheticConfig focal lengths must be > 0, got fx={self.fx}, fy={self.fy}")
         k = self.kinect
-        if min(k.sigma_a_m, k.sigma_b_per_m, k.dropout_prob, k.rgb_sigma, k.disparity_subpixel) < 0:
+        if min(k.sigma_a_m, k.sigma_b_per_m, k.dropout_prob, k.rgb_sigma, k.disparity_subpixel, k.sigma_scale) < 0:
             raise ValueError(f"SyntheticConfig.kinect parameters must be >= 0, got {k}")
         if not 0 <= k.dropout_prob < 1 or k.min_depth_m >= k.max_depth_m:
             raise ValueError(f"SyntheticConfig.kinect has a bad dropout or depth range: {k}")
@@ -131,11 +172,17 @@ class SyntheticConfig:
 
     def to_dict(self) -> dict:
         """Resolved, JSON-serialisable parameters (no ``depth_camera`` when depth is registered, no ``object`` /
-        ``object_distance_m`` at their defaults: same digests as before the options existed)."""
+        ``object_distance_m``, ``kinect.sigma_scale`` or ``effects`` at their defaults: same digests as before the
+        options existed)."""
         out = asdict(self)
-        for key, default in (("depth_camera", None), ("object", "compound"), ("object_distance_m", None)):
+        out["effects"]["depth_shift_px"] = list(out["effects"]["depth_shift_px"])
+        defaults = (("depth_camera", None), ("object", "compound"), ("object_distance_m", None),
+                    ("effects", asdict(SensorEffects()) | {"depth_shift_px": [0, 0]}))  # fmt: skip
+        for key, default in defaults:
             if out[key] == default:
                 del out[key]
+        if out["kinect"]["sigma_scale"] == 1.0:
+            del out["kinect"]["sigma_scale"]
         return out
 
     def digest(self) -> str:

@@ -53,22 +53,23 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> Tensor:
     return make_T(torch.stack([x, y, z], dim=-1), e)
 
 
-def smooth_curve(frames: int, rms_step: float, gen: torch.Generator) -> Tensor:
-    """(frames, 3) float64 smooth curve starting at 0 whose RMS change per frame is rms_step."""
+def smooth_curve(frames: int, rms_step: float, gen: torch.Generator, offset: float = 0.0) -> Tensor:
+    """(frames, 3) float64 smooth curve starting at 0 whose RMS change per frame is rms_step, sampled at the frame
+    times ``i + offset`` (fractional frames: the same curve between its frames)."""
     amp = torch.randn(3, HARMONICS, generator=gen, dtype=torch.float64)
     period = PERIODS[0] + (PERIODS[1] - PERIODS[0]) * torch.rand(3, HARMONICS, generator=gen, dtype=torch.float64)
     phase = 2 * math.pi * torch.rand(3, HARMONICS, generator=gen, dtype=torch.float64)
     w = 2 * math.pi / period
-    t = torch.arange(frames, dtype=torch.float64)[:, None, None]
+    t = (torch.arange(frames, dtype=torch.float64) + offset)[:, None, None]
     x = (amp * (torch.sin(w * t + phase) - torch.sin(phase))).sum(-1)  # F,3
     rms_speed = ((amp * w) ** 2).sum().div(2).sqrt()  # time-average of |dx/dt| squared, incommensurate harmonics
     return x * (rms_step / rms_speed)
 
 
-def _moving(T0: Tensor, frames: int, cfg: SyntheticConfig, gen: torch.Generator) -> Tensor:
-    """(F, 4, 4): T0 translated in its parent frame and rotated about its own origin."""
-    dx = smooth_curve(frames, cfg.trans_step_m, gen)
-    dw = smooth_curve(frames, math.radians(cfg.rot_step_deg), gen)
+def _moving(T0: Tensor, frames: int, cfg: SyntheticConfig, gen: torch.Generator, offset: float = 0.0) -> Tensor:
+    """(F, 4, 4): T0 translated in its parent frame and rotated about its own origin, at frames ``i + offset``."""
+    dx = smooth_curve(frames, cfg.trans_step_m, gen, offset)
+    dw = smooth_curve(frames, math.radians(cfg.rot_step_deg), gen, offset)
     return make_T(T0[:3, :3] @ so3_exp(dw), T0[:3, 3] + dx)
 
 
@@ -90,11 +91,13 @@ def object_eye(cfg: SyntheticConfig) -> tuple[float, float, float]:
     return tuple(c + d * v / n for c, v in zip(OBJECT_CENTRE, ray, strict=True))
 
 
-def sequence_poses(cfg: SyntheticConfig) -> SequencePoses:
-    """Exact per-frame poses of the sequence described by cfg (deterministic from cfg.seed)."""
+def sequence_poses(cfg: SyntheticConfig, offset_s: float = 0.0) -> SequencePoses:
+    """Exact per-frame poses of the sequence described by cfg (deterministic from cfg.seed), at the frame times
+    ``i / fps + offset_s`` (the same smooth motion between frames: motion blur, unsynchronised depth)."""
     gen = torch.Generator().manual_seed(int(cfg.seed) + _MOTION_SEED_OFFSET)
+    offset = offset_s * cfg.fps
     if cfg.mode == "scene":
-        return SequencePoses(_moving(look_at(SCENE_EYE, SCENE_TARGET), cfg.frames, cfg, gen), None)
+        return SequencePoses(_moving(look_at(SCENE_EYE, SCENE_TARGET), cfg.frames, cfg, gen, offset), None)
     T_world_cam = look_at(object_eye(cfg), OBJECT_CENTRE).expand(cfg.frames, 4, 4).clone()
-    T_world_obj = _moving(pose(OBJECT_CENTRE, (0.0, 0.0, 30.0)), cfg.frames, cfg, gen)
+    T_world_obj = _moving(pose(OBJECT_CENTRE, (0.0, 0.0, 30.0)), cfg.frames, cfg, gen, offset)
     return SequencePoses(T_world_cam, T_world_obj)

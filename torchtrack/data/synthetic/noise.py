@@ -11,8 +11,8 @@ from torchtrack.data.synthetic.render import RGBD
 
 
 def depth_sigma(z: Tensor, k: KinectNoise) -> Tensor:
-    """Axial standard deviation (metres) of a depth measurement at z metres: a + b (z - z0)^2."""
-    return k.sigma_a_m + k.sigma_b_per_m * (z - k.sigma_z0_m) ** 2
+    """Axial standard deviation (metres) of a depth measurement at z metres: sigma_scale (a + b (z - z0)^2)."""
+    return k.sigma_scale * (k.sigma_a_m + k.sigma_b_per_m * (z - k.sigma_z0_m) ** 2)
 
 
 def quantise_disparity(z: Tensor, k: KinectNoise) -> Tensor:

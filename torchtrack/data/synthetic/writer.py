@@ -16,7 +16,8 @@ import torch
 from torch import Tensor
 from tqdm import tqdm
 
-from torchtrack.data.synthetic.config import RENDERER_VERSION, SyntheticConfig
+from torchtrack.data.synthetic.config import RENDERER_VERSION, SensorEffects, SyntheticConfig
+from torchtrack.data.synthetic.effects import effect_poses, flying_pixels, light_gain, shift_depth
 from torchtrack.data.synthetic.motion import sequence_poses
 from torchtrack.data.synthetic.noise import apply_kinect_noise
 from torchtrack.data.synthetic.render import RGBD, render_frame
@@ -26,6 +27,7 @@ from torchtrack.geometry import T_inv, intrinsics_matrix, matrix_to_quat_xyzw
 log = logging.getLogger(__name__)
 
 _NOISE_SEED_OFFSET = 104_729
+_FLYING_INDEX_OFFSET = 1_000_003  # frame_generator(cfg, i + this) draws frame i's flying pixels
 
 
 def frame_generator(cfg: SyntheticConfig, index: int) -> torch.Generator:
@@ -107,16 +109,18 @@ def _render_into(cfg: SyntheticConfig, folder: Path, progress: bool) -> None:
     (folder / "depth").mkdir()
     scene, poses = default_scene(cfg), sequence_poses(cfg)
     depth_camera = _depth_camera(cfg, scene)
+    effects = cfg.effects if cfg.effects != SensorEffects() else None
+    timed = effect_poses(cfg) if effects is not None else None
     stamps = [f"{i / cfg.fps:.6f}" for i in range(cfg.frames)]
     for i in tqdm(range(cfg.frames), desc=f"synth {cfg.mode}", unit="frame", disable=not progress):
-        obj = None if poses.T_world_obj is None else poses.T_world_obj[i]
-        frame = render_frame(scene, poses.T_world_cam[i], obj)
-        if depth_camera is not None:  # depth seen from the depth camera at T_world_cam @ T_color_depth
-            depth_scene, T_color_depth = depth_camera
-            T_world_depth = (poses.T_world_cam[i].double() @ T_color_depth).to(poses.T_world_cam.dtype)
-            frame = RGBD(frame.rgb, render_frame(depth_scene, T_world_depth, obj).depth)
-        if cfg.noise == "kinect":
-            frame = apply_kinect_noise(frame, cfg.kinect, frame_generator(cfg, i))
+        clean = (
+            _clean_frame(scene, poses, i, depth_camera)
+            if timed is None
+            else _timed_frame(cfg, scene, timed, i, depth_camera)
+        )
+        frame = apply_kinect_noise(clean, cfg.kinect, frame_generator(cfg, i)) if cfg.noise == "kinect" else clean
+        if effects is not None:
+            frame = _depth_effects(cfg, clean, frame, i)
         _write_images(folder, f"{stamps[i]}.png", frame.rgb, frame.depth, cfg.depth_scale)
     for kind in ("rgb", "depth"):
         lines = [f"# {kind} images", "# timestamp filename"] + [f"{s} {kind}/{s}.png" for s in stamps]
@@ -135,6 +139,38 @@ def _render_into(cfg: SyntheticConfig, folder: Path, progress: bool) -> None:
     )
     (folder / "config.json").write_text(json.dumps({"digest": cfg.digest(), **cfg.to_dict()}, indent=1, sort_keys=True))
     (folder / "SOURCE.txt").write_text(_source_text(cfg, poses.T_world_cam[0]))  # written last: marks completion
+
+
+def _clean_frame(scene: Scene, poses, i: int, depth_camera) -> RGBD:
+    """Frame i without effects: colour and depth at the frame's pose (depth from the depth camera where given)."""
+    obj = None if poses.T_world_obj is None else poses.T_world_obj[i]
+    frame = render_frame(scene, poses.T_world_cam[i], obj)
+    if depth_camera is not None:  # depth seen from the depth camera at T_world_cam @ T_color_depth
+        depth_scene, T_color_depth = depth_camera
+        T_world_depth = (poses.T_world_cam[i].double() @ T_color_depth).to(poses.T_world_cam.dtype)
+        frame = RGBD(frame.rgb, render_frame(depth_scene, T_world_depth, obj).depth)
+    return frame
+
+
+def _timed_frame(cfg: SyntheticConfig, scene: Scene, timed, i: int, depth_camera) -> RGBD:
+    """Clean frame i with the timing effects (:class:`SensorEffects`): colour averaged over the blur poses and times
+    the lighting gain, depth at the depth time offset."""
+    colour_poses, depth_poses = timed
+    rgb = torch.stack([_clean_frame(scene, p, i, None).rgb for p in colour_poses]).mean(0)
+    rgb = (rgb * light_gain(i / cfg.fps, cfg.effects)).clamp(0, 1)
+    return RGBD(rgb, _clean_frame(scene, depth_poses, i, depth_camera).depth)
+
+
+def _depth_effects(cfg: SyntheticConfig, clean: RGBD, frame: RGBD, i: int) -> RGBD:
+    """The measured frame with the depth effects, after the noise: flying pixels at the clean depth's edges (their
+    own generator, so the noise draws are those of the sequence without them), then the misregistration shift."""
+    e, depth = cfg.effects, frame.depth
+    if e.flying_pixel_prob > 0:
+        gen = frame_generator(cfg, i + _FLYING_INDEX_OFFSET)
+        depth = flying_pixels(depth[None], clean.depth[None], e.flying_pixel_prob, cfg.kinect.edge_jump_m, gen)[0]
+    if e.depth_shift_px != (0, 0):
+        depth = shift_depth(depth, *e.depth_shift_px)
+    return RGBD(frame.rgb, depth)
 
 
 def render_sequence(
