@@ -127,3 +127,46 @@ def test_burn_in_scores_only_the_frames_after_it():
     assert sums["loss"][1] == float(out.n_used[2:].sum()) and abs(float(tail) - float(whole)) > 1e-3
     with pytest.raises(ValueError, match="burn_in"):
         TrainConfig(burn_in=-1)
+
+
+def test_ground_truth_start_velocity_carries_the_previous_pose_to_the_start():
+    """train.start_velocity=ground_truth: the start velocity is the one the filter's constant-velocity motion
+    (eqs. 3-4) needs to move the previous frame's pose onto the start pose in prev_dt (oracle windows: a constant
+    twist, so the previous pose is exact); zero where prev_dt is 0; the rollout starts with it."""
+    from torchtrack.filter.models import state_to_pose
+    from torchtrack.learn.rollout import window_start_velocity
+
+    win = oracle_windows(B=6, T=2, N=10, seed=7).windows
+    win.prev_dt[0] = 0.0
+    ekf = FusionEKF(jacobian="analytic")
+    vel = window_start_velocity(ekf, win)
+    assert float(vel[0].abs().max()) == 0.0 and float(vel[1:].abs().min()) > 0
+    moved = state_to_pose(ekf.predicted(ekf.initial_state(win.prev_T_cam_obj, vel), win.prev_dt).mean)
+    assert torch.allclose(moved[1:], win.start_T_cam_obj[1:], atol=1e-12)
+    with pytest.raises(ValueError, match="start_velocity"):
+        TrainConfig(start_velocity="gt")
+
+
+def test_previous_pose_from_the_depth_camera_ground_truth():
+    """The pose one frame before a window's start, in the start's object frame: the object fixed in the world at W,
+    the depth camera's ground truth G = T_world_color @ T_color_depth, so it is inv(G[s-1]) @ W exactly; the start
+    pose and 0 s at frame 0 and where ground truth is missing."""
+    from types import SimpleNamespace
+
+    from torchtrack.geometry import T_inv, make_T, so3_exp
+    from torchtrack.learn.train import _previous_pose
+
+    g = torch.Generator().manual_seed(0)
+    F = torch.float64
+    poses = make_T(so3_exp(0.3 * torch.randn(6, 3, generator=g, dtype=F)), torch.randn(6, 3, generator=g, dtype=F))
+    T_cd = make_T(so3_exp(torch.tensor([0.01, -0.02, 0.005], dtype=F)), torch.tensor([0.025, 0.0, 0.001], dtype=F))
+    W = make_T(so3_exp(torch.tensor([0.2, 0.1, -0.3], dtype=F)), torch.tensor([0.1, -0.2, 1.5], dtype=F))
+    gt_valid = torch.tensor([True, True, True, False, True, True])
+    seq = SimpleNamespace(T_world_color_gt=poses, T_color_depth=T_cd, gt_valid=gt_valid,
+                          dt=torch.tensor([0.0, 0.03, 0.04, 0.03, 0.05, 0.03], dtype=F))  # fmt: skip
+    G = poses @ T_cd
+    s = torch.tensor([0, 1, 2, 4, 5])
+    start = T_inv(G[s]) @ W
+    prev, dt = _previous_pose(seq, s, start)
+    assert torch.allclose(prev[[1, 2, 4]], (T_inv(G) @ W)[[0, 1, 4]], atol=1e-12)
+    assert torch.equal(prev[[0, 3]], start[[0, 3]]) and dt.tolist() == [0.0, 0.03, 0.04, 0.0, 0.03]

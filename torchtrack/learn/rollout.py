@@ -23,6 +23,7 @@ from torch import Tensor
 
 from torchtrack.estimators.backends import Observation, ekf_frame
 from torchtrack.filter.fusion import FilterState, FusionEKF
+from torchtrack.filter.models import euler_velocity
 from torchtrack.filter.weighting import Variances, WeightingInputs
 from torchtrack.geometry import T_inv
 from torchtrack.learn.cues import CUE_INDEX
@@ -41,6 +42,9 @@ class Windows:
         reselected: (T, B) bool, the model was re-selected after frame t's update; model_T_cam_obj: (T, B, 4, 4)
             the pose the filter is then reset to.
         T_cam_obj_gt: (T, B, 4, 4) ground truth of each frame's update; gt_valid: (T, B) bool.
+        prev_T_cam_obj: (B, 4, 4) the pose one frame before the start, in the start's object frame, from the depth
+            camera's ground truth (the start pose where there is none); prev_dt: (B,) seconds between the two
+            (0 where there is no ground truth for both): the ground-truth start velocity (``start_velocity``).
     """
 
     start_T_cam_obj: Tensor
@@ -57,6 +61,8 @@ class Windows:
     model_T_cam_obj: Tensor
     T_cam_obj_gt: Tensor
     gt_valid: Tensor
+    prev_T_cam_obj: Tensor
+    prev_dt: Tensor
 
     @property
     def frames(self) -> int:
@@ -84,11 +90,11 @@ def concat_windows(parts: list[Windows]) -> Windows:
         vals = [getattr(p, f.name) for p in parts]
         if f.name in ("points_obj", "points_d", "pixels", "valid", "cues"):
             vals = [_pad_features(v, n) for v in vals]
-        out[f.name] = torch.cat(vals, dim=0 if f.name in _PER_WINDOW else 1)  # per window: (B, ...); else (T, B, ...)
+        out[f.name] = torch.cat(vals, dim=0 if f.name in PER_WINDOW else 1)  # per window: (B, ...); else (T, B, ...)
     return Windows(**out)
 
 
-_PER_WINDOW = ("start_T_cam_obj", "K", "T_color_depth", "focal")
+PER_WINDOW = ("start_T_cam_obj", "K", "T_color_depth", "focal", "prev_T_cam_obj", "prev_dt")  # (B, ...); else (T, B, ...)
 
 
 def _pad_features(x: Tensor, n: int) -> Tensor:
@@ -122,9 +128,14 @@ def rollout(
     gate: float | None = None,
     refit: float | None = None,
     with_nll: bool = False,
+    start_velocity: bool = False,
 ) -> Rollout:
-    """Run ``weighting`` and :func:`~torchtrack.estimators.backends.ekf_frame` over the T frames of ``win``."""
-    state = ekf.initial_state(win.start_T_cam_obj)
+    """Run ``weighting`` and :func:`~torchtrack.estimators.backends.ekf_frame` over the T frames of ``win``.
+
+    Each window starts at ``win.start_T_cam_obj`` with zero velocity, or with ``start_velocity`` its ground-truth
+    velocity (:func:`window_start_velocity`) where ``win.prev_dt > 0``."""
+    velocity = window_start_velocity(ekf, win) if start_velocity else None
+    state = ekf.initial_state(win.start_T_cam_obj, velocity)
     poses, nll, n_used, vp, vx = [], [], [], [], []
     for t in range(win.frames):
         var = weighting(win.weighting_inputs(t))
@@ -143,6 +154,15 @@ def rollout(
                 torch.where(reset[:, None, None], init.cov, state.cov),
             )
     return Rollout(torch.stack(poses), torch.stack(nll), torch.stack(n_used), torch.stack(vp), torch.stack(vx))
+
+
+def window_start_velocity(ekf: FusionEKF, win: Windows) -> Tensor:
+    """(B, 6) the state velocity that carries ``win.prev_T_cam_obj`` to ``win.start_T_cam_obj`` in ``win.prev_dt``
+    under the filter's constant-velocity motion (eqs. 3-4), zero where ``prev_dt`` is 0."""
+    moving = win.prev_dt > 0
+    dt = torch.where(moving, win.prev_dt, torch.ones_like(win.prev_dt))
+    vel = euler_velocity(win.prev_T_cam_obj.to(ekf.dtype), win.start_T_cam_obj.to(ekf.dtype), dt.to(ekf.dtype))
+    return torch.where(moving[:, None], vel, torch.zeros_like(vel))
 
 
 def pose_errors(T_est: Tensor, T_gt: Tensor) -> tuple[Tensor, Tensor]:

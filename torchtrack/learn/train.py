@@ -35,11 +35,13 @@ from torch import Tensor
 from tqdm import tqdm
 
 from torchtrack.filter.fusion import FusionEKF
+from torchtrack.geometry import T_inv
 from torchtrack.io import write_atomic
 from torchtrack.learn.cache import SequenceObservations
 from torchtrack.learn.checkpoint import load_checkpoint, save_checkpoint
 from torchtrack.learn.model import LearnedWeighting
 from torchtrack.learn.rollout import (
+    PER_WINDOW,
     Rollout,
     Windows,
     concat_windows,
@@ -51,6 +53,7 @@ from torchtrack.learn.rollout import (
 
 log = logging.getLogger(__name__)
 LOSSES = ("supervised", "nll")
+START_VELOCITIES = ("zero", "ground_truth")
 
 
 @dataclass
@@ -70,6 +73,9 @@ class TrainConfig:
         burn_in: frames replayed before each window's ``window`` scored ones, outside the loss (0: none): the
             window starts ``burn_in`` frames earlier, so that the filter's velocity and covariance have settled
             from the zero velocity and initial covariance every window starts with.
+        start_velocity: "zero" (every window starts at rest, as after a model selection) or "ground_truth" (the
+            velocity between the ground truth of the frame before the start and the start, where both exist:
+            :func:`~torchtrack.learn.rollout.window_start_velocity`; zero elsewhere).
     """
 
     window: int = 8
@@ -88,6 +94,7 @@ class TrainConfig:
     seed: int = 0
     max_windows: int | None = None
     burn_in: int = 0
+    start_velocity: str = "zero"
     model: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -95,6 +102,8 @@ class TrainConfig:
             raise ValueError(f"train.loss must be one of {LOSSES}, got {self.loss!r}")
         if self.window < 1 or self.stride < 1 or self.batch < 1 or self.epochs < 0 or self.lr <= 0:
             raise ValueError("train: window, stride, batch must be >= 1, epochs >= 0 and lr > 0")
+        if self.start_velocity not in START_VELOCITIES:
+            raise ValueError(f"train.start_velocity must be one of {START_VELOCITIES}, got {self.start_velocity!r}")
         if self.burn_in < 0:
             raise ValueError(f"train.burn_in must be >= 0, got {self.burn_in}")
 
@@ -125,6 +134,7 @@ def sequence_windows(
     rows = s[None, :] + torch.arange(1, window + 1, device=s.device)[:, None]  # T,B: the updates of each window
     gt_or_est = torch.where(seq.T_cam_obj_gt_valid[s][:, None, None], seq.T_cam_obj_gt[s], seq.T_cam_obj_est[s])
     start_pose = torch.where(seq.reselected[s][:, None, None], seq.model_T_cam_obj[s], gt_or_est)
+    prev_pose, prev_dt = _previous_pose(seq, s, start_pose)
     B = len(starts)
     win = Windows(
         start_T_cam_obj=start_pose,
@@ -141,11 +151,24 @@ def sequence_windows(
         model_T_cam_obj=seq.model_T_cam_obj[rows],
         T_cam_obj_gt=seq.T_cam_obj_gt[rows],
         gt_valid=seq.T_cam_obj_gt_valid[rows],
+        prev_T_cam_obj=prev_pose,
+        prev_dt=prev_dt,
     )
     if not need_ground_truth:
         return win
     keep = win.gt_valid.any(0)
     return select_windows(win, keep.nonzero().squeeze(1)) if bool(keep.any()) else None
+
+
+def _previous_pose(seq: SequenceObservations, s: Tensor, start: Tensor) -> tuple[Tensor, Tensor]:
+    """The pose of frame s - 1 in the object frame of ``start`` (B, 4, 4) at frames ``s`` (B,), from the depth
+    camera's ground truth G = T_world_color_gt @ T_color_depth: ``inv(G[s-1]) @ G[s] @ start`` (the object is fixed
+    in the world), and the seconds between (B,); ``start`` and 0 s where either frame lacks ground truth."""
+    p = (s - 1).clamp_min(0)
+    ok = (s > 0) & seq.gt_valid[s] & seq.gt_valid[p]
+    G = seq.T_world_color_gt @ seq.T_color_depth.to(seq.T_world_color_gt.dtype)
+    prev = T_inv(G[p]) @ G[s] @ start.to(G.dtype)
+    return torch.where(ok[:, None, None], prev.to(start.dtype), start), torch.where(ok, seq.dt[s], 0.0)
 
 
 def _startable(seq: SequenceObservations, s: int) -> bool:
@@ -154,9 +177,8 @@ def _startable(seq: SequenceObservations, s: int) -> bool:
 
 def select_windows(win: Windows, index: Tensor) -> Windows:
     """The windows ``index`` (1-D) of a batch."""
-    per_window = ("start_T_cam_obj", "K", "T_color_depth", "focal")
     return Windows(**{
-        f.name: getattr(win, f.name)[index] if f.name in per_window else getattr(win, f.name)[:, index]
+        f.name: getattr(win, f.name)[index] if f.name in PER_WINDOW else getattr(win, f.name)[:, index]
         for f in fields(Windows)
     })  # fmt: skip
 
@@ -165,8 +187,7 @@ def frames_from(win: Windows, t0: int) -> Windows:
     """The frames t0.. of every window (per-window fields kept)."""
     if t0 == 0:
         return win
-    per_window = ("start_T_cam_obj", "K", "T_color_depth", "focal")
-    return Windows(**{f.name: getattr(win, f.name) if f.name in per_window else getattr(win, f.name)[t0:]
+    return Windows(**{f.name: getattr(win, f.name) if f.name in PER_WINDOW else getattr(win, f.name)[t0:]
                       for f in fields(Windows)})  # fmt: skip
 
 
@@ -188,7 +209,8 @@ def window_loss(ekf: FusionEKF, model: Callable, win: Windows, cfg: TrainConfig)
     own count (measurements for nll, frames with ground truth for supervised), the pose errors over the frames with
     ground truth, the NLL over the used measurements. :func:`summarise` turns them into means."""
     nll = cfg.loss == "nll"
-    out = rollout(ekf, model, win, gate=cfg.gate, refit=cfg.refit, with_nll=nll)
+    out = rollout(ekf, model, win, gate=cfg.gate, refit=cfg.refit, with_nll=nll,
+                  start_velocity=cfg.start_velocity == "ground_truth")
     out, win = Rollout(*(x[cfg.burn_in :] for x in out)), frames_from(win, cfg.burn_in)  # the scored frames
     loss = nll_loss(out) if nll else supervised_loss(out, win, cfg.w_trans, cfg.w_rot)
     with torch.no_grad():
