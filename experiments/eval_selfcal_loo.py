@@ -194,7 +194,7 @@ def ate_runs(args, names: list[str]) -> dict:
             "--runs", str(args.runs), "--out", str(args.out / "ate"), "--threads", "1", *(["--reuse"] if args.reuse else [])]  # fmt: skip
     if args.max_frames:
         argv += ["--max-frames", str(args.max_frames)]
-    eval_weighting.main(argv + (["--", *args.overrides] if args.overrides else []))
+    eval_weighting.main([*argv, "--", *args.overrides])  # "--": NAME=PATH values are not Hydra overrides
     rows = json.loads((args.out / "ate" / "weighting.json").read_text())["rows"]
     out = {}
     for r in rows:

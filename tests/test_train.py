@@ -1,6 +1,8 @@
 """Training learned weighting through the fusion EKF: the known-optimal weighting is recovered (oracle windows with
 var_xyz ~ z^4 and 10 % of the features at 400x the pixel variance), and the loop is deterministic and resumable."""
 
+import math
+
 import pytest
 import torch
 
@@ -170,3 +172,31 @@ def test_previous_pose_from_the_depth_camera_ground_truth():
     prev, dt = _previous_pose(seq, s, start)
     assert torch.allclose(prev[[1, 2, 4]], (T_inv(G) @ W)[[0, 1, 4]], atol=1e-12)
     assert torch.equal(prev[[0, 3]], start[[0, 3]]) and dt.tolist() == [0.0, 0.03, 0.04, 0.0, 0.03]
+
+
+def test_residual_nll_at_the_ground_truth_pose_matches_its_expectation():
+    """The heteroscedastic residual likelihood under the true variances of oracle windows (Gaussian noise of known
+    variance around eqs. 6-7 at the exact pose): r^2 / var is chi-square, so the NLL per measurement is, in
+    expectation, sum 0.5 (dof + dof log(2 pi var)) / 5 per feature; 25,600 measurements: within 1 %. Frames without
+    ground truth are not counted; a negative weight is refused."""
+    from torchtrack.learn.rollout import residual_nll
+
+    from torchtrack.geometry import make_T, project, so3_exp, transform_points
+
+    oracle = oracle_windows(B=32, T=4, N=40, seed=8)
+    win = oracle.windows  # with a depth -> colour extrinsic: the pixels re-drawn through it, the same noise
+    P = transform_points(win.T_cam_obj_gt, win.points_obj)
+    T_cd = make_T(so3_exp(torch.tensor([0.02, -0.03, 0.01], dtype=P.dtype)), torch.tensor([0.025, 0.01, 0.0]).double())
+    win.T_color_depth = T_cd.expand_as(win.T_color_depth).clone()
+    win.pixels = project(win.K[None], transform_points(win.T_color_depth[None], P)) + win.pixels - project(win.K[None], P)
+    with torch.no_grad():
+        out = rollout(FusionEKF(jacobian="analytic"), TrueVariances(oracle), win)
+    total, n = residual_nll(out, win)
+    v3, v2 = oracle.var_xyz, oracle.var_pix
+    c = math.log(2 * math.pi)
+    expect = (0.5 * (3 + 3 * (v3.log() + c)) + 0.5 * (2 + 2 * (v2.log() + c))).sum() / (5 * v3.numel())
+    assert int(n) == 5 * v3.numel() and float(total / n) == pytest.approx(float(expect), rel=0.01)
+    win.gt_valid[1:] = False
+    assert int(residual_nll(out, win)[1]) == 5 * int(win.valid[0].sum())
+    with pytest.raises(ValueError, match="residual_weight"):
+        TrainConfig(residual_weight=-1.0)

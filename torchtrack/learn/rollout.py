@@ -14,6 +14,8 @@ error with a delta of up to T frames), or on unlabelled footage the tracker's re
 
 from __future__ import annotations
 
+import math
+
 from collections.abc import Callable
 from dataclasses import dataclass, fields
 from typing import NamedTuple
@@ -25,7 +27,7 @@ from torchtrack.estimators.backends import Observation, ekf_frame
 from torchtrack.filter.fusion import FilterState, FusionEKF
 from torchtrack.filter.models import euler_velocity
 from torchtrack.filter.weighting import Variances, WeightingInputs
-from torchtrack.geometry import T_inv
+from torchtrack.geometry import T_inv, project, transform_points
 from torchtrack.learn.cues import CUE_INDEX
 
 
@@ -186,6 +188,23 @@ def nll_loss(out: Rollout) -> Tensor:
     """Innovation negative log-likelihood per used measurement, over all frames and windows (needs no ground
     truth)."""
     return out.nll.sum() / out.n_used.sum().clamp_min(1)
+
+
+def residual_nll(out: Rollout, win: Windows) -> tuple[Tensor, Tensor]:
+    """Heteroscedastic residual likelihood at the ground-truth pose: (sum, count) of the Gaussian negative
+    log-likelihood of every valid feature's 3D and pixel residuals against eqs. (6)-(7) at ``win.T_cam_obj_gt``
+    under the weighting's variances ``out.var_xyz`` (per axis) and ``out.var_pix``, over the frames with ground
+    truth; count = 5 per feature. Unlike the innovation NLL it scores each feature on its own, at the true pose
+    (needs ground truth)."""
+    X_d = transform_points(win.T_cam_obj_gt, win.points_obj.to(win.T_cam_obj_gt.dtype))  # eq. (6), T,B,N,3
+    u = project(win.K[None], transform_points(win.T_color_depth[None], X_d))  # eq. (7), T,B,N,2
+    r3 = (win.points_d - X_d).square().sum(-1)
+    r2 = (win.pixels - u).square().sum(-1)
+    v3, v2 = out.var_xyz.to(r3.dtype), out.var_pix.to(r2.dtype)
+    log2pi = math.log(2 * math.pi)
+    nll = 0.5 * (r3 / v3 + 3 * (v3.log() + log2pi)) + 0.5 * (r2 / v2 + 2 * (v2.log() + log2pi))
+    m = win.valid & win.gt_valid[..., None]
+    return torch.where(m, nll, torch.zeros_like(nll)).sum(), 5 * m.sum().to(nll.dtype)
 
 
 def _charbonnier(e: Tensor, eps: float) -> Tensor:

@@ -47,6 +47,7 @@ from torchtrack.learn.rollout import (
     concat_windows,
     nll_loss,
     pose_errors,
+    residual_nll,
     rollout,
     supervised_loss,
 )
@@ -76,6 +77,8 @@ class TrainConfig:
         start_velocity: "zero" (every window starts at rest, as after a model selection) or "ground_truth" (the
             velocity between the ground truth of the frame before the start and the start, where both exist:
             :func:`~torchtrack.learn.rollout.window_start_velocity`; zero elsewhere).
+        residual_weight: weight of the heteroscedastic residual likelihood at the ground-truth pose
+            (:func:`~torchtrack.learn.rollout.residual_nll`, per measurement) added to the loss; 0: off.
     """
 
     window: int = 8
@@ -95,6 +98,7 @@ class TrainConfig:
     max_windows: int | None = None
     burn_in: int = 0
     start_velocity: str = "zero"
+    residual_weight: float = 0.0
     model: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -104,6 +108,8 @@ class TrainConfig:
             raise ValueError("train: window, stride, batch must be >= 1, epochs >= 0 and lr > 0")
         if self.start_velocity not in START_VELOCITIES:
             raise ValueError(f"train.start_velocity must be one of {START_VELOCITIES}, got {self.start_velocity!r}")
+        if self.residual_weight < 0:
+            raise ValueError(f"train.residual_weight must be >= 0, got {self.residual_weight}")
         if self.burn_in < 0:
             raise ValueError(f"train.burn_in must be >= 0, got {self.burn_in}")
 
@@ -213,6 +219,9 @@ def window_loss(ekf: FusionEKF, model: Callable, win: Windows, cfg: TrainConfig)
                   start_velocity=cfg.start_velocity == "ground_truth")
     out, win = Rollout(*(x[cfg.burn_in :] for x in out)), frames_from(win, cfg.burn_in)  # the scored frames
     loss = nll_loss(out) if nll else supervised_loss(out, win, cfg.w_trans, cfg.w_rot)
+    if cfg.residual_weight > 0:
+        r_sum, r_n = residual_nll(out, win)
+        loss = loss + cfg.residual_weight * r_sum / r_n.clamp_min(1)
     with torch.no_grad():
         e_t, e_r = pose_errors(out.T_cam_obj, win.T_cam_obj_gt.to(out.T_cam_obj.dtype))
         m = win.gt_valid
