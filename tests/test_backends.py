@@ -74,12 +74,10 @@ def test_refit_drops_a_failing_3d_point_alone():
     keep = obs.valid.clone()
     keep[:, 0] = False
     oracle = FusionEKF()
-    oracle.reset(true_pose(0.0))
-    oracle.predict(obs.dt)
-    expected = oracle.update(
-        obs.points_obj, obs.points_d, obs.pixels, obs.valid, var.var_xyz, var.var_pix, obs.K, obs.T_color_depth,
-        valid_xyz=keep,
-    ).T_cam_obj  # fmt: skip
+    prior = oracle.predicted(oracle.initial_state(true_pose(0.0)), obs.dt)
+    update = oracle.updated(prior, obs.points_obj, obs.points_d, obs.pixels, keep, obs.valid, var.var_xyz, var.var_pix,
+                            obs.K, obs.T_color_depth)  # fmt: skip
+    expected = oracle.injected(prior, update).T_cam_obj
     torch.testing.assert_close(refit, expected, atol=1e-12, rtol=0)
     dropped_both = estimate(EKFBackend(FusionEKF(), gate=None, refit=None), observation(drop_outlier=True))
     assert float((refit - dropped_both).abs().max()) > 1e-9  # the good pixel of feature 0 was kept

@@ -12,7 +12,6 @@ from torchtrack.config import CONF_DIR
 from torchtrack.data import TumSequence, iterate_batched
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 from torchtrack.factory import build_tracker
-from torchtrack.filter import state_to_pose
 from torchtrack.geometry import T_inv
 from torchtrack.geometry.rig import color_poses, tracker_world
 
@@ -44,7 +43,7 @@ def track(tracker, sequences, check_backend=False):
             anchor = tracker_world(frame.T_world_color_gt, frame.gt_valid, frame.T_color_depth)
         poses.append(color_poses(anchor, res.T_world_depth, frame.T_color_depth))
         if check_backend:  # the filter's mean was moved to the corrected pose (or reset there at a re-selection)
-            backend_pose = state_to_pose(tracker.backend.state.mean)
+            backend_pose = tracker.backend.state.T_cam_obj
             torch.testing.assert_close(backend_pose, tracker.state.T_cam_obj, atol=1e-9, rtol=0)
     return torch.stack(poses, 1)
 

@@ -275,19 +275,10 @@ class KeyframeAligner:
 
 
 def set_backend_pose(backend, T_cam_obj: Tensor, mask: Tensor) -> None:
-    """Move the pose of ``backend`` to ``T_cam_obj`` (B, 4, 4) for the sequences in ``mask`` (B,): an EKF's mean pose
-    is reset (Euler angles unwrapped next to the old ones) and its velocity and covariance kept; a registration
-    back end's previous pose is replaced. The aligned pose is taken as the filter's new mean, not fused as a
-    measurement: the covariance stays the EKF's own."""
-    from torchtrack.filter.fusion import FilterState
-    from torchtrack.filter.models import pose_to_state
-
-    state = getattr(backend, "state", None)
-    if hasattr(backend, "ekf") and state is not None:
-        x = pose_to_state(T_cam_obj.to(state.mean.dtype))[:, :6]
-        old = state.mean[:, :6]
-        ang = old[:, :3] + torch.remainder(x[:, :3] - old[:, :3] + torch.pi, 2 * torch.pi) - torch.pi
-        new = torch.cat([ang, x[:, 3:], state.mean[:, 6:]], 1)
-        backend.state = FilterState(torch.where(mask[:, None], new, state.mean), state.cov)
+    """Move the pose of ``backend`` to ``T_cam_obj`` (B, 4, 4) for the sequences in ``mask`` (B,): an EKF's pose is
+    replaced and its velocity and covariance kept (:meth:`~torchtrack.estimators.backends.EKFBackend.set_pose`); a
+    registration back end's previous pose is replaced."""
+    if hasattr(backend, "set_pose"):
+        backend.set_pose(T_cam_obj, mask)
     elif getattr(backend, "T_prev", None) is not None:
         backend.T_prev = torch.where(mask[:, None, None], T_cam_obj.to(backend.T_prev.dtype), backend.T_prev)
