@@ -68,11 +68,13 @@ def test_gradcheck_one_frame(jacobian):
     assert torch.autograd.gradcheck(pose, (var_xyz[0].log().requires_grad_(), var_pix[0].log().requires_grad_()))
 
 
-def test_gradcheck_rollout_of_several_frames():
-    """Through three frames: the later linearisation points depend on the earlier variances."""
+@pytest.mark.parametrize("state", ["se3", "euler"])
+def test_gradcheck_rollout_of_several_frames(state):
+    """Through three frames: the later linearisation points depend on the earlier variances (and, in the SE(3)
+    state, the nominal poses on the earlier injections)."""
     obs = noisy_observations(frames=3)
     var_xyz, var_pix = variances(3, *obs[0].valid.shape)
-    ekf = FusionEKF(jacobian="forward")
+    ekf = FusionEKF(jacobian="forward", state=state)
 
     def last_pose(log_vx, log_vp):
         return rollout(ekf, obs, log_vx.exp(), log_vp.exp())[0][-1, :, :3, :]
