@@ -193,3 +193,6 @@ def test_error_state_reset_jacobian():
     torch.testing.assert_close(G[:3, :3], fd, atol=1e-8, rtol=0)
     torch.testing.assert_close(G[3:, 3:], torch.eye(9, dtype=F64))
     assert torch.equal(G[:3, 3:], torch.zeros(3, 9, dtype=F64))
+    A = torch.randn(12, 12, generator=torch.Generator().manual_seed(0), dtype=F64)
+    P, dx = (A @ A.T)[None], torch.cat([dtheta, torch.ones(9, dtype=F64)])[None]
+    torch.testing.assert_close(error_state.reset_covariance(P, dx)[0], G @ P[0] @ G.T, atol=1e-12, rtol=1e-12)

@@ -249,3 +249,16 @@ def test_bad_input_raises():
         FusionEKF(form="joseph")
     with pytest.raises(ValueError, match="state must be"):
         FusionEKF(state="quaternion")
+
+
+@pytest.mark.parametrize(("overrides", "state"), [((), "se3"), (("+experiment=paper",), "euler")])
+def test_the_paper_selects_the_euler_state(overrides, state):
+    """The default filter is the SE(3) error state; ``+experiment=paper`` composes the paper's Euler state (eq. 2)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    from torchtrack.config import CONF_DIR
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose("config", overrides=list(overrides))
+    assert cfg.filter.state == state and instantiate(cfg.filter).state == state

@@ -44,10 +44,12 @@ def transition(dt: Tensor, omega: Tensor, sigma_ang_acc: float, sigma_lin_acc: f
     return MotionModel(torch.cat([rot, F[:, 3:]], -2), Q)
 
 
-def predict_nominal(T_cam_obj: Tensor, velocity: Tensor, dt: Tensor) -> Tensor:
-    """Nominal pose after ``dt`` (B,) s at velocity ``[omega, v]`` (B, 6): ``(Exp(omega dt) R, t + v dt)`` (B, 4, 4)."""
+def predict_nominal(T_cam_obj: Tensor, velocity: Tensor, dt: Tensor, turn: Tensor | None = None) -> Tensor:
+    """Nominal pose after ``dt`` (B,) s at velocity ``[omega, v]`` (B, 6): ``(Exp(omega dt) R, t + v dt)`` (B, 4, 4).
+    ``turn``: ``Exp(omega dt)`` (B, 3, 3) when the caller has it (:func:`transition`'s ``F[:, :3, :3]``)."""
     d = dt[:, None]
-    return make_T(so3_exp(velocity[:, :3] * d) @ T_cam_obj[:, :3, :3], T_cam_obj[:, :3, 3] + velocity[:, 3:] * d)
+    turn = so3_exp(velocity[:, :3] * d) if turn is None else turn
+    return make_T(turn @ T_cam_obj[:, :3, :3], T_cam_obj[:, :3, 3] + velocity[:, 3:] * d)
 
 
 def inject(T_cam_obj: Tensor, dx: Tensor) -> Tensor:
@@ -63,6 +65,14 @@ def reset_jacobian(dx: Tensor) -> Tensor:
     G = torch.eye(12, dtype=dx.dtype, device=dx.device).repeat(B, 1, 1)
     top = torch.cat([so3_left_jacobian(dx[:, :3]), G[:, :3, 3:]], -1)
     return torch.cat([top, G[:, 3:]], -2)
+
+
+def reset_covariance(cov: Tensor, dx: Tensor) -> Tensor:
+    """``G P G^T`` (B, 12, 12) with G = :func:`reset_jacobian` of ``dx`` (B, 12), by its one non-identity block."""
+    J = so3_left_jacobian(dx[:, :3])  # B,3,3
+    rows = torch.cat([J @ cov[:, :3], cov[:, 3:]], -2)
+    out = torch.cat([rows[..., :3] @ J.transpose(-1, -2), rows[..., 3:]], -1)
+    return 0.5 * (out + out.transpose(-1, -2))
 
 
 def measure_single(dx: Tensor, point_obj: Tensor, R: Tensor, t: Tensor, K: Tensor, T_color_depth: Tensor) -> Tensor:
@@ -91,3 +101,9 @@ def measure_analytic(
     R = so3_exp(dx[:, :3]) @ T_cam_obj[:, :3, :3]
     t = T_cam_obj[:, :3, 3] + dx[:, 3:6]
     return _linearization(R, t, so3_left_jacobian(dx[:, :3]), points_obj, K, T_color_depth)
+
+
+def measure_at_nominal(T_cam_obj: Tensor, points_obj: Tensor, K: Tensor, T_color_depth: Tensor) -> Linearization:
+    """:func:`measure_analytic` at ``dx = 0`` (the EKF's linearisation point between frames): ``J_l(0) = I``."""
+    U = torch.eye(3, dtype=T_cam_obj.dtype, device=T_cam_obj.device).expand(T_cam_obj.shape[0], 3, 3)
+    return _linearization(T_cam_obj[:, :3, :3], T_cam_obj[:, :3, 3], U, points_obj, K, T_color_depth)

@@ -244,13 +244,20 @@ class FusionEKF:
             return FilterState(mean, cov, state_to_pose(mean))
         F, Q = error_state.transition(dt, state.mean[:, 6:9], self.sigma_ang_acc, self.sigma_lin_acc)
         _, cov = ekf.predict(state.mean, state.cov, F, Q)  # the error's mean stays [0, v]: the nominal moves
-        return FilterState(state.mean, cov, error_state.predict_nominal(state.T_cam_obj, state.mean[:, 6:], dt))
+        return FilterState(
+            state.mean, cov, error_state.predict_nominal(state.T_cam_obj, state.mean[:, 6:], dt, F[:, :3, :3])
+        )
 
     def linearize_at(
         self, state: FilterState, points_obj: Tensor, K: Tensor, T_color_depth: Tensor
     ) -> tuple[Tensor, Tensor]:
         """(h (B, N, 5), H (B, N, 5, 12)) of eqs. (6)-(7) at ``state`` with this filter's Jacobian mode."""
-        return linearize(state.mean, points_obj, K, T_color_depth, jacobian=self.jacobian, nominal=self._nominal(state))
+        if self.euler or self.jacobian != "analytic":
+            return linearize(
+                state.mean, points_obj, K, T_color_depth, jacobian=self.jacobian, nominal=self._nominal(state)
+            )
+        # the SE(3) state's pose error is 0 between frames: error_state.measure_analytic at dx = 0, without Exp(0), J_l(0)
+        return error_state.measure_at_nominal(state.T_cam_obj, points_obj, K, T_color_depth)
 
     def updated(self, state: FilterState, points_obj, points_d, pixels, valid_xyz, valid_pix, var_xyz, var_pix, K,
                 T_color_depth, linearization=None) -> ekf.Update:  # fmt: skip
@@ -270,11 +277,9 @@ class FusionEKF:
         if self.euler:
             return FilterState(update.mean, update.cov, state_to_pose(update.mean))
         dx = update.mean
-        G = error_state.reset_jacobian(dx)
         mean = torch.cat([torch.zeros_like(dx[:, :6]), dx[:, 6:]], -1)
-        return FilterState(
-            mean, ekf.symmetrize(G @ update.cov @ G.transpose(-1, -2)), error_state.inject(prior.T_cam_obj, dx)
-        )
+        cov = error_state.reset_covariance(update.cov, dx)
+        return FilterState(mean, cov, error_state.inject(prior.T_cam_obj, dx))
 
     def with_pose(self, state: FilterState, T_cam_obj: Tensor, mask: Tensor) -> FilterState:
         """``state`` with its pose replaced by ``T_cam_obj`` (B, 4, 4) where ``mask`` (B,); velocity and covariance
