@@ -6,10 +6,10 @@ State ``x`` (S = 12), as in the paper::
 
 ``(rho, theta, phi)`` are the Euler angles of ``R_do`` (object -> depth camera) in the
 :func:`torchtrack.geometry.euler_to_matrix` convention (``R = Rz(phi) @ Ry(theta) @ Rx(rho)``), ``t_do``
-the translation in metres; velocities are per second (real time steps, not per frame). The
-parameterisation is singular at ``|theta| = pi/2`` (the default filter state is therefore the SE(3) error state of
-:mod:`torchtrack.filter.error_state`, which reuses this module's eqs. (3)-(7); ``filter.state=euler`` selects this one); the object frame is centred at the model's
-centroid with axes of the model camera, so angles start at 0 after each model (re-)selection.
+the translation in metres; velocities are per second (real time steps, not per frame). The object frame is centred
+at the model's centroid with axes of the model camera, so angles start at 0 after each model (re-)selection. The
+parameterisation is singular at ``|theta| = pi/2``: the default filter state is therefore the SE(3) error state of
+:mod:`torchtrack.filter.error_state` (which reuses eqs. (3)-(7) from here); ``filter.state=euler`` selects this one.
 
 Measurement of one feature (M = 5): ``[X_d (3), x_pix (2)]`` — the point in the depth camera (eq. 6)
 and its pixel in the colour image (eq. 7).
