@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from torchtrack.estimators.backends import Observation, ekf_frame
-from torchtrack.filter.fusion import FilterState, FusionEKF
+from torchtrack.filter.fusion import FusionEKF
 from torchtrack.filter.weighting import Variances, WeightingInputs
 from torchtrack.geometry import T_inv
 from torchtrack.learn.cues import CUE_INDEX
@@ -135,13 +135,9 @@ def rollout(
         vp.append(var.var_pix)
         vx.append(var.var_xyz)
         reset = win.reselected[t]
-        state = FilterState(out.mean, out.cov)
+        state = out.posterior
         if bool(reset.any()):  # the tracker's model re-selection: the filter restarts at the new model's pose
-            init = ekf.initial_state(win.model_T_cam_obj[t])
-            state = FilterState(
-                torch.where(reset[:, None], init.mean, state.mean),
-                torch.where(reset[:, None, None], init.cov, state.cov),
-            )
+            state = ekf.initial_state(win.model_T_cam_obj[t]).select(reset, state)
     return Rollout(torch.stack(poses), torch.stack(nll), torch.stack(n_used), torch.stack(vp), torch.stack(vx))
 
 
