@@ -18,7 +18,8 @@ import time
 
 import torch
 
-from torchtrack.filter import FusionEKF, ekf, measure_analytic, measure_single
+from torchtrack.estimators.backends import EKFBackend, Observation
+from torchtrack.filter import FusionEKF, Variances, ekf, measure_analytic, measure_single
 from torchtrack.geometry import T_inv, intrinsics_matrix, make_T, project, rotation_angle, so3_exp, transform_points
 
 F64 = torch.float64
@@ -53,7 +54,7 @@ def problem(B: int, N: int, dtype=F64, seed=0):
 
 
 def bench_batch(B: int, N: int, reps: int) -> dict:
-    """Timings at one batch size: Jacobians, update algebra (both forms), FusionEKF per-frame step."""
+    """Timings at one batch size: Jacobians, update algebra (both forms), EKFBackend per-frame step."""
     x, cov, X, K, T, lin, z, var = problem(B, N)
     valid = torch.ones(B, N, dtype=torch.bool)
 
@@ -74,15 +75,17 @@ def bench_batch(B: int, N: int, reps: int) -> dict:
     )
     dt = torch.full((B,), 1 / 30, dtype=F64)
     steps = {}
-    for jac in ("forward", "analytic"):
-        filt = FusionEKF(jacobian=jac)
-        filt.reset(make_T(torch.eye(3, dtype=F64).expand(B, 3, 3), x[:, 3:6]))
+    obs = Observation(dt, X, z[..., :3], z[..., 3:], valid, K, T)
+    fixed_var = Variances(var[..., 3], var[..., 0])
+    for state in ("se3", "euler"):
+        for jac in ("forward", "analytic"):
+            backend = EKFBackend(FusionEKF(jacobian=jac, state=state), gate=None, refit=None)
+            backend.reset(make_T(torch.eye(3, dtype=F64).expand(B, 3, 3), x[:, 3:6]), valid[:, 0])
 
-        def step(filt=filt):
-            filt.predict(dt)
-            filt.update(X, z[..., :3], z[..., 3:], valid, K=K, T_color_depth=T)
+            def step(backend=backend):
+                backend.step(obs, fixed_var)
 
-        steps[f"FusionEKF predict+update, jacobian={jac}"] = step
+            steps[f"EKFBackend step (predict+update), state={state}, jacobian={jac}"] = step
     res.update(timeit(steps, reps))
     return res
 
@@ -116,14 +119,16 @@ def bench_iterations(B: int = 4, N: int = 300, frames: int = 30) -> dict:
         px = project(K, pd) + noise_pix * torch.randn(B, N, 2, generator=g, dtype=F64)
         meas.append((T, pd + noise_xyz * torch.randn(B, N, 3, generator=g, dtype=F64), px))
     out = {}
+    valid = torch.ones(B, N, dtype=torch.bool)
+    var = Variances(torch.full((B, N), noise_pix**2, dtype=F64), torch.full((B, N), noise_xyz**2, dtype=F64))
+    T_cd = torch.eye(4, dtype=F64).expand(B, 4, 4)
     for it in (1, 2, 3):
-        filt = FusionEKF(sigma2_pix=noise_pix**2, sigma2_xyz=noise_xyz**2, iterations=it, jacobian="analytic")
-        filt.reset(true_pose(torch.tensor(0.0, dtype=F64), B))
+        backend = EKFBackend(FusionEKF(iterations=it, jacobian="analytic"), gate=None, refit=None)
+        backend.reset(true_pose(torch.tensor(0.0, dtype=F64), B), valid[:, 0])
         rot, trans, t_step = [], [], []
         for T, pd, px in meas:
             t0 = time.perf_counter()
-            filt.predict(torch.full((B,), dt, dtype=F64))
-            est = filt.update(X, pd, px, torch.ones(B, N, dtype=torch.bool), K=K)
+            est = backend.step(Observation(torch.full((B,), dt, dtype=F64), X, pd, px, valid, K, T_cd), var)
             t_step.append((time.perf_counter() - t0) * 1e3)
             E = T_inv(T) @ est.T_cam_obj
             rot.append(torch.rad2deg(rotation_angle(E[:, :3, :3])).mean().item())

@@ -289,8 +289,8 @@ def main(argv: list[str] | None = None) -> int:
     nll, timing = {}, {}
     for name in tqdm(names, desc="folds", unit="fold"):
         t0 = time.perf_counter()
-        model, _ = load_checkpoint(train_fold(name, real, synth, tc, ekf, args))
-        timing[name] = time.perf_counter() - t0
+        model, meta = load_checkpoint(train_fold(name, real, synth, tc, ekf, args))
+        timing[name] = meta.get("train_s", math.nan)
         nll[name] = held_out_nll(real[name], {"paper": paper, "shipped": shipped, "loo": model}, ekf, tc)
         print(f"{name}: held-out NLL paper {nll[name]['paper']['nll']:.3f}, shipped {nll[name]['shipped']['nll']:.3f}, "
               f"LOO {nll[name]['loo']['nll']:.3f} ({time.perf_counter() - t0:.0f} s)", flush=True)  # fmt: skip

@@ -6,7 +6,7 @@
 As in the paper (§III-B, on its Face sequence): the point-cloud model (PCM) of a real frame is taken (the
 object by depth: the pixels with depth in [near, far], automatic by default), a smooth artificial motion is defined, the exact
 2D pixels (eq. 7) and 3D points (eq. 6) of subsets of the PCM are generated with Gaussian noise and fed to
-the fusion EKF (:class:`torchtrack.filter.fusion.FusionEKF`, fixed variances = the noise), and the per-axis
+the fusion EKF (:class:`torchtrack.estimators.backends.EKFBackend`, fixed variances = the noise), and the per-axis
 pose errors (:func:`torchtrack.metrics.per_axis_errors`, mrad and mm, frames after the first) are reported
 against the subsets' 3D spread ``|| sigma_XYZ ||`` (the norm of the per-axis standard deviations, mm).
 
@@ -28,7 +28,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from torchtrack.estimators.backends import EKFBackend, Observation
 from torchtrack.filter.fusion import FusionEKF
+from torchtrack.filter.weighting import Variances
 from torchtrack.geometry import euler_to_matrix, make_T, project, transform_points
 from torchtrack.image.object_model import feature_spread, object_mask, point_cloud_model
 from torchtrack.metrics import per_axis_errors
@@ -102,18 +104,20 @@ def measurements(T_gt: Tensor, X: Tensor, K: Tensor, sigma_pix: float, sigma_xyz
     return Xd, pix
 
 
-def track(X: Tensor, points_d: Tensor, pixels: Tensor, K: Tensor, T0: Tensor, fps: float, **ekf_kwargs) -> Tensor:
-    """FusionEKF over the frames (the first one initialises): returns T_cam_obj (F, B, 4, 4)."""
+def track(X: Tensor, points_d: Tensor, pixels: Tensor, K: Tensor, T0: Tensor, fps: float, sigma2_pix: float,
+          sigma2_xyz: float, **ekf_kwargs) -> Tensor:  # fmt: skip
+    """The fusion EKF (:class:`~torchtrack.estimators.backends.EKFBackend`, the paper's: no gate, no refit) over the
+    frames with fixed variances (the first frame initialises): returns T_cam_obj (F, B, 4, 4)."""
     F_, B, N, _ = points_d.shape
-    ekf = FusionEKF(**ekf_kwargs)
-    ekf.reset(T0.expand(B, 4, 4))
-    valid = torch.ones(B, N, dtype=torch.bool)
-    Kb = K.expand(B, 3, 3)
-    poses = [ekf.T_cam_obj]
-    dt = torch.full((B,), 1.0 / fps, dtype=torch.float64)
+    backend = EKFBackend(FusionEKF(**ekf_kwargs), gate=None, refit=None)
+    backend.reset(T0.expand(B, 4, 4), torch.ones(B, dtype=torch.bool, device=X.device))
+    valid = torch.ones(B, N, dtype=torch.bool, device=X.device)
+    var = Variances(torch.full((B, N), sigma2_pix, dtype=X.dtype, device=X.device), torch.full((B, N), sigma2_xyz, dtype=X.dtype, device=X.device))  # fmt: skip
+    Kb, T_cd = K.expand(B, 3, 3), torch.eye(4, dtype=X.dtype, device=X.device).expand(B, 4, 4)
+    poses = [backend.state.T_cam_obj]
+    dt = torch.full((B,), 1.0 / fps, dtype=torch.float64, device=X.device)
     for f in range(1, F_):
-        ekf.predict(dt)
-        poses.append(ekf.update(X, points_d[f], pixels[f], valid, K=Kb).T_cam_obj)
+        poses.append(backend.step(Observation(dt, X, points_d[f], pixels[f], valid, Kb, T_cd), var).T_cam_obj)
     return torch.stack(poses)
 
 

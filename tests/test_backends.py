@@ -1,4 +1,7 @@
-"""EKFBackend's outlier handling: the innovation gate and the refit (oracle: the update without the outlier)."""
+"""EKFBackend: the innovation gate and the refit (oracle: the update without the outlier); tracking through 90 degrees
+about each axis (exact synthetic ground truth), in the SE(3) error state and the paper's Euler state."""
+
+import math
 
 import pytest
 import torch
@@ -6,6 +9,7 @@ from test_fusion import DT, body, measurements, true_pose
 
 from torchtrack.estimators.backends import EKFBackend, Observation, chi2_quantile
 from torchtrack.filter import FusionEKF, Variances
+from torchtrack.geometry import T_inv, intrinsics_matrix, make_T, project, rotation_angle, so3_exp, transform_points
 
 F64 = torch.float64
 
@@ -74,12 +78,10 @@ def test_refit_drops_a_failing_3d_point_alone():
     keep = obs.valid.clone()
     keep[:, 0] = False
     oracle = FusionEKF()
-    oracle.reset(true_pose(0.0))
-    oracle.predict(obs.dt)
-    expected = oracle.update(
-        obs.points_obj, obs.points_d, obs.pixels, obs.valid, var.var_xyz, var.var_pix, obs.K, obs.T_color_depth,
-        valid_xyz=keep,
-    ).T_cam_obj  # fmt: skip
+    prior = oracle.predicted(oracle.initial_state(true_pose(0.0)), obs.dt)
+    update = oracle.updated(prior, obs.points_obj, obs.points_d, obs.pixels, keep, obs.valid, var.var_xyz, var.var_pix,
+                            obs.K, obs.T_color_depth)  # fmt: skip
+    expected = oracle.injected(prior, update).T_cam_obj
     torch.testing.assert_close(refit, expected, atol=1e-12, rtol=0)
     dropped_both = estimate(EKFBackend(FusionEKF(), gate=None, refit=None), observation(drop_outlier=True))
     assert float((refit - dropped_both).abs().max()) > 1e-9  # the good pixel of feature 0 was kept
@@ -96,3 +98,55 @@ def test_a_pixel_alone_is_not_dropped():
     backend.ekf.updated = lambda *a, **k: calls.append(1) or update(*a, **k)
     torch.testing.assert_close(estimate(backend, obs), plain, atol=0, rtol=0)
     assert len(calls) == 1
+
+
+def turning_body(tilt, frames=60, rate_deg=120.0, noise=(0.5, 1e-3), seed=0):
+    """Three sequences of an object (60 points, 10 cm spread, 1.5 m away) turning at ``rate_deg`` deg/s about the camera's x, y
+    and z axis (sequence b about axis b, tilted by ``tilt`` towards (1, 1, 1)): 60 frames at 30 Hz are 240 degrees.
+    Exact ground truth; measurements with Gaussian noise (px, m) and those variances. Yields (T_gt, obs, var)."""
+    g = torch.Generator().manual_seed(seed)
+    X = 0.1 * torch.randn(3, 60, 3, generator=g, dtype=F64)
+    X = X - X.mean(1, keepdim=True)
+    K = intrinsics_matrix(525.0, 525.0, 319.5, 239.5, dtype=F64).expand(3, 3, 3)
+    axes = torch.nn.functional.normalize(torch.eye(3, dtype=F64) + tilt, dim=-1)
+    centre = torch.tensor([0.05, -0.03, 1.5], dtype=F64).expand(3, 3)
+    var = Variances(torch.full((3, 60), noise[0] ** 2, dtype=F64), torch.full((3, 60), noise[1] ** 2, dtype=F64))
+    for k in range(frames + 1):
+        T = make_T(so3_exp(axes * math.radians(rate_deg) * k * DT), centre)
+        pd = transform_points(T, X)
+        px = project(K, pd) + noise[0] * torch.randn(3, 60, 2, generator=g, dtype=F64)
+        pd = pd + noise[1] * torch.randn(3, 60, 3, generator=g, dtype=F64)
+        obs = Observation(torch.full((3,), DT, dtype=F64), X, pd, px, torch.ones(3, 60, dtype=torch.bool), K,
+                          torch.eye(4, dtype=F64).expand(3, 4, 4))  # fmt: skip
+        yield T, obs, var
+
+
+def worst_errors(state, tilt):
+    """Largest translation (m) and rotation (deg) error over the frames of :func:`turning_body`, per axis (3,)."""
+    backend, t_err, r_err = EKFBackend(FusionEKF(state=state)), [], []
+    for k, (T, obs, var) in enumerate(turning_body(tilt)):
+        if k == 0:
+            backend.reset(T, torch.ones(3, dtype=torch.bool))
+            continue
+        E = T_inv(T) @ backend.step(obs, var).T_cam_obj
+        t_err.append(E[:, :3, 3].norm(dim=-1))
+        r_err.append(torch.rad2deg(rotation_angle(E[:, :3, :3])))
+    return torch.stack(t_err).amax(0), torch.stack(r_err).amax(0)
+
+
+@pytest.mark.parametrize("tilt", [0.0, 0.05])
+def test_tracks_through_90_degrees_about_each_axis(tilt):
+    """The default state (SE(3) error state) tracks an object turning 240 degrees about each axis, exactly on it and
+    tilted off it by ~4 degrees: every frame's error stays at the noise's level (0.5 px, 1 mm on 60 points: measured
+    <= 0.4 mm, 0.16 deg; bounds 2 mm, 1 deg)."""
+    t_err, r_err = worst_errors("se3", tilt)
+    assert (t_err < 2e-3).all() and (r_err < 1.0).all(), (t_err, r_err)
+
+
+def test_the_papers_euler_state_loses_the_object_at_90_degrees_pitch(caplog):
+    """The paper's Euler state (eq. 2) on the same motion tracks the turns about x and z but not the tilted turn
+    about y: through theta = 90 deg the angles rho and phi become one and the filter diverges (measured: 178 deg,
+    22 mm), with a warning. (It survives the exact y axis: rho = phi = 0 there.)"""
+    t_err, r_err = worst_errors("euler", 0.05)
+    assert (r_err[[0, 2]] < 1.0).all() and r_err[1] > 30.0, r_err
+    assert "Euler singularity" in caplog.text

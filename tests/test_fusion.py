@@ -1,11 +1,13 @@
-"""FusionEKF: convergence on an exact synthetic moving rigid body, masks, resets, forms, batching."""
+"""The fusion EKF (FusionEKF's pure steps, EKFBackend the one stateful filter), both pose states: convergence on an
+exact synthetic moving rigid body, masks, resets, forms, batching."""
 
 import math
 
 import pytest
 import torch
 
-from torchtrack.filter import FusionEKF, fuse
+from torchtrack.estimators.backends import EKFBackend, Observation
+from torchtrack.filter import FusionEKF, Variances, fuse
 from torchtrack.filter.models import pose_to_state
 from torchtrack.geometry import (
     T_inv,
@@ -53,36 +55,60 @@ def pose_errors(T_est, T_true):
     return E[:, :3, 3].norm(dim=-1), torch.rad2deg(rotation_angle(E[:, :3, :3]))
 
 
-def run(filt, steps, X, K, T_cd, valid=None, start=None):
+STATES = ["se3", "euler"]
+
+
+def observation(T, X, K, T_cd, valid=None):
     B, N = X.shape[:2]
     valid = torch.ones(B, N, dtype=torch.bool) if valid is None else valid
-    start = true_pose(0.0) if start is None else start
-    filt.reset(start)
+    return Observation(torch.full((B,), DT, dtype=F64), X, *measurements(T, X, K, T_cd), valid, K, T_cd)
+
+
+def constant(B, N, var_pix=1.0, var_xyz=1e-4):
+    return Variances(torch.full((B, N), var_pix, dtype=F64), torch.full((B, N), var_xyz, dtype=F64))
+
+
+def run(ekf, steps, X, K, T_cd, valid=None, start=None, var=(1.0, 1e-4)):
+    """EKFBackend (no gate, no refit) over ``steps`` frames of the true motion; the last frame's result and the
+    pose errors of every frame."""
+    B, N = X.shape[:2]
+    backend = EKFBackend(ekf, gate=None, refit=None)
+    backend.reset(true_pose(0.0) if start is None else start, torch.ones(B, dtype=torch.bool))
     errs = []
     for k in range(1, steps + 1):
-        filt.predict(torch.full((B,), DT, dtype=F64))
         T = true_pose(k * DT)
-        est = filt.update(X, *measurements(T, X, K, T_cd), valid, K=K, T_color_depth=T_cd)
-        errs.append(pose_errors(est.T_cam_obj, T))
-    return est, errs
+        out = backend.step(observation(T, X, K, T_cd, valid), constant(B, N, *var))
+        errs.append(pose_errors(out.T_cam_obj, T))
+    return out, errs
 
 
+def one_update(ekf, state, X, pd, px, valid, var=(1.0, 1e-4), **kw):
+    """Prediction-free update of ``state`` and its posterior."""
+    B, N = valid.shape
+    v = constant(B, N, *var)
+    upd = ekf.updated(state, X, pd, px, kw.pop("valid_xyz", valid), valid, v.var_xyz, v.var_pix, kw.pop("K"),
+                      kw.pop("T_cd"))  # fmt: skip
+    return upd, ekf.injected(state, upd)
+
+
+@pytest.mark.parametrize("state", STATES)
 @pytest.mark.parametrize("jacobian", ["forward", "analytic"])
-def test_converges_to_true_pose_on_noise_free_synthetic_motion(jacobian):
+def test_converges_to_true_pose_on_noise_free_synthetic_motion(jacobian, state):
     """Start 2 cm / 2 deg off; noise-free 2D+3D measurements (small variances): < 1e-4 m and < 0.01 deg."""
     X, K, T_cd = body()
     start = true_pose(0.0) @ make_T(
         so3_exp(torch.tensor([0.0, 0.0, math.radians(2)], dtype=F64)), torch.tensor([0.02, 0.0, 0.0], dtype=F64)
     )
-    filt = FusionEKF(sigma2_pix=1e-4, sigma2_xyz=1e-8, init_sigma_angle=0.05, init_sigma_trans=0.05, jacobian=jacobian)
-    est, errs = run(filt, 30, X, K, T_cd, start=start)
+    ekf = FusionEKF(init_sigma_angle=0.05, init_sigma_trans=0.05, jacobian=jacobian, state=state)
+    out, errs = run(ekf, 30, X, K, T_cd, start=start, var=(1e-4, 1e-8))
     t_err, r_err = errs[-1]
     assert (t_err < 1e-4).all() and (r_err < 0.01).all(), (t_err, r_err)
-    assert est.updated.all() and est.num_valid.tolist() == [60, 60]
-    assert est.covariance.shape == (2, 12, 12) and est.innovation.shape == (2, 60, 5)
+    assert out.updated.all() and out.used_xyz.sum(-1).tolist() == [60, 60]
+    assert out.cov.shape == (2, 12, 12) and out.innovation.shape == (2, 60, 5)
 
 
-def test_iterated_update_beats_single_step_on_large_initial_error():
+@pytest.mark.parametrize("state", STATES)
+def test_iterated_update_beats_single_step_on_large_initial_error(state):
     """A single EKF step from a 10 deg wrong pose keeps a linearisation error; 3 Gauss-Newton steps remove it."""
     X, K, T_cd = body()
     start = true_pose(DT) @ make_T(
@@ -90,16 +116,16 @@ def test_iterated_update_beats_single_step_on_large_initial_error():
     )
     errors = {}
     for it in (1, 3):
-        filt = FusionEKF(sigma2_pix=1e-4, sigma2_xyz=1e-8, init_sigma_angle=0.5, init_sigma_trans=0.1, iterations=it)
-        filt.reset(start)
-        est = filt.update(
-            X, *measurements(true_pose(DT), X, K, T_cd), torch.ones(2, 60, dtype=torch.bool), K=K, T_color_depth=T_cd
-        )
-        errors[it] = pose_errors(est.T_cam_obj, true_pose(DT))[1]
+        ekf = FusionEKF(init_sigma_angle=0.5, init_sigma_trans=0.1, iterations=it, state=state)
+        valid = torch.ones(2, 60, dtype=torch.bool)
+        _, post = one_update(ekf, ekf.initial_state(start), X, *measurements(true_pose(DT), X, K, T_cd), valid,
+                             var=(1e-4, 1e-8), K=K, T_cd=T_cd)  # fmt: skip
+        errors[it] = pose_errors(post.T_cam_obj, true_pose(DT))[1]
     assert (errors[3] < 1e-3).all() and (errors[1] > 10 * errors[3]).all(), errors
 
 
-def test_forms_and_jacobians_agree():
+@pytest.mark.parametrize("state", STATES)
+def test_forms_and_jacobians_agree(state):
     X, K, T_cd = body(N=20)
     outs = []
     for form, jac in (
@@ -108,107 +134,131 @@ def test_forms_and_jacobians_agree():
         ("information", "analytic"),
         ("information", "reverse"),
     ):
-        filt = FusionEKF(form=form, jacobian=jac)
-        outs.append(run(filt, 3, X, K, T_cd)[0])
+        outs.append(run(FusionEKF(form=form, jacobian=jac, state=state), 3, X, K, T_cd)[0])
     for o in outs[1:]:
-        torch.testing.assert_close(o.state, outs[0].state, atol=1e-9, rtol=1e-9)
-        torch.testing.assert_close(o.covariance, outs[0].covariance, atol=1e-12, rtol=1e-7)
+        torch.testing.assert_close(o.T_cam_obj, outs[0].T_cam_obj, atol=1e-9, rtol=1e-9)
+        torch.testing.assert_close(o.mean, outs[0].mean, atol=1e-9, rtol=1e-9)
+        torch.testing.assert_close(o.cov, outs[0].cov, atol=1e-12, rtol=1e-7)
 
 
-def test_sequence_without_features_keeps_prediction_and_masked_garbage_is_ignored():
+@pytest.mark.parametrize("state", STATES)
+def test_sequence_without_features_keeps_prediction_and_masked_garbage_is_ignored(state):
     X, K, T_cd = body(N=30)
-    filt = FusionEKF()
-    filt.reset(true_pose(0.0), velocity=torch.ones(2, 6, dtype=F64) * 0.1)
-    pred = filt.predict(torch.full((2,), DT, dtype=F64))
+    ekf = FusionEKF(state=state)
+    pred = ekf.predicted(ekf.initial_state(true_pose(0.0), velocity=torch.ones(2, 6, dtype=F64) * 0.1),
+                         torch.full((2,), DT, dtype=F64))  # fmt: skip
     pd, px = measurements(true_pose(DT), X, K, T_cd)
     valid = torch.ones(2, 30, dtype=torch.bool)
     valid[1] = False
     garbage = lambda t: torch.where(valid[..., None], t, torch.full_like(t, float("nan")))  # noqa: E731
-    est = filt.update(garbage(X), garbage(pd), garbage(px), valid, K=K, T_color_depth=T_cd)
-    assert est.updated.tolist() == [True, False] and est.num_valid.tolist() == [30, 0]
-    assert torch.equal(est.T_cam_obj[1], pred[1])
-    assert torch.isfinite(est.state).all() and torch.isfinite(est.covariance).all()
-    ref = FusionEKF()
-    ref.reset(true_pose(0.0)[:1], velocity=torch.ones(1, 6, dtype=F64) * 0.1)
-    ref.predict(torch.full((1,), DT, dtype=F64))
-    ref_est = ref.update(X[:1], pd[:1], px[:1], valid[:1], K=K[:1], T_color_depth=T_cd[:1])
-    torch.testing.assert_close(est.state[:1], ref_est.state, atol=1e-12, rtol=1e-12)
+    upd, post = one_update(ekf, pred, garbage(X), garbage(pd), garbage(px), valid, K=K, T_cd=T_cd)
+    assert upd.num_valid.tolist() == [150, 0]
+    torch.testing.assert_close(post.T_cam_obj[1], pred.T_cam_obj[1], atol=0, rtol=0)
+    assert all(torch.isfinite(t).all() for t in post)
+    ref = ekf.predicted(ekf.initial_state(true_pose(0.0)[:1], velocity=torch.ones(1, 6, dtype=F64) * 0.1),
+                        torch.full((1,), DT, dtype=F64))  # fmt: skip
+    _, ref_post = one_update(ekf, ref, X[:1], pd[:1], px[:1], valid[:1], K=K[:1], T_cd=T_cd[:1])
+    for a, b in zip(post, ref_post, strict=True):
+        torch.testing.assert_close(a[:1], b, atol=1e-12, rtol=1e-12)
 
 
 def test_valid_xyz_masks_only_the_3d_part():
     X, K, T_cd = body(N=10)
-    filt = FusionEKF()
-    filt.reset(true_pose(0.0))
+    ekf = FusionEKF()
     pd, px = measurements(true_pose(DT), X, K, T_cd)
     valid_xyz = torch.ones(2, 10, dtype=torch.bool)
     valid_xyz[:, ::2] = False
     pd = torch.where(valid_xyz[..., None], pd, torch.full_like(pd, float("nan")))
-    est = filt.update(X, pd, px, torch.ones(2, 10, dtype=torch.bool), K=K, T_color_depth=T_cd, valid_xyz=valid_xyz)
-    assert torch.isfinite(est.state).all()
-    assert (est.innovation[:, ::2, :3] == 0).all() and (est.innovation[:, ::2, 3:] != 0).any()
+    upd, post = one_update(ekf, ekf.initial_state(true_pose(0.0)), X, pd, px, torch.ones(2, 10, dtype=torch.bool),
+                           valid_xyz=valid_xyz, K=K, T_cd=T_cd)  # fmt: skip
+    assert all(torch.isfinite(t).all() for t in post)
+    assert (upd.innovation[:, ::2, :3] == 0).all() and (upd.innovation[:, ::2, 3:] != 0).any()
 
 
-def test_reset_with_mask_touches_only_masked_sequences():
+@pytest.mark.parametrize("state", STATES)
+def test_reset_and_set_pose_with_mask_touch_only_masked_sequences(state):
     X, K, T_cd = body(N=10)
-    filt = FusionEKF(init_sigma_angle=0.01)
-    filt.reset(true_pose(0.0))
-    filt.predict(torch.full((2,), DT, dtype=F64))
-    filt.update(
-        X, *measurements(true_pose(DT), X, K, T_cd), torch.ones(2, 10, dtype=torch.bool), K=K, T_color_depth=T_cd
-    )
-    mean, cov = filt.mean.clone(), filt.cov.clone()
+    backend = EKFBackend(FusionEKF(init_sigma_angle=0.01, state=state), gate=None, refit=None)
+    backend.reset(true_pose(0.0), torch.ones(2, dtype=torch.bool))
+    backend.step(observation(true_pose(DT), X, K, T_cd), constant(2, 10))
+    before = backend.state
     new = torch.eye(4, dtype=F64).expand(2, 4, 4).clone()
     new[:, 2, 3] = 0.7
-    filt.reset(new, mask=torch.tensor([False, True]))
-    assert torch.equal(filt.mean[0], mean[0]) and torch.equal(filt.cov[0], cov[0])
-    torch.testing.assert_close(filt.mean[1], pose_to_state(new[1]))
-    torch.testing.assert_close(filt.cov[1], torch.diag(filt.init_var))
-    torch.testing.assert_close(filt.T_cam_obj[1], new[1])
+    backend.reset(new, torch.tensor([False, True]))
+    after = backend.state
+    assert all(torch.equal(a[0], b[0]) for a, b in zip(after, before, strict=True))
+    torch.testing.assert_close(after.T_cam_obj[1], new[1])
+    expected_mean = pose_to_state(new[1:])[0] if state == "euler" else torch.zeros(12, dtype=F64)
+    torch.testing.assert_close(after.mean[1], expected_mean)
+    torch.testing.assert_close(after.cov[1], torch.diag(backend.ekf.init_var))
+    backend.set_pose(true_pose(0.0), torch.tensor([True, False]))  # the pose moves; velocity and covariance stay
+    torch.testing.assert_close(backend.state.T_cam_obj[0], true_pose(0.0)[0], atol=1e-12, rtol=0)
+    assert torch.equal(backend.state.cov[0], after.cov[0]) and torch.equal(backend.state.mean[0, 6:], after.mean[0, 6:])
+    assert all(torch.equal(a[1], b[1]) for a, b in zip(backend.state, after, strict=True))
 
 
 @pytest.mark.equivalence
-def test_batched_equals_looped():
+@pytest.mark.parametrize("state", STATES)
+def test_batched_equals_looped(state):
     X, K, T_cd = body(N=25)
-    est, _ = run(FusionEKF(), 4, X, K, T_cd)
+    both, _ = run(FusionEKF(state=state), 4, X, K, T_cd)
     for b in range(2):
-        filt = FusionEKF()
-        filt.reset(true_pose(0.0)[b : b + 1])
-        for k in range(1, 5):
-            filt.predict(torch.full((1,), DT, dtype=F64))
-            pd, px = measurements(true_pose(k * DT)[b : b + 1], X[b : b + 1], K[:1], T_cd[:1])
-            one = filt.update(
-                X[b : b + 1], pd, px, torch.ones(1, 25, dtype=torch.bool), K=K[:1], T_color_depth=T_cd[:1]
-            )
-        torch.testing.assert_close(one.state[0], est.state[b], atol=1e-12, rtol=1e-10)
-        torch.testing.assert_close(one.covariance[0], est.covariance[b], atol=1e-15, rtol=1e-9)
+        one, _ = run_one(FusionEKF(state=state), 4, X[b : b + 1], K[:1], T_cd[:1], b)
+        torch.testing.assert_close(one.T_cam_obj[0], both.T_cam_obj[b], atol=1e-12, rtol=1e-10)
+        torch.testing.assert_close(one.mean[0], both.mean[b], atol=1e-12, rtol=1e-10)
+        torch.testing.assert_close(one.cov[0], both.cov[b], atol=1e-15, rtol=1e-9)
 
 
-def test_module_equals_function():
+def run_one(ekf, steps, X, K, T_cd, b):
+    backend = EKFBackend(ekf, gate=None, refit=None)
+    backend.reset(true_pose(0.0)[b : b + 1], torch.ones(1, dtype=torch.bool))
+    for k in range(1, steps + 1):
+        out = backend.step(observation(true_pose(k * DT)[b : b + 1], X, K, T_cd), constant(1, X.shape[1]))
+    return out, None
+
+
+@pytest.mark.parametrize("state", STATES)
+def test_filter_step_equals_function(state):
     X, K, T_cd = body(N=12)
-    filt = FusionEKF(iterations=2, jacobian="analytic")  # fuse's default
-    filt.reset(true_pose(0.0))
-    mean, cov = filt.mean, filt.cov
+    ekf = FusionEKF(iterations=2, jacobian="analytic", state=state)
+    prior = ekf.initial_state(true_pose(0.0))
     pd, px = measurements(true_pose(0.0), X, K, T_cd)
     var_xyz, var_pix = torch.full((2, 12), 1e-4, dtype=F64), torch.full((2, 12), 1.0, dtype=F64)
     valid = torch.ones(2, 12, dtype=torch.bool)
-    ref = fuse(mean, cov, X, pd, px, valid, var_xyz, var_pix, K, T_cd, iterations=2)
-    est = filt.update(X, pd, px, valid, var_xyz, var_pix, K, T_cd)
-    assert torch.equal(est.state, ref.mean) and torch.equal(est.covariance, ref.cov)
+    nominal = None if state == "euler" else prior.T_cam_obj
+    ref = fuse(prior.mean, prior.cov, X, pd, px, valid, var_xyz, var_pix, K, T_cd, iterations=2, nominal=nominal)
+    est = ekf.updated(prior, X, pd, px, valid, valid, var_xyz, var_pix, K, T_cd)
+    assert torch.equal(est.mean, ref.mean) and torch.equal(est.cov, ref.cov)
 
 
 def test_bad_input_raises():
     X, K, T_cd = body(N=5)
-    filt = FusionEKF()
+    ekf = FusionEKF()
+    backend = EKFBackend(ekf)
     with pytest.raises(ValueError, match="call reset"):
-        filt.predict(torch.full((2,), DT, dtype=F64))
+        backend.step(observation(true_pose(DT), X, K, T_cd), constant(2, 5))
     with pytest.raises(ValueError, match="first reset"):
-        filt.reset(true_pose(0.0), mask=torch.tensor([True, False]))
-    filt.reset(true_pose(0.0))
+        backend.reset(true_pose(0.0), torch.tensor([True, False]))
     with pytest.raises(ValueError, match="dt must be"):
-        filt.predict(torch.full((3,), DT, dtype=F64))
+        ekf.predicted(ekf.initial_state(true_pose(0.0)), torch.full((3,), DT, dtype=F64))
     with pytest.raises(ValueError, match="fuse: expected"):
-        filt.update(X, X[:, :3], X[..., :2], torch.ones(2, 5, dtype=torch.bool), K=K)
-    with pytest.raises(ValueError, match="K"):
-        filt.update(X, X, X[..., :2], torch.ones(2, 5, dtype=torch.bool))
+        v = constant(2, 5)
+        ekf.updated(ekf.initial_state(true_pose(0.0)), X, X[:, :3], X[..., :2], v.var_xyz > 0, v.var_xyz > 0,
+                    v.var_xyz, v.var_pix, K, T_cd)  # fmt: skip
     with pytest.raises(ValueError, match="bad form"):
         FusionEKF(form="joseph")
+    with pytest.raises(ValueError, match="state must be"):
+        FusionEKF(state="quaternion")
+
+
+@pytest.mark.parametrize(("overrides", "state"), [((), "se3"), (("+experiment=paper",), "euler")])
+def test_the_paper_selects_the_euler_state(overrides, state):
+    """The default filter is the SE(3) error state; ``+experiment=paper`` composes the paper's Euler state (eq. 2)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.utils import instantiate
+
+    from torchtrack.config import CONF_DIR
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose("config", overrides=list(overrides))
+    assert cfg.filter.state == state and instantiate(cfg.filter).state == state

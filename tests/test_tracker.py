@@ -12,7 +12,6 @@ from torchtrack.config import CONF_DIR
 from torchtrack.data import TumSequence, iterate_batched
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 from torchtrack.factory import build_tracker
-from torchtrack.filter import state_to_pose
 from torchtrack.geometry import T_inv, rotation_angle
 from torchtrack.geometry.rig import color_poses, tracker_world
 
@@ -93,7 +92,7 @@ def test_an_ended_sequence_keeps_its_pose_in_the_tracker_and_the_back_end(synth)
     tracker = make_tracker()
     poses, _ = track(tracker, [a, b])
     torch.testing.assert_close(poses[1, 6:], poses[1, 5:6].expand(2, 4, 4), atol=0, rtol=0)
-    backend_pose = state_to_pose(tracker.backend.state.mean)
+    backend_pose = tracker.backend.state.T_cam_obj
     torch.testing.assert_close(backend_pose[1], tracker.state.T_cam_obj[1], atol=1e-9, rtol=0)
 
 

@@ -135,16 +135,20 @@ def test_ground_truth_start_velocity_carries_the_previous_pose_to_the_start():
     """train.start_velocity=ground_truth: the start velocity is the one the filter's constant-velocity motion
     (eqs. 3-4) needs to move the previous frame's pose onto the start pose in prev_dt (oracle windows: a constant
     twist, so the previous pose is exact); zero where prev_dt is 0; the rollout starts with it."""
-    from torchtrack.filter.models import state_to_pose
     from torchtrack.learn.rollout import window_start_velocity
+
+    from torchtrack.geometry import make_T, so3_exp
 
     win = oracle_windows(B=6, T=2, N=10, seed=7).windows
     win.prev_dt[0] = 0.0
-    ekf = FusionEKF(jacobian="analytic")
-    vel = window_start_velocity(ekf, win)
-    assert float(vel[0].abs().max()) == 0.0 and float(vel[1:].abs().min()) > 0
-    moved = state_to_pose(ekf.predicted(ekf.initial_state(win.prev_T_cam_obj, vel), win.prev_dt).mean)
-    assert torch.allclose(moved[1:], win.start_T_cam_obj[1:], atol=1e-12)
+    A = make_T(so3_exp(torch.tensor([0.4, -0.7, 0.2], dtype=torch.float64)), torch.tensor([0.1, 0.0, -0.05]).double())
+    win.prev_T_cam_obj, win.start_T_cam_obj = win.prev_T_cam_obj @ A, win.start_T_cam_obj @ A  # another object frame
+    for state in ("se3", "euler"):
+        ekf = FusionEKF(jacobian="analytic", state=state)
+        vel = window_start_velocity(ekf, win)
+        assert float(vel[0].abs().max()) == 0.0 and float(vel[1:].abs().min()) > 0
+        moved = ekf.predicted(ekf.initial_state(win.prev_T_cam_obj, vel), win.prev_dt).T_cam_obj
+        assert torch.allclose(moved[1:], win.start_T_cam_obj[1:], atol=1e-12), state
     with pytest.raises(ValueError, match="start_velocity"):
         TrainConfig(start_velocity="gt")
 

@@ -196,6 +196,9 @@ class FilterConfig:
     # analytic (closed form, ~10x faster; equal to autograd to 1e-10, same trajectories) | forward (torch.func.jacfwd)
     # | reverse (jacrev)
     jacobian: str = "analytic"
+    # se3 (improvement: a local error state on SE(3), regular at every attitude) | euler (the paper's eq. 2: Euler
+    # angles, singular at 90 deg pitch; +experiment=paper)
+    state: str = "se3"
 
 
 @dataclass

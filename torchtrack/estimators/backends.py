@@ -17,7 +17,7 @@ from torch import Tensor
 from torchtrack.config import EKFBackendConfig
 from torchtrack.filter.ekf import chi2_quantile, cholesky_jittered, symmetrize
 from torchtrack.filter.fusion import FilterState, FusionEKF
-from torchtrack.filter.models import measure, pose_to_state, state_to_pose
+from torchtrack.filter.models import measure_pose
 from torchtrack.filter.noise_scale import NoiseScale, ScaleState, residual_statistics, scaled
 from torchtrack.filter.weighting import Variances
 
@@ -71,7 +71,7 @@ class FrameUpdate(NamedTuple):
     """One frame of the fusion EKF (:func:`ekf_frame`), batched over B.
 
     Attributes:
-        mean: (B, 12) posterior state; cov: (B, 12, 12) posterior covariance.
+        posterior: the frame's :class:`FilterState` (mean (B, 12), cov (B, 12, 12), T_cam_obj (B, 4, 4)).
         prior: the prediction (:class:`FilterState`) the update started from.
         used_xyz, used_pix: (B, N) bool, the 3D points and the pixels the final update used.
         innovation: (B, N, 5) ``z - h(prior mean)``, 3D (m) then pixel (px); 0 where not used.
@@ -84,8 +84,7 @@ class FrameUpdate(NamedTuple):
             ``scale`` (B, 2) [pix, xyz]); None when the scale is off.
     """
 
-    mean: Tensor
-    cov: Tensor
+    posterior: FilterState
     prior: FilterState
     used_xyz: Tensor
     used_pix: Tensor
@@ -98,7 +97,17 @@ class FrameUpdate(NamedTuple):
     @property
     def T_cam_obj(self) -> Tensor:
         """(B, 4, 4) posterior object pose in the depth camera."""
-        return state_to_pose(self.mean)
+        return self.posterior.T_cam_obj
+
+    @property
+    def mean(self) -> Tensor:
+        """(B, 12) posterior state mean (the state's coordinates: Euler, or the SE(3) error state after its reset)."""
+        return self.posterior.mean
+
+    @property
+    def cov(self) -> Tensor:
+        """(B, 12, 12) posterior covariance."""
+        return self.posterior.cov
 
     @property
     def noise_scale(self) -> Tensor | None:
@@ -135,7 +144,7 @@ def ekf_frame(
 
     Args:
         ekf: :class:`~torchtrack.filter.fusion.FusionEKF` (its parameters only).
-        state: prior :class:`FilterState` (mean (B, 12), cov (B, 12, 12)).
+        state: prior :class:`FilterState` (mean (B, 12), cov (B, 12, 12), T_cam_obj (B, 4, 4)).
         obs: :class:`Observation` of N features.
         var: per-feature :class:`~torchtrack.filter.weighting.Variances` (B, N).
         with_nll: also compute :attr:`FrameUpdate.nll` (the self-supervised training loss).
@@ -151,7 +160,7 @@ def ekf_frame(
     points_obj, K, T_cd = obs.points_obj.to(dt), obs.K.to(dt), obs.T_color_depth.to(dt)
     z = torch.cat([obs.points_d, obs.pixels], -1).to(dt)  # B,N,5
     var5 = torch.cat([var.var_xyz[..., None].expand(-1, -1, 3), var.var_pix[..., None].expand(-1, -1, 2)], -1).to(dt)
-    h, H = ekf.linearize_at(prior.mean, points_obj, K, T_cd)  # at the prediction, once per frame
+    h, H = ekf.linearize_at(prior, points_obj, K, T_cd)  # at the prediction, once per frame
     s_prior = var5 + torch.einsum("bnms,bst,bnmt->bnm", H, prior.cov, H)  # diag(H P- H^T) + R
     xyz = pix = obs.valid
     if gate is not None:
@@ -174,13 +183,15 @@ def ekf_frame(
         )  # eqs. (6)-(7), (15); fmt: skip
 
     post = update(xyz, pix)
+    posterior = ekf.injected(prior, post)
     if refit is not None:
         with torch.no_grad():
-            h_post = measure(post.mean, points_obj, K, T_cd)
+            h_post = measure_pose(posterior.T_cam_obj, points_obj, K, T_cd)
             xyz_new, pix_new = _keep(xyz, pix, *_chi2_tests(z, h_post, var5, refit))
         if bool(((xyz_new != xyz) | (pix_new != pix)).any()):
             xyz, pix = xyz_new, pix_new
             post = update(xyz, pix)  # same prior, fewer measurements: the same linearisation
+            posterior = ekf.injected(prior, post)
     used = torch.cat([xyz[..., None].expand(-1, -1, 3), pix[..., None].expand(-1, -1, 2)], -1)
     innovation = torch.where(used, z - h, torch.zeros_like(h))
     innovation_var = torch.where(used, s_prior, torch.ones_like(s_prior))
@@ -196,7 +207,7 @@ def ekf_frame(
             stats = residual_statistics(residual, post_hph, var5, valid5, used, scale_state.scale, noise_scale.clip)
         noise = noise_scale.updated(scale_state, stats)
     updated = used.any(-1).any(-1)
-    return FrameUpdate(post.mean, post.cov, prior, xyz, pix, innovation, innovation_var, nll, updated, noise)
+    return FrameUpdate(posterior, prior, xyz, pix, innovation, innovation_var, nll, updated, noise)
 
 
 def innovation_nll(prior_cov: Tensor, H: Tensor, innovation: Tensor, var5: Tensor, used: Tensor) -> Tensor:
@@ -286,21 +297,14 @@ class EKFBackend:
             B = T_cam_obj.shape[0]
             self.scale_state = None if self.noise is None else self.noise.initial(B, device=T_cam_obj.device)
             return
-        self.state = FilterState(
-            torch.where(mask[:, None], init.mean, self.state.mean),
-            torch.where(mask[:, None, None], init.cov, self.state.cov),
-        )
+        self.state = init.select(mask, self.state)
 
     def set_pose(self, T_cam_obj: Tensor, mask: Tensor) -> None:
-        """Move the mean pose of the sequences in ``mask`` (B,) to ``T_cam_obj`` (B, 4, 4), Euler angles unwrapped next
-        to the old ones; velocity and covariance kept (the pose is taken as the new mean, not fused as a measurement)."""
+        """Move the pose to ``T_cam_obj`` (B, 4, 4) where ``mask`` (B,) is True, keeping velocity and covariance (a
+        pose corrected outside the filter is taken as its new mean, not fused as a measurement)."""
         if self.state is None:
             raise ValueError("EKFBackend: call reset(T_cam_obj, mask) before set_pose")
-        mean = self.state.mean
-        x, old = pose_to_state(T_cam_obj.to(mean.dtype))[:, :6], mean[:, :6]
-        ang = old[:, :3] + torch.remainder(x[:, :3] - old[:, :3] + torch.pi, 2 * torch.pi) - torch.pi
-        new = torch.cat([ang, x[:, 3:], mean[:, 6:]], 1)
-        self.state = FilterState(torch.where(mask[:, None], new, mean), self.state.cov)
+        self.state = self.ekf.with_pose(self.state, T_cam_obj, mask)
 
     def step(self, obs: Observation, var: Variances, active: Tensor | None = None) -> FrameUpdate:
         """One frame: the named result of :func:`ekf_frame`; the posterior becomes the state of the sequences where
@@ -310,19 +314,13 @@ class EKFBackend:
             raise ValueError("EKFBackend: call reset(T_cam_obj, mask) before the first frame")
         out = ekf_frame(self.ekf, self.state, obs, var, gate=self.gate, refit=self.refit, noise_scale=self.noise,
                         scale_state=self.scale_state)  # fmt: skip
-        if active is None:
-            self.state = FilterState(out.mean, out.cov)
-        else:
-            self.state = FilterState(
-                torch.where(active[:, None], out.mean, self.state.mean),
-                torch.where(active[:, None, None], out.cov, self.state.cov),
-            )
+        self.state = out.posterior if active is None else out.posterior.select(active, self.state)
         if out.noise is not None:
             if active is not None and self.scale_state is not None:
                 kept = (torch.where(active[:, None], n, o) for n, o in zip(out.noise, self.scale_state, strict=True))
                 out = out._replace(noise=ScaleState(*kept))
             self.scale_state = out.noise
-        if bool((out.mean[:, 1].abs() > 1.4).any()):
+        if self.ekf.euler and bool((out.mean[:, 1].abs() > 1.4).any()):
             log.warning("EKFBackend: |theta| > 80 deg, near the Euler singularity; re-select the model frame")
         return out
 

@@ -1,7 +1,13 @@
 """EKF fusion of 2D (colour pixel) and 3D (depth point) measurements: the paper's tracker core (§III-A).
 
-:func:`fuse` is the pure batched update (eqs. (6)–(7), (15)); :class:`FusionEKF` is the thin stateful
-wrapper that the tracker calls once per frame: ``predict(dt)`` then ``update(...)``.
+:func:`fuse` is the pure batched update (eqs. (6)–(7), (15)); :class:`FusionEKF` holds the filter's parameters and
+its pure steps (:class:`FilterState` in, :class:`FilterState` out). The one stateful filter is the tracker's back
+end, :class:`torchtrack.estimators.backends.EKFBackend`, which runs
+:func:`~torchtrack.estimators.backends.ekf_frame` once per frame.
+
+Two parametrisations of the pose (``FusionEKF(state=...)``): ``"se3"`` (default), the local error state on SE(3)
+of :mod:`torchtrack.filter.error_state`, regular at every attitude; ``"euler"``, the paper's eq. (2) (Euler angles,
+:mod:`torchtrack.filter.models`), singular at 90 degrees of pitch (``+experiment=paper`` selects it).
 
 Frames: ``cam`` is the DEPTH camera (the paper's ``d``); ``T_cam_obj`` = ``(R_do, t_do)``. The object frame
 is expected to be centred at the model's centroid (the tracker passes ``points_obj`` already centred,
@@ -11,14 +17,13 @@ centre are well-conditioned (decoupled from translation). The filter does not ch
 
 from __future__ import annotations
 
-import logging
 from typing import Literal, NamedTuple
 
 import torch
 from torch import Tensor
 
 from torchtrack.config import FilterConfig
-from torchtrack.filter import ekf
+from torchtrack.filter import ekf, error_state
 from torchtrack.filter.models import (
     STATE_SIZE,
     constant_velocity,
@@ -28,42 +33,35 @@ from torchtrack.filter.models import (
     state_to_pose,
 )
 
-log = logging.getLogger(__name__)
-
 JacobianMode = Literal["forward", "reverse", "analytic"]
-
-
-class PoseEstimate(NamedTuple):
-    """Filter output after an update.
-
-    Attributes:
-        T_cam_obj: (B, 4, 4) object pose in the depth camera (posterior mean).
-        covariance: (B, 12, 12) posterior state covariance.
-        state: (B, 12) posterior state (angles, translation, their velocities).
-        innovation: (B, N, 5) ``z - h(predicted state)``: 3D (m) then pixel (px) residuals; 0 where invalid.
-        num_valid: (B,) number of valid features used.
-        updated: (B,) bool, False where no valid feature was given (the prediction was kept).
-    """
-
-    T_cam_obj: Tensor
-    covariance: Tensor
-    state: Tensor
-    innovation: Tensor
-    num_valid: Tensor
-    updated: Tensor
+StateMode = Literal["se3", "euler"]
 
 
 def linearize(
-    mean: Tensor, points_obj: Tensor, K: Tensor, T_color_depth: Tensor, *, jacobian: JacobianMode = "analytic"
+    mean: Tensor,
+    points_obj: Tensor,
+    K: Tensor,
+    T_color_depth: Tensor,
+    *,
+    jacobian: JacobianMode = "analytic",
+    nominal: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Eqs. (6)-(7) and their Jacobian at ``mean`` (B, 12) for model points (B, N, 3): h (B, N, 5), H (B, N, 5, 12).
 
-    ``jacobian``: "analytic" (:func:`~torchtrack.filter.models.measure_analytic`) or "forward" / "reverse"
-    (``torch.func`` autograd of :func:`~torchtrack.filter.models.measure_single`, :func:`ekf.linearize`).
-    Inputs are cast to ``mean``'s dtype.
+    ``nominal`` None: ``mean`` is the paper's Euler state (:mod:`~torchtrack.filter.models`); a pose (B, 4, 4):
+    ``mean`` is the error state about it (:mod:`~torchtrack.filter.error_state`), h is evaluated at
+    ``nominal (+) mean`` and H is with respect to the error state. ``jacobian``: "analytic" (closed form) or
+    "forward" / "reverse" (``torch.func`` autograd of the per-feature model, :func:`ekf.linearize`). Inputs are cast
+    to ``mean``'s dtype.
     """
     dt = mean.dtype
     points_obj, K, T_color_depth = points_obj.to(dt), K.to(dt), T_color_depth.to(dt)
+    if nominal is not None:
+        nominal = nominal.to(dt)
+        if jacobian == "analytic":
+            return tuple(error_state.measure_analytic(mean, nominal, points_obj, K, T_color_depth))
+        seq = (nominal[:, :3, :3], nominal[:, :3, 3], K, T_color_depth)
+        return ekf.linearize(error_state.measure_single, mean, (points_obj,), seq, mode=jacobian)
     if jacobian == "analytic":
         return tuple(measure_analytic(mean, points_obj, K, T_color_depth))
     return ekf.linearize(measure_single, mean, (points_obj,), (K, T_color_depth), mode=jacobian)
@@ -87,11 +85,14 @@ def fuse(
     iterations: int = 1,
     jacobian: JacobianMode = "analytic",
     linearization: tuple[Tensor, Tensor] | None = None,
+    nominal: Tensor | None = None,
 ) -> ekf.Update:
     """One EKF update with N features of 5 measurements each, eqs. (6)–(7), (15).
 
     Args:
-        mean: (B, 12) predicted state; cov: (B, 12, 12).
+        mean: (B, 12) predicted state; cov: (B, 12, 12). With ``nominal`` (B, 4, 4), the error state about that
+            nominal pose (:mod:`~torchtrack.filter.error_state`; the returned mean is the error to inject), else the
+            paper's Euler state.
         points_obj: (B, N, 3) model points X_o (object frame, centred at the model centroid).
         points_d: (B, N, 3) measured 3D points X_d in the depth camera (eq. (6)).
         pixels: (B, N, 2) measured pixels in the colour image (eq. (7)).
@@ -123,7 +124,7 @@ def fuse(
     valid5 = torch.cat([v3[..., None].expand(B, N, 3), v2[..., None].expand(B, N, 2)], -1)
 
     def lin(x, fi, si):
-        return linearize(x, fi[0], *si, jacobian=jacobian)
+        return linearize(x, fi[0], *si, jacobian=jacobian, nominal=nominal)
 
     return ekf.update(
         mean,
@@ -142,31 +143,46 @@ def fuse(
 
 
 class FilterState(NamedTuple):
-    """The filter's belief about B sequences. mean: (B, 12) state; cov: (B, 12, 12) covariance."""
+    """The filter's belief about B sequences.
+
+    Attributes:
+        mean: (B, 12) state mean: the paper's Euler state (eq. 2), or the SE(3) error state ``[0, 0, omega, v]``
+            (its pose error is zero between frames, :mod:`~torchtrack.filter.error_state`).
+        cov: (B, 12, 12) its covariance.
+        T_cam_obj: (B, 4, 4) the pose (the Euler state's, or the nominal pose).
+    """
 
     mean: Tensor
     cov: Tensor
+    T_cam_obj: Tensor
+
+    def select(self, mask: Tensor, other: FilterState) -> FilterState:
+        """This state where ``mask`` (B,) is True, ``other``'s elsewhere."""
+        return FilterState(
+            *(torch.where(mask.reshape(-1, *[1] * (a.dim() - 1)), a, b) for a, b in zip(self, other, strict=True))
+        )
 
 
 class FusionEKF:
-    """12-state EKF over B sequences: constant-velocity prediction, 2D+3D fusion update.
+    """12-state EKF over B sequences: constant-velocity prediction, 2D+3D fusion update; parameters and pure steps.
 
-    The pure methods (:meth:`initial_state`, :meth:`predicted`, :meth:`linearize_at`, :meth:`updated`) take and
-    return a :class:`FilterState` and never touch ``self``'s state: the differentiable back end
-    (:func:`torchtrack.estimators.backends.ekf_frame`) is built from them. ``reset``/``predict``/``update`` keep a state of
-    their own on top of them, for direct use.
+    The methods (:meth:`initial_state`, :meth:`predicted`, :meth:`linearize_at`, :meth:`updated`, :meth:`injected`,
+    :meth:`with_pose`) take and return :class:`FilterState` and never keep state: the back end
+    (:class:`~torchtrack.estimators.backends.EKFBackend`, :func:`~torchtrack.estimators.backends.ekf_frame`) is built
+    from them.
 
     Args:
-        sigma2_pix: default pixel variance (px^2), used when update() gets no var_pix.
-        sigma2_xyz: default 3D variance (m^2), used when update() gets no var_xyz.
-        sigma_ang_acc: Euler-angle acceleration noise std (rad/s^2) of eqs. (3)–(4).
+        sigma_ang_acc: angular acceleration noise std (rad/s^2) of eqs. (3)–(4) (Euler-angle accelerations for
+            ``state="euler"``).
         sigma_lin_acc: linear acceleration noise std (m/s^2).
-        init_sigma_angle, init_sigma_trans: initial pose std (rad, m) after :meth:`reset`.
-        init_sigma_ang_vel, init_sigma_lin_vel: initial velocity std (rad/s, m/s) after :meth:`reset`.
+        init_sigma_angle, init_sigma_trans: initial pose std (rad, m) after a (re-)selection.
+        init_sigma_ang_vel, init_sigma_lin_vel: initial velocity std (rad/s, m/s).
         iterations: 1 = EKF (paper); > 1 = iterated EKF.
         form: "information" (fast, default) or "gain" (paper's eq. (15), O((5N)^3)).
         jacobian: "analytic" (closed form, default: the fastest, equal to autograd to 1e-10), "forward" (autograd
             jacfwd) or "reverse" (jacrev).
+        state: "se3" (default: the local error state on SE(3), regular at every attitude,
+            :mod:`~torchtrack.filter.error_state`) or "euler" (the paper's eq. (2), singular at 90 degrees pitch).
         dtype: filter state dtype (float64 default: the 12 x 12 algebra is cheap and well-conditioned).
 
     Poses and covariances are returned in ``dtype``.
@@ -174,8 +190,6 @@ class FusionEKF:
 
     def __init__(
         self,
-        sigma2_pix: float = 1.0,
-        sigma2_xyz: float = 1e-4,
         sigma_ang_acc: float = FilterConfig.sigma_ang_acc,
         sigma_lin_acc: float = FilterConfig.sigma_lin_acc,
         init_sigma_angle: float = FilterConfig.init_sigma_angle,
@@ -185,129 +199,101 @@ class FusionEKF:
         iterations: int = FilterConfig.iterations,
         form: Literal["information", "gain"] = FilterConfig.form,
         jacobian: JacobianMode = FilterConfig.jacobian,
+        state: StateMode = FilterConfig.state,
         dtype: torch.dtype = torch.float64,
     ) -> None:
         if form not in ("information", "gain") or jacobian not in ("forward", "reverse", "analytic"):
             raise ValueError(f"FusionEKF: bad form={form!r} or jacobian={jacobian!r}")
-        if iterations < 1 or min(sigma2_pix, sigma2_xyz) <= 0:
-            raise ValueError("FusionEKF: iterations must be >= 1 and variances > 0")
-        self.sigma2_pix, self.sigma2_xyz = sigma2_pix, sigma2_xyz
+        if state not in ("se3", "euler"):
+            raise ValueError(f"FusionEKF: state must be 'se3' or 'euler', got {state!r}")
+        if iterations < 1:
+            raise ValueError("FusionEKF: iterations must be >= 1")
         self.sigma_ang_acc, self.sigma_lin_acc = sigma_ang_acc, sigma_lin_acc
         init_std = [init_sigma_angle] * 3 + [init_sigma_trans] * 3 + [init_sigma_ang_vel] * 3 + [init_sigma_lin_vel] * 3
         self.init_var = torch.tensor(init_std, dtype=dtype) ** 2
-        self.iterations, self.form, self.jacobian, self.dtype = iterations, form, jacobian, dtype
-        self.mean: Tensor | None = None  # (B, 12)
-        self.cov: Tensor | None = None  # (B, 12, 12)
+        self.iterations, self.form, self.jacobian, self.state, self.dtype = iterations, form, jacobian, state, dtype
 
-    # -- pure: FilterState in, FilterState out ------------------------------------------------------------
+    @property
+    def euler(self) -> bool:
+        """True for the paper's Euler state."""
+        return self.state == "euler"
+
     def initial_state(self, T_cam_obj: Tensor, velocity: Tensor | None = None) -> FilterState:
-        """The state right after a (re-)selection: pose ``T_cam_obj`` (B, 4, 4), ``velocity`` (B, 6) (default 0),
-        the initial covariance."""
+        """The state right after a (re-)selection: pose ``T_cam_obj`` (B, 4, 4), ``velocity`` (B, 6) in the state's
+        coordinates (default 0: Euler-angle rates or ``[omega, v]``), the initial covariance."""
         B = T_cam_obj.shape[0]
-        x0 = pose_to_state(T_cam_obj.to(self.dtype), None if velocity is None else velocity.to(self.dtype))
-        return FilterState(x0, torch.diag_embed(self.init_var.to(x0.device).expand(B, STATE_SIZE)))
+        T = T_cam_obj.to(self.dtype)
+        vel = None if velocity is None else velocity.to(self.dtype)
+        if self.euler:
+            x0 = pose_to_state(T, vel)
+            T = state_to_pose(x0)
+        else:
+            zero = torch.zeros(B, 6, dtype=T.dtype, device=T.device)
+            x0 = torch.cat([zero, zero if vel is None else vel], -1)  # the pose error is 0 at the nominal pose
+        P0 = torch.diag_embed(self.init_var.to(T.device).expand(B, STATE_SIZE))
+        return FilterState(x0, P0, T)
 
     def predicted(self, state: FilterState, dt: Tensor) -> FilterState:
         """Constant-velocity prediction, eqs. (3)-(4), over ``dt`` (B,) seconds."""
         if dt.shape != (state.mean.shape[0],):
             raise ValueError(f"predict: dt must be ({state.mean.shape[0]},), got {tuple(dt.shape)}")
-        F, Q = constant_velocity(dt.to(self.dtype), self.sigma_ang_acc, self.sigma_lin_acc)
-        return FilterState(*ekf.predict(state.mean, state.cov, F, Q))
+        dt = dt.to(self.dtype)
+        if self.euler:
+            F, Q = constant_velocity(dt, self.sigma_ang_acc, self.sigma_lin_acc)
+            mean, cov = ekf.predict(state.mean, state.cov, F, Q)
+            return FilterState(mean, cov, state_to_pose(mean))
+        F, Q = error_state.transition(dt, state.mean[:, 6:9], self.sigma_ang_acc, self.sigma_lin_acc)
+        _, cov = ekf.predict(state.mean, state.cov, F, Q)  # the error's mean stays [0, v]: the nominal moves
+        return FilterState(
+            state.mean, cov, error_state.predict_nominal(state.T_cam_obj, state.mean[:, 6:], dt, F[:, :3, :3])
+        )
 
-    def linearize_at(self, mean: Tensor, points_obj: Tensor, K: Tensor, T_color_depth: Tensor) -> tuple[Tensor, Tensor]:
-        """(h (B, N, 5), H (B, N, 5, 12)) of eqs. (6)-(7) at ``mean`` with this filter's Jacobian mode."""
-        return linearize(mean, points_obj, K, T_color_depth, jacobian=self.jacobian)
+    def linearize_at(
+        self, state: FilterState, points_obj: Tensor, K: Tensor, T_color_depth: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """(h (B, N, 5), H (B, N, 5, 12)) of eqs. (6)-(7) at ``state`` with this filter's Jacobian mode."""
+        if self.euler or self.jacobian != "analytic":
+            return linearize(
+                state.mean, points_obj, K, T_color_depth, jacobian=self.jacobian, nominal=self._nominal(state)
+            )
+        # the SE(3) state's pose error is 0 between frames: error_state.measure_analytic at dx = 0, without Exp(0), J_l(0)
+        return error_state.measure_at_nominal(state.T_cam_obj, points_obj, K, T_color_depth)
 
     def updated(self, state: FilterState, points_obj, points_d, pixels, valid_xyz, valid_pix, var_xyz, var_pix, K,
                 T_color_depth, linearization=None) -> ekf.Update:  # fmt: skip
         """The measurement update (:func:`fuse`, eq. 15) of ``state`` with this filter's form and iterations; the 3D
-        part of feature i is used where ``valid_xyz`` (B, N), its pixel where ``valid_pix``."""
+        part of feature i is used where ``valid_xyz`` (B, N), its pixel where ``valid_pix``. The result is in the
+        state's coordinates (for "se3", the error to inject): :meth:`injected` makes it the posterior."""
         return fuse(
             state.mean, state.cov, points_obj, points_d, pixels, valid_xyz | valid_pix, var_xyz, var_pix, K,
             T_color_depth, valid_xyz=valid_xyz, valid_pix=valid_pix, form=self.form, iterations=self.iterations,
-            jacobian=self.jacobian, linearization=linearization,
+            jacobian=self.jacobian, linearization=linearization, nominal=self._nominal(state),
         )  # fmt: skip
 
-    # -- stateful convenience ----------------------------------------------------------------------------
-    @property
-    def T_cam_obj(self) -> Tensor:
-        """(B, 4, 4) current object pose in the depth camera (the latest mean)."""
-        return state_to_pose(self._state()[0])
+    def injected(self, prior: FilterState, update: ekf.Update) -> FilterState:
+        """The posterior :class:`FilterState` of an :meth:`updated` ``prior``: for "euler" the update's mean and
+        covariance; for "se3" the error injected into the nominal pose (``T <- T (+) dx``), the pose error reset to 0
+        and the covariance moved to the new nominal (``G P G^T``, :func:`~torchtrack.filter.error_state.reset_jacobian`)."""
+        if self.euler:
+            return FilterState(update.mean, update.cov, state_to_pose(update.mean))
+        dx = update.mean
+        mean = torch.cat([torch.zeros_like(dx[:, :6]), dx[:, 6:]], -1)
+        cov = error_state.reset_covariance(update.cov, dx)
+        return FilterState(mean, cov, error_state.inject(prior.T_cam_obj, dx))
 
-    def reset(self, T_cam_obj: Tensor, mask: Tensor | None = None, velocity: Tensor | None = None) -> None:
-        """Set pose to ``T_cam_obj``, velocity to ``velocity`` (zero by default), covariance to the initial one.
+    def with_pose(self, state: FilterState, T_cam_obj: Tensor, mask: Tensor) -> FilterState:
+        """``state`` with its pose replaced by ``T_cam_obj`` (B, 4, 4) where ``mask`` (B,); velocity and covariance
+        kept (e.g. a pose corrected outside the filter). Euler angles are unwrapped next to the old ones."""
+        T = T_cam_obj.to(state.T_cam_obj.dtype)
+        if self.euler:
+            x = pose_to_state(T)[:, :6]
+            old = state.mean[:, :6]
+            ang = old[:, :3] + torch.remainder(x[:, :3] - old[:, :3] + torch.pi, 2 * torch.pi) - torch.pi
+            mean = torch.cat([ang, x[:, 3:], state.mean[:, 6:]], 1)
+            new = FilterState(mean, state.cov, state_to_pose(mean))
+        else:
+            new = FilterState(state.mean, state.cov, T)
+        return new.select(mask, state)
 
-        Args:
-            T_cam_obj: (B, 4, 4) object pose in the depth camera.
-            mask: (B,) bool, sequences to reset (default all; the first reset must cover all). The tracker
-                re-selects models per sequence.
-            velocity: optional (B, 6) state velocity expressed for the NEW object frame (e.g.
-                :func:`~torchtrack.filter.models.euler_velocity` of two poses of that frame).
-        """
-        B = T_cam_obj.shape[0]
-        if T_cam_obj.shape != (B, 4, 4) or (mask is not None and mask.shape != (B,)):
-            raise ValueError(f"reset: T_cam_obj must be (B, 4, 4) and mask (B,), got {tuple(T_cam_obj.shape)}")
-        mask = torch.ones(B, dtype=torch.bool, device=T_cam_obj.device) if mask is None else mask.to(torch.bool)
-        x0, P0 = self.initial_state(T_cam_obj, velocity)
-        if self.mean is None or self.mean.shape[0] != B:
-            if not bool(mask.all()):
-                raise ValueError(f"reset: first reset (or a new batch size {B}) must cover every sequence")
-            self.mean, self.cov = x0, P0
-            return
-        mask = mask.to(x0.device)
-        self.mean = torch.where(mask[:, None], x0, self.mean)
-        self.cov = torch.where(mask[:, None, None], P0, self.cov)
-
-    def predict(self, dt: Tensor) -> Tensor:
-        """Constant-velocity prediction, eqs. (3)–(4), over ``dt`` (B,) seconds. Returns T_cam_obj (B, 4, 4)."""
-        self.mean, self.cov = self.predicted(FilterState(*self._state()), dt)
-        return self.T_cam_obj
-
-    def linearize(self, points_obj: Tensor, K: Tensor, T_color_depth: Tensor) -> tuple[Tensor, Tensor]:
-        """(h (B, N, 5), H (B, N, 5, 12)) of eqs. (6)-(7) at the current mean, with this filter's Jacobian mode; pass
-        it to :meth:`update` (``linearization=``) to share it, e.g. with an innovation gate."""
-        return self.linearize_at(self._state()[0], points_obj, K, T_color_depth)
-
-    def update(
-        self,
-        points_obj: Tensor,
-        points_d: Tensor,
-        pixels: Tensor,
-        valid: Tensor,
-        var_xyz: Tensor | None = None,
-        var_pix: Tensor | None = None,
-        K: Tensor | None = None,
-        T_color_depth: Tensor | None = None,
-        valid_xyz: Tensor | None = None,
-        valid_pix: Tensor | None = None,
-        linearization: tuple[Tensor, Tensor] | None = None,
-    ) -> PoseEstimate:
-        """Fuse one frame's features (see :func:`fuse` for shapes). K is required; T_color_depth defaults to I.
-
-        ``var_xyz``/``var_pix`` default to the constant ``sigma2_xyz``/``sigma2_pix``. Sequences with no valid
-        feature keep the prediction.
-        """
-        mean, cov = self._state()
-        if K is None:
-            raise ValueError("update: K (B, 3, 3) colour intrinsics is required")
-        B, N = valid.shape
-        like = torch.zeros(B, N, dtype=self.dtype, device=mean.device)
-        var_xyz = like + self.sigma2_xyz if var_xyz is None else var_xyz
-        var_pix = like + self.sigma2_pix if var_pix is None else var_pix
-        if T_color_depth is None:
-            T_color_depth = torch.eye(4, dtype=self.dtype, device=mean.device).expand(B, 4, 4)
-        out = fuse(
-            mean, cov, points_obj, points_d, pixels, valid, var_xyz, var_pix, K, T_color_depth,
-            valid_xyz=valid_xyz, valid_pix=valid_pix, form=self.form, iterations=self.iterations, jacobian=self.jacobian,
-            linearization=linearization,
-        )  # fmt: skip
-        self.mean, self.cov = out.mean, out.cov
-        theta = self.mean[:, 1].abs()
-        if bool((theta > 1.4).any()):
-            log.warning("FusionEKF: |theta| > 80 deg, near the Euler singularity; re-select the model frame")
-        return PoseEstimate(self.T_cam_obj, self.cov, self.mean, out.innovation, valid.sum(-1), out.num_valid > 0)
-
-    def _state(self) -> tuple[Tensor, Tensor]:
-        if self.mean is None or self.cov is None:
-            raise ValueError("FusionEKF: call reset(T_cam_obj) before predict/update")
-        return self.mean, self.cov
+    def _nominal(self, state: FilterState) -> Tensor | None:
+        return None if self.euler else state.T_cam_obj

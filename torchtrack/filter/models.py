@@ -6,9 +6,10 @@ State ``x`` (S = 12), as in the paper::
 
 ``(rho, theta, phi)`` are the Euler angles of ``R_do`` (object -> depth camera) in the
 :func:`torchtrack.geometry.euler_to_matrix` convention (``R = Rz(phi) @ Ry(theta) @ Rx(rho)``), ``t_do``
-the translation in metres; velocities are per second (real time steps, not per frame). The
-parameterisation is singular at ``|theta| = pi/2``; the object frame is centred at the model's
-centroid with axes of the model camera, so angles start at 0 after each model (re-)selection.
+the translation in metres; velocities are per second (real time steps, not per frame). The object frame is centred
+at the model's centroid with axes of the model camera, so angles start at 0 after each model (re-)selection. The
+parameterisation is singular at ``|theta| = pi/2``: the default filter state is therefore the SE(3) error state of
+:mod:`torchtrack.filter.error_state` (which reuses eqs. (3)-(7) from here); ``filter.state=euler`` selects this one.
 
 Measurement of one feature (M = 5): ``[X_d (3), x_pix (2)]`` — the point in the depth camera (eq. 6)
 and its pixel in the colour image (eq. 7).
@@ -116,20 +117,26 @@ def measure_analytic(x: Tensor, points_obj: Tensor, K: Tensor, T_color_depth: Te
     Returns:
         :class:`Linearization` with h (B, N, 5), H (B, N, 5, 12); velocity columns are zero.
     """
-    B, N, _ = points_obj.shape
-    angles = x[:, :3]
-    theta, phi = angles[:, 1], angles[:, 2]
+    B = points_obj.shape[0]
+    theta, phi = x[:, 1], x[:, 2]
     c_t, s_t, c_p, s_p = torch.cos(theta), torch.sin(theta), torch.cos(phi), torch.sin(phi)
     zero, one = torch.zeros_like(phi), torch.ones_like(phi)
-    U = torch.stack([c_p * c_t, -s_p, zero, s_p * c_t, c_p, zero, -s_t, zero, one], -1).reshape(B, 1, 3, 3)
-    RX, X_d, A, u, pix = _project(x, points_obj, K, T_color_depth)
-    dXd_da = -hat(RX) @ U  # B,N,3,3: columns u_k x RX, u = (Rz Ry e_x, Rz e_y, e_z)
+    U = torch.stack([c_p * c_t, -s_p, zero, s_p * c_t, c_p, zero, -s_t, zero, one], -1).reshape(B, 3, 3)
+    return _linearization(euler_to_matrix(x[:, :3]), x[:, 3:6], U, points_obj, K, T_color_depth)
+
+
+def _linearization(R: Tensor, t: Tensor, U: Tensor, points_obj: Tensor, K: Tensor, T_color_depth: Tensor):
+    """h and H of eqs. (6)-(7) at ``X_d = R X_o + t`` (R (B, 3, 3), t (B, 3)), where the rotation's derivative with
+    respect to the state's 3 angle coordinates is ``dX_d/da = -hat(R X_o) U`` (U (B, 3, 3)) and ``dX_d/dt = I``."""
+    B, N, _ = points_obj.shape
+    RX, X_d, A, u, pix = _project(R, t, points_obj, K, T_color_depth)
+    dXd_da = -hat(RX) @ U[:, None]  # B,N,3,3: columns u_k x RX
     dpix_dXd = (A[:, None, :2, :] - pix[..., None] * A[:, None, 2:, :]) / u[..., 2:, None]  # B,N,2,3
     dpix_da = dpix_dXd @ dXd_da  # B,N,2,3
     pose_cols = torch.cat(
         [
             torch.cat([dXd_da, dpix_da], -2),
-            torch.cat([torch.eye(3, dtype=x.dtype, device=x.device).expand(B, N, 3, 3), dpix_dXd], -2),
+            torch.cat([torch.eye(3, dtype=R.dtype, device=R.device).expand(B, N, 3, 3), dpix_dXd], -2),
         ],
         -1,
     )  # B,N,5,6
@@ -137,10 +144,11 @@ def measure_analytic(x: Tensor, points_obj: Tensor, K: Tensor, T_color_depth: Te
     return Linearization(torch.cat([X_d, pix], -1), H)
 
 
-def _project(x: Tensor, points_obj: Tensor, K: Tensor, T_color_depth: Tensor):
-    """Eqs. (6)-(7), batched: (R X_o (B,N,3), X_d (B,N,3), A = K R_dv (B,3,3), u = alpha [x, 1] (B,N,3), pixels)."""
-    RX = points_obj @ euler_to_matrix(x[:, :3]).transpose(-1, -2)  # B,N,3
-    X_d = RX + x[:, None, 3:6]  # eq. (6)
+def _project(R: Tensor, t: Tensor, points_obj: Tensor, K: Tensor, T_color_depth: Tensor):
+    """Eqs. (6)-(7), batched, for ``R_do`` (B, 3, 3), ``t_do`` (B, 3): (R X_o (B,N,3), X_d (B,N,3), A = K R_dv (B,3,3),
+    u = alpha [x, 1] (B,N,3), pixels (B,N,2))."""
+    RX = points_obj @ R.transpose(-1, -2)  # B,N,3
+    X_d = RX + t[:, None]  # eq. (6)
     A = K @ T_color_depth[:, :3, :3]  # B,3,3: u = A X_d + b
     u = X_d @ A.transpose(-1, -2) + (K @ T_color_depth[:, :3, 3:])[:, None, :, 0]  # B,N,3
     return RX, X_d, A, u, u[..., :2] / u[..., 2:]  # eq. (7)
@@ -149,7 +157,12 @@ def _project(x: Tensor, points_obj: Tensor, K: Tensor, T_color_depth: Tensor):
 def measure(x: Tensor, points_obj: Tensor, K: Tensor, T_color_depth: Tensor) -> Tensor:
     """Batched eqs. (6)-(7) without the Jacobian: h (B, N, 5) = [X_d, pixel] for states x (B, 12) and model points
     (B, N, 3); the same numbers as :func:`measure_analytic`'s h (same operations)."""
-    _, X_d, _, _, pix = _project(x, points_obj, K, T_color_depth)
+    return measure_pose(state_to_pose(x), points_obj, K, T_color_depth)
+
+
+def measure_pose(T_cam_obj: Tensor, points_obj: Tensor, K: Tensor, T_color_depth: Tensor) -> Tensor:
+    """Eqs. (6)-(7) at a pose ``T_cam_obj`` (B, 4, 4), whatever the state's parametrisation: h (B, N, 5)."""
+    _, X_d, _, _, pix = _project(T_cam_obj[:, :3, :3], T_cam_obj[:, :3, 3], points_obj, K, T_color_depth)
     return torch.cat([X_d, pix], -1)
 
 

@@ -51,6 +51,21 @@ def so3_exp(omega: Tensor) -> Tensor:
     return eye + a * W + b * (W @ W)
 
 
+def so3_left_jacobian(omega: Tensor) -> Tensor:
+    """Left Jacobian of SO(3), (..., 3) -> (..., 3, 3): ``Exp(omega + d) = Exp(J_l(omega) d) Exp(omega)`` to first
+    order in d; ``J_l = I + (1 - cos t)/t^2 W + (t - sin t)/t^3 W^2`` with ``W = hat(omega)``, t = |omega| (Taylor
+    near 0). It is also the V matrix of SE(3)'s exponential (Barfoot, "State Estimation for Robotics", eq. 7.77)."""
+    theta2 = (omega * omega).sum(-1)[..., None, None]
+    _, b = _sinc_terms(theta2)
+    small = theta2 < 1e-4 if omega.dtype == torch.float32 else theta2 < 1e-8
+    t2 = torch.where(small, torch.ones_like(theta2), theta2)
+    t = t2.sqrt()
+    c = torch.where(small, 1 / 6 - theta2 / 120, (t - torch.sin(t)) / (t2 * t))
+    W = hat(omega)
+    eye = torch.eye(3, dtype=omega.dtype, device=omega.device).expand_as(W)
+    return eye + b * W + c * (W @ W)
+
+
 def so3_log(R: Tensor) -> Tensor:
     """Rotation (..., 3, 3) -> axis-angle (..., 3), angle in [0, pi].
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchtrack.geometry.rotation import _sinc_terms, hat, so3_exp, so3_log
+from torchtrack.geometry.rotation import hat, so3_exp, so3_left_jacobian, so3_log
 
 
 def make_T(R: Tensor, t: Tensor) -> Tensor:
@@ -32,16 +32,7 @@ def transform_points(T: Tensor, points: Tensor) -> Tensor:
     return points @ T[..., :3, :3].transpose(-1, -2) + T[..., None, :3, 3]
 
 
-def _V_matrix(omega: Tensor) -> Tensor:
-    theta2 = (omega * omega).sum(-1)[..., None, None]
-    _, b = _sinc_terms(theta2)
-    small = theta2 < 1e-4 if omega.dtype == torch.float32 else theta2 < 1e-8
-    t2 = torch.where(small, torch.ones_like(theta2), theta2)
-    t = t2.sqrt()
-    c = torch.where(small, 1 / 6 - theta2 / 120, (t - torch.sin(t)) / (t2 * t))
-    W = hat(omega)
-    eye = torch.eye(3, dtype=omega.dtype, device=omega.device).expand_as(W)
-    return eye + b * W + c * (W @ W)
+_V_matrix = so3_left_jacobian  # SE(3)'s V is SO(3)'s left Jacobian
 
 
 def se3_exp(xi: Tensor) -> Tensor:

@@ -24,10 +24,10 @@ import torch
 from torch import Tensor
 
 from torchtrack.estimators.backends import Observation, ekf_frame
-from torchtrack.filter.fusion import FilterState, FusionEKF
+from torchtrack.filter.fusion import FusionEKF
 from torchtrack.filter.models import euler_velocity
 from torchtrack.filter.weighting import Variances, WeightingInputs
-from torchtrack.geometry import T_inv, project, transform_points
+from torchtrack.geometry import T_inv, project, so3_log, transform_points
 from torchtrack.learn.cues import CUE_INDEX
 
 
@@ -148,13 +148,9 @@ def rollout(
         vp.append(var.var_pix)
         vx.append(var.var_xyz)
         reset = win.reselected[t]
-        state = FilterState(out.mean, out.cov)
+        state = out.posterior
         if bool(reset.any()):  # the tracker's model re-selection: the filter restarts at the new model's pose
-            init = ekf.initial_state(win.model_T_cam_obj[t])
-            state = FilterState(
-                torch.where(reset[:, None], init.mean, state.mean),
-                torch.where(reset[:, None, None], init.cov, state.cov),
-            )
+            state = ekf.initial_state(win.model_T_cam_obj[t]).select(reset, state)
     return Rollout(torch.stack(poses), torch.stack(nll), torch.stack(n_used), torch.stack(vp), torch.stack(vx))
 
 
@@ -162,8 +158,13 @@ def window_start_velocity(ekf: FusionEKF, win: Windows) -> Tensor:
     """(B, 6) the state velocity that carries ``win.prev_T_cam_obj`` to ``win.start_T_cam_obj`` in ``win.prev_dt``
     under the filter's constant-velocity motion (eqs. 3-4), zero where ``prev_dt`` is 0."""
     moving = win.prev_dt > 0
-    dt = torch.where(moving, win.prev_dt, torch.ones_like(win.prev_dt))
-    vel = euler_velocity(win.prev_T_cam_obj.to(ekf.dtype), win.start_T_cam_obj.to(ekf.dtype), dt.to(ekf.dtype))
+    dt = torch.where(moving, win.prev_dt, torch.ones_like(win.prev_dt)).to(ekf.dtype)
+    T0, T1 = win.prev_T_cam_obj.to(ekf.dtype), win.start_T_cam_obj.to(ekf.dtype)
+    if ekf.euler:  # the paper's eq. (2): Euler-angle rates and the translation's rate
+        vel = euler_velocity(T0, T1, dt)
+    else:  # the SE(3) state: R1 = Exp(omega dt) R0, t1 = t0 + v dt (error_state.predict_nominal)
+        omega = so3_log(T1[:, :3, :3] @ T0[:, :3, :3].transpose(-1, -2))
+        vel = torch.cat([omega, T1[:, :3, 3] - T0[:, :3, 3]], -1) / dt[:, None]
     return torch.where(moving[:, None], vel, torch.zeros_like(vel))
 
 

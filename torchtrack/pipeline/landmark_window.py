@@ -99,10 +99,10 @@ def refine_at_reselection(lm, store, refiner: WindowRefiner, acq, tracked: Tenso
     found = acq.valid & mask[:, None]
     surv = tracked_valid & (survivor_ident >= 0) & mask[:, None]
     has_lm = lm.valid.any(-1)  # slots holding landmarks: the gauge is the oldest of them
-    stamp = torch.where(has_lm, store.stamp, -1)
+    stamp = torch.where(has_lm, store.stamp[:, :S], -1)  # the model keyframes' slots 0 .. S-1 (slot S: the tracked one)
     var_pix = torch.full((B, S), 1.0, dtype=torch.float64, device=mask.device) * v_pix.double()[:, None]
     kw: KeyframeWindow = refine_keyframes(
-        store.T_world_kf, stamp, ids.ident, lm.pixels, ids.meas, lm.valid, lm.world, var_pix, lm.var_kf,
+        store.T_world_kf[:, :S], stamp, ids.ident, lm.pixels, ids.meas, lm.valid, lm.world, var_pix, lm.var_kf,
         T_world_depth, torch.cat([survivor_ident, lm.last_ident], 1), torch.cat([tracked.float(), acq.pixels.float()], 1),
         torch.cat([tracked_points.double(), acq.points_cam.double()], 1), torch.cat([surv, found], 1),
         torch.cat([tracked_world.double(), acq.points_world.double()], 1), v_pix, v_xyz, K, T_color_depth,
@@ -114,7 +114,8 @@ def refine_at_reselection(lm, store, refiner: WindowRefiner, acq, tracked: Tenso
     small = (step[:, :3].norm(dim=-1) <= max_m) & (step[:, 3:].norm(dim=-1) <= max_rad)
     used = kw.used & mask & finite & small  # a window that diverged or jumps further than drift changes nothing
     u4 = used[:, None, None, None]
-    store.T_world_kf = torch.where(u4 & has_lm[..., None, None], kw.T_world_kf, store.T_world_kf)
+    kf = torch.where(u4 & has_lm[..., None, None], kw.T_world_kf, store.T_world_kf[:, :S])
+    store.T_world_kf = torch.cat([kf, store.T_world_kf[:, S:]], 1)
     lm.world = torch.where(u4, kw.world_kf, lm.world)
     N = tracked.shape[1]
     T = torch.where(used[:, None, None], kw.T_world_depth, T_world_depth.double())

@@ -314,7 +314,7 @@ class LandmarkMap:
         var_world = self.var_kf.gather(1, slot)
         if self.ids is not None:  # the identities the next keyframe's features carry (survivors, re-acquired)
             self.last_ident = self.ids.ident.reshape(B, S * P).gather(1, index)
-            newest = torch.where(self.valid.any(-1), store.stamp, -1).argmax(1)  # the current model's keyframe
+            newest = torch.where(self.valid.any(-1), store.stamp[:, :S], -1).argmax(1)  # the current model's keyframe
             rows = torch.arange(B, device=index.device)
             tw = tracked_world if tracked_world is not None else torch.full((*tracked.shape[:2], 3), torch.inf)
             self.survivor_ident = self.ids.note(tracked, tw, tracked_valid, self.world[rows, newest],
