@@ -19,7 +19,7 @@ from torchtrack.estimators.backends import EKFBackend, ekf_frame
 from torchtrack.filter import FusionEKF, Variances
 from torchtrack.filter.noise_scale import PIX, XYZ, NoiseScale
 from torchtrack.learn.oracle import oracle_windows
-from torchtrack.learn.rollout import pose_errors
+from torchtrack.learn.rollout import PER_WINDOW, pose_errors
 
 F64 = torch.float64
 TOL = {F64: 1e-9}  # batched vs looped: other shapes sum in other orders
@@ -115,9 +115,6 @@ def test_batched_equals_looped():
         p, s = track(sequence(oracle, b), (4.0, 0.25), noise_scale=True)
         torch.testing.assert_close(s[:, 0], scales[:, b], atol=TOL[F64], rtol=TOL[F64])
         torch.testing.assert_close(p[:, 0], poses[:, b], atol=TOL[F64], rtol=TOL[F64])
-
-
-PER_WINDOW = ("start_T_cam_obj", "K", "T_color_depth", "focal")  # Windows fields (B, ...); the others (T, B, ...)
 
 
 def sequence(oracle, b: int):

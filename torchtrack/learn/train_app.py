@@ -183,6 +183,9 @@ Usage: torchtrack-train [key=value ...]   (or: python -m torchtrack.learn.train_
   train.batch=32            windows per optimiser step
   train.max_windows=null    a random subset of this many training windows per epoch (null: all)
   train.burn_in=0           frames replayed before each window's scored ones, outside the loss (settles the velocity)
+  train.start_velocity=zero  zero (windows start at rest) | ground_truth (the velocity between the ground truth of the
+                            frame before the start and the start, where both exist; zero elsewhere)
+  train.residual_weight=0.0  weight of a per-feature residual likelihood at the ground-truth pose added to the loss
   train.gate=0.999          the filter's chi-square gate during training, as in the tracker; train.refit=0.999 likewise
   train.jacobian=analytic   the filter's Jacobian while training (forward: autograd, equal to 1e-10, slower)
   train.seed=0              initialisation, window order and the validation split
