@@ -233,7 +233,7 @@ def ate_table(ates: dict) -> str:
         st = {k: stats(runs.get(k, [])) for k in ("paper", "learned", "loo")}
         cells = [f"{1e3 * m:.2f}, {1e3 * mu:.2f} ± {1e3 * sd:.2f}" for m, mu, sd in st.values()]
         r1, r2, r3 = st["learned"][0] / st["paper"][0], st["loo"][0] / st["paper"][0], st["loo"][0] / st["learned"][0]
-        for k, r in zip(("shipped", "loo", "ls"), (r1, r2, r3)):
+        for k, r in zip(("shipped", "loo", "ls"), (r1, r2, r3), strict=True):
             logs[k].append(math.log(r))
         lines.append(f"| {name} | " + " | ".join(cells) + f" | {r1:.2f} | {r2:.2f} | {r3:.2f} |")
     gm = {k: math.exp(sum(v) / len(v)) if v else math.nan for k, v in logs.items()}

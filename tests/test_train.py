@@ -135,9 +135,8 @@ def test_ground_truth_start_velocity_carries_the_previous_pose_to_the_start():
     """train.start_velocity=ground_truth: the start velocity is the one the filter's constant-velocity motion
     (eqs. 3-4) needs to move the previous frame's pose onto the start pose in prev_dt (oracle windows: a constant
     twist, so the previous pose is exact); zero where prev_dt is 0; the rollout starts with it."""
-    from torchtrack.learn.rollout import window_start_velocity
-
     from torchtrack.geometry import make_T, so3_exp
+    from torchtrack.learn.rollout import window_start_velocity
 
     win = oracle_windows(B=6, T=2, N=10, seed=7).windows
     win.prev_dt[0] = 0.0
@@ -183,16 +182,17 @@ def test_residual_nll_at_the_ground_truth_pose_matches_its_expectation():
     variance around eqs. 6-7 at the exact pose): r^2 / var is chi-square, so the NLL per measurement is, in
     expectation, sum 0.5 (dof + dof log(2 pi var)) / 5 per feature; 25,600 measurements: within 1 %. Frames without
     ground truth are not counted; a negative weight is refused."""
-    from torchtrack.learn.rollout import residual_nll
-
     from torchtrack.geometry import make_T, project, so3_exp, transform_points
+    from torchtrack.learn.rollout import residual_nll
 
     oracle = oracle_windows(B=32, T=4, N=40, seed=8)
     win = oracle.windows  # with a depth -> colour extrinsic: the pixels re-drawn through it, the same noise
     P = transform_points(win.T_cam_obj_gt, win.points_obj)
     T_cd = make_T(so3_exp(torch.tensor([0.02, -0.03, 0.01], dtype=P.dtype)), torch.tensor([0.025, 0.01, 0.0]).double())
     win.T_color_depth = T_cd.expand_as(win.T_color_depth).clone()
-    win.pixels = project(win.K[None], transform_points(win.T_color_depth[None], P)) + win.pixels - project(win.K[None], P)
+    win.pixels = (
+        project(win.K[None], transform_points(win.T_color_depth[None], P)) + win.pixels - project(win.K[None], P)
+    )
     with torch.no_grad():
         out = rollout(FusionEKF(jacobian="analytic"), TrueVariances(oracle), win)
     total, n = residual_nll(out, win)

@@ -15,7 +15,6 @@ error with a delta of up to T frames), or on unlabelled footage the tracker's re
 from __future__ import annotations
 
 import math
-
 from collections.abc import Callable
 from dataclasses import dataclass, fields
 from typing import NamedTuple
@@ -96,7 +95,14 @@ def concat_windows(parts: list[Windows]) -> Windows:
     return Windows(**out)
 
 
-PER_WINDOW = ("start_T_cam_obj", "K", "T_color_depth", "focal", "prev_T_cam_obj", "prev_dt")  # (B, ...); else (T, B, ...)
+PER_WINDOW = (
+    "start_T_cam_obj",
+    "K",
+    "T_color_depth",
+    "focal",
+    "prev_T_cam_obj",
+    "prev_dt",
+)  # (B, ...); else (T, B, ...)
 
 
 def _pad_features(x: Tensor, n: int) -> Tensor:

@@ -215,8 +215,15 @@ def window_loss(ekf: FusionEKF, model: Callable, win: Windows, cfg: TrainConfig)
     own count (measurements for nll, frames with ground truth for supervised), the pose errors over the frames with
     ground truth, the NLL over the used measurements. :func:`summarise` turns them into means."""
     nll = cfg.loss == "nll"
-    out = rollout(ekf, model, win, gate=cfg.gate, refit=cfg.refit, with_nll=nll,
-                  start_velocity=cfg.start_velocity == "ground_truth")
+    out = rollout(
+        ekf,
+        model,
+        win,
+        gate=cfg.gate,
+        refit=cfg.refit,
+        with_nll=nll,
+        start_velocity=cfg.start_velocity == "ground_truth",
+    )
     out, win = Rollout(*(x[cfg.burn_in :] for x in out)), frames_from(win, cfg.burn_in)  # the scored frames
     loss = nll_loss(out) if nll else supervised_loss(out, win, cfg.w_trans, cfg.w_rot)
     if cfg.residual_weight > 0:
