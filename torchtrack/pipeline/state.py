@@ -80,6 +80,9 @@ class TrackerState:
             survives a re-selection (the EKF's velocity restarts at zero there). Zero before the second frame.
         since_landmarks: (B,) long, frames since the last model or landmark re-acquisition (``landmarks.every``).
         reacquired_total: (B,) long, landmarks re-acquired so far.
+        mean_var: (B, 2) the last update's mean pixel (px^2) and 3D (m^2) variance of its features
+            (:func:`~torchtrack.estimators.landmark_update.mean_variances`): the noise level that re-acquired landmarks,
+            the keyframe window and new keyframes' landmark positions take; None before the first update.
     """
 
     prev: PreparedFrame | None = None
@@ -96,6 +99,7 @@ class TrackerState:
     velocity: Tensor | None = None
     since_landmarks: Tensor | None = None
     reacquired_total: Tensor | None = None
+    mean_var: Tensor | None = None
 
     @property
     def started(self) -> bool:
