@@ -27,12 +27,12 @@ from torchtrack.data.frame import FrameBatch
 from torchtrack.estimators.backends import Observation, PoseBackend
 from torchtrack.estimators.base import masked_mean
 from torchtrack.estimators.landmark_update import landmark_update, landmark_variances, mean_variances
+from torchtrack.filter.cues import stack_cues, window_cues
 from torchtrack.filter.models import measure_points
 from torchtrack.filter.weighting import WeightingInputs
 from torchtrack.frontend import FrontEnd, PreparedFrame
 from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, se3_log, transform_points
 from torchtrack.image.flow import TrackResult
-from torchtrack.learn.cues import stack_cues, window_cues
 from torchtrack.pipeline.keyframes import KeyframeStore
 from torchtrack.pipeline.landmark_window import refine_at_reselection
 from torchtrack.pipeline.landmarks import LandmarkMap
@@ -69,7 +69,7 @@ class Tracker:
         predict_init: improvement (False = paper): each feature's LK starts where the model point projects under the
             constant-velocity prediction of the pose (``TrackerState.velocity``), not at its previous pixel: under
             fast motion the displacement left to LK is the prediction's error, not the whole motion.
-        record: compute the per-feature cues (:mod:`torchtrack.learn.cues`) of every frame into
+        record: compute the per-feature cues (:mod:`torchtrack.filter.cues`) of every frame into
             ``StepResult.cues`` even when the weighting does not need them (for the observation cache). Poses are
             the same with and without; a weighting with ``needs_cues = True`` gets them in any case.
 
@@ -162,7 +162,7 @@ class Tracker:
 
     @staticmethod
     def _cues(s: TrackerState, cur: PreparedFrame, track: TrackResult, points_d: Tensor, valid: Tensor) -> Tensor:
-        """(B, N, C) cues of the tracked features (:data:`torchtrack.learn.cues.CUE_NAMES`), zeros where not valid."""
+        """(B, N, C) cues of the tracked features (:data:`torchtrack.filter.cues.CUE_NAMES`), zeros where not valid."""
         H, W = cur.gray.shape[-2:]
         centroid = masked_mean(points_d, valid.to(points_d.dtype))
         sim = sample_depth(cur.sim.si, track.points) if cur.sim is not None else torch.full_like(track.d_tim, 0.5)
