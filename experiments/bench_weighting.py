@@ -16,8 +16,8 @@ import json
 import torch
 from bench_ekf import timeit  # experiments/bench_ekf.py: interleaved timing of both sides in one process
 
+from torchtrack.filter.cues import CUE_NAMES, D_TIM_CAP
 from torchtrack.filter.weighting import PaperWeighting, WeightingInputs
-from torchtrack.learn.cues import CUE_NAMES, D_TIM_CAP
 from torchtrack.learn.model import LearnedWeighting
 
 

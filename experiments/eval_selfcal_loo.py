@@ -186,21 +186,26 @@ def held_out_nll(seq, weightings: dict, ekf, tc: TrainConfig) -> dict:
 
 
 def ate_runs(args, names: list[str]) -> dict:
-    """eval_weighting.py in process on the labelled folders; {sequence: {method: [ATE m per run]}}."""
-    import eval_weighting
-
+    """experiments/eval_weighting.py (a subprocess: scripts do not import scripts) on the labelled folders;
+    {sequence: {method: [ATE m per run]}}."""
     argv = ["--data", str(args.data), "--variants", "none", "--weightings", "paper,learned",
             "--learned", f"learned={DEFAULT_CHECKPOINT}", "--learned", f"loo={args.out / 'models'}/loo-{{sequence}}.pt",
             "--runs", str(args.runs), "--out", str(args.out / "ate"), "--threads", "1", *(["--reuse"] if args.reuse else [])]  # fmt: skip
     if args.max_frames:
         argv += ["--max-frames", str(args.max_frames)]
-    eval_weighting.main([*argv, "--", *args.overrides])  # "--": NAME=PATH values are not Hydra overrides
+    cmd = [sys.executable, str(REPO / "experiments" / "eval_weighting.py"), *argv, "--", *args.overrides]
+    if subprocess.run(cmd, cwd=REPO).returncode not in (0, 1):  # 1: some run failed (its cell says so)
+        raise SystemExit("eval_selfcal_loo: eval_weighting.py failed")
     rows = json.loads((args.out / "ate" / "weighting.json").read_text())["rows"]
     out = {}
     for r in rows:
         if r["sequence"] in names and r["variant"] == "real":
-            out[r["sequence"]] = r.get("noise") or {k: [eval_weighting.ate(v)] for k, v in r["runs"].items()}
+            out[r["sequence"]] = r.get("noise") or {k: [_ate(v)] for k, v in r["runs"].items()}
     return out
+
+
+def _ate(run: dict) -> float | None:
+    return (run.get("metrics") or {}).get("ate_rmse_m")
 
 
 def stats(values: list) -> tuple[float, float, float]:

@@ -17,10 +17,10 @@ from hydra import compose, initialize_config_dir
 from torchtrack.config import CONF_DIR
 from torchtrack.data import TumSequence
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence, sequence_poses
+from torchtrack.filter.cues import CUE_NAMES
 from torchtrack.geometry import T_inv, rotation_angle, so3_exp
 from torchtrack.learn import cache
 from torchtrack.learn.cache import SequenceObservations, load_observations, object_poses_gt, save_observations
-from torchtrack.learn.cues import CUE_NAMES
 from torchtrack.learn.record import record_sequences
 
 CONF = CONF_DIR

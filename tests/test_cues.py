@@ -1,4 +1,4 @@
-"""The image-window cues of cue version 2 (torchtrack/learn/cues.py) against their definitions on planted inputs.
+"""The image-window cues of cue version 2 (torchtrack/filter/cues.py) against their definitions on planted inputs.
 
 Oracles: a float64 loop over the window written out here (depth step and holes); the closed-form gradient matrix
 of I = alpha x + beta y^2 (Scharr is exact on quadratics: gx = alpha, gy = 2 beta y, so over a window of half
@@ -12,7 +12,7 @@ import math
 import numpy as np
 import torch
 
-from torchtrack.learn.cues import DEPTH_WINDOW, depth_window_cues, min_eigenvalue, window_cues
+from torchtrack.filter.cues import DEPTH_WINDOW, depth_window_cues, min_eigenvalue, window_cues
 
 
 def loop_depth_cues(depth: np.ndarray, u: float, v: float) -> tuple[float, float]:

@@ -119,6 +119,17 @@ def test_no_import_cycles():
     assert not gone, f"known cycles gone, remove them from KNOWN: {[sorted(c) for c in gone]}"
 
 
+def test_no_import_cycles_among_torchtrack_packages():
+    """Nor among the packages (torchtrack.learn, .pipeline, .filter, ...; top-level modules count as their own): the
+    tracker computes the cues (filter/cues.py) that learn/ trains on, and learn/ records through the tracker."""
+    package = {m: ".".join(m.split(".")[:2]) for m in graph() if m.startswith("torchtrack.")}
+    g: dict[str, set[str]] = {p: set() for p in package.values()}
+    for m, deps in graph().items():
+        if m in package:
+            g[package[m]] |= {package[d] for d in deps if d in package and package[d] != package[m]}
+    assert not cycles(g), f"package import cycles: {[sorted(c) for c in cycles(g)]}"
+
+
 def test_no_script_imports_the_evaluation_scripts():
     """evaluate.py and eval_weighting.py are scripts, not libraries: their shared helpers live in common.py."""
     g = graph()

@@ -7,7 +7,7 @@ import math
 import torch
 
 from torchtrack.estimators.backends import EKFBackend
-from torchtrack.estimators.landmark_update import landmark_update, landmark_variances
+from torchtrack.estimators.landmark_update import landmark_update, landmark_variances, mean_variances
 from torchtrack.filter import FusionEKF, Variances
 from torchtrack.geometry import T_inv, make_T, project, se3_exp, se3_log, so3_exp, transform_points
 
@@ -62,7 +62,9 @@ def test_uncertain_positions_move_nothing_and_masks_keep_the_state():
     valid[1] = False  # sequence 1 found none: its filter state is not touched
     before = be.state.mean.clone(), be.state.cov.clone()
     frame = Variances(torch.full((2, 5), 0.25, dtype=F64), torch.full((2, 5), 1e-6, dtype=F64))
-    var = landmark_variances(X_cam, torch.full((2, 30), 1e6, dtype=F64), frame, torch.ones(2, 5, dtype=torch.bool), K)
+    var = landmark_variances(
+        X_cam, torch.full((2, 30), 1e6, dtype=F64), mean_variances(frame, torch.ones(2, 5, dtype=torch.bool)), K
+    )
     out = landmark_update(be, T0, T_world_obj, world, X_cam, pixels, valid, var, K, T_cd)
     assert (se3_log(out.T_cam_obj @ T_inv(T0)).abs().max()) < 1e-8  # positions known to +-1 km: no information
     assert torch.equal(be.state.mean[1], before[0][1]) and torch.equal(be.state.cov[1], before[1][1])
@@ -74,7 +76,9 @@ def test_landmark_variances_add_the_position_variance():
     var = Variances(torch.tensor([[1.0, 3.0, 100.0]], dtype=F64), torch.tensor([[1e-6, 3e-6, 1.0]], dtype=F64))
     frame_valid = torch.tensor([[True, True, False]])  # the mean over the valid features: 2 px^2, 2e-6 m^2
     K = torch.tensor([[[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]], dtype=F64)
-    out = landmark_variances(X, torch.tensor([[4e-6, 1e-6]], dtype=F64), var, frame_valid, K)
+    mean = mean_variances(var, frame_valid)
+    torch.testing.assert_close(mean, torch.tensor([[2.0, 2e-6]], dtype=F64))
+    out = landmark_variances(X, torch.tensor([[4e-6, 1e-6]], dtype=F64), mean, K)
     torch.testing.assert_close(out.var_xyz, torch.tensor([[6e-6, 3e-6]], dtype=F64))
     torch.testing.assert_close(out.var_pix, torch.tensor([[2 + 250**2 * 4e-6, 2 + 125**2 * 1e-6]], dtype=F64))
     assert math.isclose(float(out.var_pix[0, 0]), 2.25)

@@ -13,9 +13,9 @@ from hydra.utils import instantiate
 
 import torchtrack.learn.checkpoint as ckpt
 from torchtrack.config import CONF_DIR
+from torchtrack.filter.cues import CUE_INDEX, CUE_NAMES, CUE_VERSION, D_TIM_CAP
 from torchtrack.filter.weighting import FixedWeighting, WeightingInputs
 from torchtrack.learn.checkpoint import load_checkpoint, save_checkpoint
-from torchtrack.learn.cues import CUE_INDEX, CUE_NAMES, CUE_VERSION, D_TIM_CAP
 from torchtrack.learn.model import LearnedWeighting, soft_clamp
 
 F64 = torch.float64

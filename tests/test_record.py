@@ -2,7 +2,7 @@
 
 Oracles: the back end replayed on the recorded observations reproduces the tracker's poses; the recorded rows are
 what the tracker's back end saw in a run that did not record; the cue columns at the literal positions of cue
-version 1 (written out here, not read from learn/cues.py), each against an independent computation of its
+version 1 (written out here, not read from filter/cues.py), each against an independent computation of its
 definition: depth read from the depth PNG, the SI map at the nearest pixel, the fallback policy's d_TIM, age and
 eq. (16) residual of the same feature one frame earlier; the LK residual against an independent bilinear sampling
 of the final windows.
@@ -28,9 +28,9 @@ from torchtrack.config import CONF_DIR
 from torchtrack.data import TumSequence, iterate_batched
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 from torchtrack.factory import build_tracker
+from torchtrack.filter import cues as cue_module
 from torchtrack.filter.weighting import PaperWeighting
 from torchtrack.image.flow import combined_track
-from torchtrack.learn import cues as cue_module
 from torchtrack.learn import record
 from torchtrack.learn.cache import load_observations
 from torchtrack.learn.dataset import synthetic_variants
@@ -38,7 +38,7 @@ from torchtrack.learn.record import record_sequences
 
 CONF = CONF_DIR
 
-# Cue version 2, written out from the documented layout (learn/cues.py's comments, DESIGN.md "Learned weighting"):
+# Cue version 2, written out from the documented layout (filter/cues.py's comments, DESIGN.md "Learned weighting"):
 # the literal column of each cue in a recording and in a checkpoint's input. A reorder without a version bump fails.
 COL = {
     "d_tim_int": 0, "d_tim_sim": 1, "sim_won": 2, "lk_residual": 3, "depth": 4, "centroid_dist": 5,

@@ -20,9 +20,9 @@ from torchtrack.config import CONF_DIR, load_option
 from torchtrack.data import TumSequence
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 from torchtrack.filter import WeightingInputs
+from torchtrack.filter.cues import CUE_NAMES
 from torchtrack.learn.cache import load_observations
 from torchtrack.learn.checkpoint import DEFAULT_CHECKPOINT, learned_weighting, load_checkpoint
-from torchtrack.learn.cues import CUE_NAMES
 from torchtrack.learn.model import LearnedWeighting
 from torchtrack.learn.record import record_sequences
 from torchtrack.learn.rollout import rollout

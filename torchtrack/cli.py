@@ -18,7 +18,8 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from torchtrack.config import CONF_DIR, exit_on_bad_overrides, validate
+from torchtrack.config import CONF_DIR, validate
+from torchtrack.console import exit_on_bad_overrides
 from torchtrack.data.errors import DataError
 from torchtrack.factory import build_mapper, build_tracker, load_sequences
 from torchtrack.run import run_tracker

@@ -54,7 +54,13 @@ class BackendResult(Protocol):
 
 
 class PoseBackend(Protocol):
-    """A pose estimator that owns its state (the filter's, or the previous pose) between frames."""
+    """A pose estimator that owns its state (the filter's, or the previous pose) between frames.
+
+    ``fuses``: whether :meth:`step` with ``dt = 0`` is a pure measurement update of the current estimate (a filter),
+    so that more measurements of the same frame can be fused into it (re-acquired landmarks); a registration baseline
+    re-estimates the pose from scratch instead."""
+
+    fuses: bool
 
     def reset(self, T_cam_obj: Tensor, mask: Tensor) -> None:
         """Start over at pose ``T_cam_obj`` (B, 4, 4) for the sequences where ``mask`` (B,) is True."""
@@ -266,6 +272,8 @@ class EKFBackend:
             winsorising quantile (:class:`~torchtrack.filter.noise_scale.NoiseScale`).
     """
 
+    fuses = True  # step(dt = 0) is a pure update (PoseBackend)
+
     def __init__(
         self,
         ekf: FusionEKF,
@@ -345,6 +353,8 @@ class RegistrationBackend:
     ``estimator(points_obj, points_d, valid, T_prev, weights)`` returns ``T_cam_obj`` (B, 4, 4).
     With ``weighted`` the 3D variances of eq. (14) become weights ``1 / var_xyz``. Owns the previous pose.
     """
+
+    fuses = False  # each step registers anew (PoseBackend)
 
     def __init__(self, estimator, weighted: bool = False) -> None:
         self.estimator = estimator

@@ -27,23 +27,29 @@ from torchtrack.filter.weighting import Variances
 from torchtrack.geometry import T_inv, transform_points
 
 
-def landmark_variances(points_cam: Tensor, var_world: Tensor, var: Variances, frame_valid: Tensor,
-                       K: Tensor) -> Variances:  # fmt: skip
+def landmark_variances(points_cam: Tensor, var_world: Tensor, mean_var: Tensor, K: Tensor) -> Variances:
     """(B, C) variances of re-acquired landmarks as measurements (module docstring).
 
     Args:
         points_cam: (B, C, 3) their points measured from depth now (depth camera; z sets the pixel term).
         var_world: (B, C) m^2 per coordinate, the variance of their stored world positions.
-        var: the frame's :class:`Variances` (B, N) of the tracked features; frame_valid: (B, N) which count.
+        mean_var: (B, 2) the frame's mean (pixel px^2, 3D m^2) variance of its tracked features
+            (:func:`mean_variances`).
         K: (B, 3, 3) colour intrinsics (its focal length).
     """
-    w = frame_valid.to(var.var_pix.dtype)
-    n = w.sum(1).clamp_min(1.0)
-    v_pix, v_xyz = (var.var_pix * w).sum(1) / n, (var.var_xyz * w).sum(1) / n  # B
     f = K[:, 0, 0, None].to(points_cam.dtype)
     z = points_cam[..., 2].clamp_min(1e-3)
     vw = var_world.to(points_cam.dtype)
-    return Variances(v_pix[:, None].to(vw.dtype) + (f / z) ** 2 * vw, v_xyz[:, None].to(vw.dtype) + vw)
+    v = mean_var.to(vw.dtype)
+    return Variances(v[:, :1] + (f / z) ** 2 * vw, v[:, 1:] + vw)
+
+
+def mean_variances(var: Variances, valid: Tensor) -> Tensor:
+    """(B, 2) the mean pixel and 3D variance of the valid (B, N) features of ``var`` (B, N): what a frame's
+    re-acquired landmarks and keyframe window take as its noise level."""
+    w = valid.to(var.var_pix.dtype)
+    n = w.sum(1).clamp_min(1.0)
+    return torch.stack([(var.var_pix * w).sum(1) / n, (var.var_xyz * w).sum(1) / n], 1)
 
 
 class LandmarkUpdate(NamedTuple):

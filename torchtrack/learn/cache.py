@@ -6,7 +6,7 @@ sequence, ``<sequence name>.pt``: ``torch.save`` of a dict (read with ``torch.lo
 needed), written atomically (:func:`torchtrack.io.write_atomic`).
 
 Metadata: ``format`` = ``"torchtrack-observations"``, ``version`` (:data:`VERSION`), ``cue_names`` and
-``cue_version`` (:mod:`torchtrack.learn.cues`), ``sequence`` (name), ``source`` (the sequence's folder),
+``cue_version`` (:mod:`torchtrack.filter.cues`), ``sequence`` (name), ``source`` (the sequence's folder),
 ``config`` (the recording's resolved front-end and back-end config, YAML text), ``weighting`` (the weighting's
 class path, whose variances are stored).
 
@@ -25,7 +25,7 @@ points_obj             (T, N, 3)     float32   model points X_o in ``obj``, m (t
 points_d               (T, N, 3)     float32   measured points X_d in ``cam``, m, eq. (6)
 pixels                 (T, N, 2)     float32   tracked pixels in the colour image, px, eq. (7)
 valid                  (T, N)        bool      the feature is measured (row 0, the first selection: all False)
-cues                   (T, N, C)     float32   :data:`~torchtrack.learn.cues.CUE_NAMES`; zeros where not valid
+cues                   (T, N, C)     float32   :data:`~torchtrack.filter.cues.CUE_NAMES`; zeros where not valid
 var_pix, var_xyz       (T, N)        float32   the recording weighting's variances, px^2 and m^2 (0 in row 0)
 reselected             (T,)          bool      a new model was taken at the END of frame t (row 0: the first model)
 model_T_cam_obj        (T, 4, 4)     float64   the pose the back end was reset to then (identity where not reselected)
@@ -61,11 +61,11 @@ import torch
 from torch import Tensor
 
 from torchtrack.estimators.backends import Observation
+from torchtrack.filter.cues import CUE_NAMES, CUE_VERSION, check_cue_names
 from torchtrack.filter.weighting import Variances
 from torchtrack.geometry import T_inv
 from torchtrack.geometry.rig import T_world_depth_from_color
 from torchtrack.io import write_atomic
-from torchtrack.learn.cues import CUE_NAMES, CUE_VERSION, check_cue_names
 
 FORMAT = "torchtrack-observations"
 VERSION = 2  # 2: T_world_color_gt (was T_world_cam_gt); T_cam_obj_gt from the depth camera's ground truth

@@ -3,7 +3,7 @@
 Layout (a plain dict, loadable with ``torch.load(weights_only=True)``)::
 
     {"format": "torchtrack-weighting", "version": 1,
-     "cue_names": [...], "cue_version": int,      # the cues the model was trained on (torchtrack.learn.cues)
+     "cue_names": [...], "cue_version": int,      # the cues the model was trained on (torchtrack.filter.cues)
      "model": {constructor kwargs},               # LearnedWeighting(**model): mode, sigma2s, width, bounds
      "state_dict": {...},
      **extra}                                     # the trainer's resolved config, metrics, ...
@@ -18,8 +18,8 @@ from pathlib import Path
 
 import torch
 
+from torchtrack.filter.cues import CUE_NAMES, CUE_VERSION, check_cue_names
 from torchtrack.io import write_atomic
-from torchtrack.learn.cues import CUE_NAMES, CUE_VERSION, check_cue_names
 from torchtrack.learn.model import LearnedWeighting
 
 FORMAT = "torchtrack-weighting"

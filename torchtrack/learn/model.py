@@ -2,7 +2,7 @@
 
 ``LearnedWeighting(inputs) -> Variances(var_pix, var_xyz)``, the interface of
 :class:`~torchtrack.filter.weighting.PaperWeighting`, so it drops into the tracker unchanged. It reads
-``inputs.cues`` (B, N, C) in :data:`~torchtrack.learn.cues.CUE_NAMES` order (``needs_cues = True`` asks the
+``inputs.cues`` (B, N, C) in :data:`~torchtrack.filter.cues.CUE_NAMES` order (``needs_cues = True`` asks the
 tracker to fill them) and ``inputs.valid``; ``inputs.depth`` only for the optional depth prior.
 
 Architecture (DeepSets, permutation-equivariant over the features of a frame)::
@@ -38,8 +38,8 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
+from torchtrack.filter.cues import CUE_NAMES
 from torchtrack.filter.weighting import Variances, WeightingInputs
-from torchtrack.learn.cues import CUE_NAMES
 
 # Fixed input normalisation, one entry per cue: (kind, scale). Part of the model's definition: changing it
 # changes what a checkpoint means (bump checkpoint.VERSION). Kinds:

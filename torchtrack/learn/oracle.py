@@ -20,9 +20,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchtrack.filter.cues import CUE_INDEX, CUE_NAMES
 from torchtrack.filter.weighting import Variances, WeightingInputs
 from torchtrack.geometry import intrinsics_matrix, make_T, project, so3_exp, transform_points
-from torchtrack.learn.cues import CUE_INDEX, CUE_NAMES
 from torchtrack.learn.rollout import Windows
 
 F64 = torch.float64

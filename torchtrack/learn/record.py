@@ -22,8 +22,8 @@ from tqdm import tqdm
 from torchtrack.data.batching import FrameCursor, RGBDSequence, iterate_batched
 from torchtrack.data.frame import FrameBatch
 from torchtrack.factory import build_tracker
+from torchtrack.filter.cues import CUE_NAMES
 from torchtrack.learn.cache import SequenceObservations, load_observations, object_poses_gt, save_observations
-from torchtrack.learn.cues import CUE_NAMES
 from torchtrack.pipeline import StepResult
 from torchtrack.run import unique_names
 

@@ -23,11 +23,11 @@ import torch
 from torch import Tensor
 
 from torchtrack.estimators.backends import Observation, ekf_frame
+from torchtrack.filter.cues import CUE_INDEX
 from torchtrack.filter.fusion import FusionEKF
 from torchtrack.filter.models import euler_velocity
 from torchtrack.filter.weighting import Variances, WeightingInputs
 from torchtrack.geometry import T_inv, project, so3_log, transform_points
-from torchtrack.learn.cues import CUE_INDEX
 
 
 @dataclass
@@ -38,7 +38,7 @@ class Windows:
         start_T_cam_obj: (B, 4, 4) the filter's starting pose at the frame before the window (the model's pose, its
             ground truth, or the tracker's recorded estimate where it has none).
         dt: (T, B) seconds; points_obj, points_d: (T, B, N, 3); pixels: (T, B, N, 2); valid: (T, B, N) bool;
-        cues: (T, B, N, C) (:data:`torchtrack.learn.cues.CUE_NAMES`).
+        cues: (T, B, N, C) (:data:`torchtrack.filter.cues.CUE_NAMES`).
         K: (B, 3, 3) colour intrinsics; T_color_depth: (B, 4, 4); focal: (B,) depth focal length (eq. 12's f).
         reselected: (T, B) bool, the model was re-selected after frame t's update; model_T_cam_obj: (T, B, 4, 4)
             the pose the filter is then reset to.

@@ -21,7 +21,8 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from torchtrack.config import CONF_DIR, console_main, load_option
+from torchtrack.config import CONF_DIR, load_option
+from torchtrack.console import console_main
 from torchtrack.data.errors import DataError
 from torchtrack.io import write_atomic
 from torchtrack.learn.cache import SequenceObservations, load_observations

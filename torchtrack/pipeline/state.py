@@ -34,7 +34,7 @@ class StepResult:
         observation: what the back end saw this frame (None on the first frame). Its features are those of
             ``pixels``/``valid`` BEFORE the outlier drop (``outliers.max_residual_px``); a re-selection comes after.
         variances: the weighting's output that went with ``observation`` (None on the first frame).
-        cues: (B, N, C) float32 cues (:data:`torchtrack.learn.cues.CUE_NAMES`) of the observation's features,
+        cues: (B, N, C) float32 cues (:data:`torchtrack.filter.cues.CUE_NAMES`) of the observation's features,
             zeros where not valid; only when the weighting needs them or the tracker records (else None).
         model_T_cam_obj: (B, 4, 4) float64, where ``reselected``: the pose the back end was reset to when the new
             model was taken at the end of this frame (other rows: the current pose); None when no re-selection.
@@ -80,6 +80,9 @@ class TrackerState:
             survives a re-selection (the EKF's velocity restarts at zero there). Zero before the second frame.
         since_landmarks: (B,) long, frames since the last model or landmark re-acquisition (``landmarks.every``).
         reacquired_total: (B,) long, landmarks re-acquired so far.
+        mean_var: (B, 2) the last update's mean pixel (px^2) and 3D (m^2) variance of its features
+            (:func:`~torchtrack.estimators.landmark_update.mean_variances`): the noise level that re-acquired landmarks,
+            the keyframe window and new keyframes' landmark positions take; None before the first update.
     """
 
     prev: PreparedFrame | None = None
@@ -96,6 +99,7 @@ class TrackerState:
     velocity: Tensor | None = None
     since_landmarks: Tensor | None = None
     reacquired_total: Tensor | None = None
+    mean_var: Tensor | None = None
 
     @property
     def started(self) -> bool:

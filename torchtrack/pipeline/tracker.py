@@ -26,13 +26,13 @@ from torchtrack.config import PipelineConfig
 from torchtrack.data.frame import FrameBatch
 from torchtrack.estimators.backends import Observation, PoseBackend
 from torchtrack.estimators.base import masked_mean
-from torchtrack.estimators.landmark_update import landmark_update, landmark_variances
+from torchtrack.estimators.landmark_update import landmark_update, landmark_variances, mean_variances
+from torchtrack.filter.cues import stack_cues, window_cues
 from torchtrack.filter.models import measure_points
 from torchtrack.filter.weighting import WeightingInputs
 from torchtrack.frontend import FrontEnd, PreparedFrame
 from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, se3_log, transform_points
 from torchtrack.image.flow import TrackResult
-from torchtrack.learn.cues import stack_cues, window_cues
 from torchtrack.pipeline.keyframes import KeyframeStore
 from torchtrack.pipeline.landmark_window import refine_at_reselection
 from torchtrack.pipeline.landmarks import LandmarkMap
@@ -69,7 +69,7 @@ class Tracker:
         predict_init: improvement (False = paper): each feature's LK starts where the model point projects under the
             constant-velocity prediction of the pose (``TrackerState.velocity``), not at its previous pixel: under
             fast motion the displacement left to LK is the prediction's error, not the whole motion.
-        record: compute the per-feature cues (:mod:`torchtrack.learn.cues`) of every frame into
+        record: compute the per-feature cues (:mod:`torchtrack.filter.cues`) of every frame into
             ``StepResult.cues`` even when the weighting does not need them (for the observation cache). Poses are
             the same with and without; a weighting with ``needs_cues = True`` gets them in any case.
 
@@ -100,7 +100,6 @@ class Tracker:
         self.landmarks, self.relocaliser = landmarks, relocaliser
         self.predict_init, self.record = predict_init, record
         self.state = TrackerState()
-        self._frame_var = None  # (Variances (B, N), valid (B, N)) of the last tracked frame
 
     @property
     def wants_cues(self) -> bool:
@@ -139,7 +138,7 @@ class Tracker:
         # more measurements of the current model join ``obs`` (and ``var``) here, e.g. re-acquired landmarks
         # (:meth:`~torchtrack.pipeline.landmarks.Reacquired.observation`), so that the back end weighs them in its update
         est = self.backend.step(obs, var, active=frame.active)  # eqs. (2)-(7), (15)
-        self._frame_var = (var, valid)  # the landmarks' measurements and keyframes take this frame's mean variances
+        s = replace(s, mean_var=mean_variances(var, valid))  # this frame's noise level, for the landmarks
         tracked = self._advanced(s, frame, cur, track.points, valid, est.T_cam_obj.double())  # and the outlier drop
         if self.landmarks is not None and self.landmarks.every > 0:
             tracked = self._reanchored(tracked, frame, cur)  # every k frames: landmarks back into the current model
@@ -163,7 +162,7 @@ class Tracker:
 
     @staticmethod
     def _cues(s: TrackerState, cur: PreparedFrame, track: TrackResult, points_d: Tensor, valid: Tensor) -> Tensor:
-        """(B, N, C) cues of the tracked features (:data:`torchtrack.learn.cues.CUE_NAMES`), zeros where not valid."""
+        """(B, N, C) cues of the tracked features (:data:`torchtrack.filter.cues.CUE_NAMES`), zeros where not valid."""
         H, W = cur.gray.shape[-2:]
         centroid = masked_mean(points_d, valid.to(points_d.dtype))
         sim = sample_depth(cur.sim.si, track.points) if cur.sim is not None else torch.full_like(track.d_tim, 0.5)
@@ -220,7 +219,6 @@ class Tracker:
     # ---------------------------------------------------------------------------------------------- the model
     def _start(self, frame: FrameBatch, cur: PreparedFrame) -> StepResult:
         """First frame: every sequence takes it as its model; the world is the first camera."""
-        self._frame_var = None
         B, dev = frame.rgb.shape[0], frame.rgb.device
         eye = torch.eye(4, dtype=torch.float64, device=dev).expand(B, 4, 4).clone()
         zero = torch.zeros(B, 6, dtype=torch.float64, device=dev)
@@ -288,15 +286,14 @@ class Tracker:
         if self.landmarks is None:
             return kept, None, s
         acq = self.landmarks.reacquire_into(self.keyframes, self.flow, cur, frame.K, frame.T_color_depth, s, keep, mask)
-        if self.landmarks.measure and self._frame_var is not None and hasattr(self.backend, "ekf"):  # issue 24: fused
-            # by the filter in a second update of this frame (dt = 0); a registration baseline keeps the frame's pose
-            var, valid = self._frame_var
-            lm_var = landmark_variances(acq.points_cam, acq.var_world, var, valid, frame.K)
+        if self.landmarks.measure and s.mean_var is not None and self.backend.fuses:  # fused by the filter in a
+            # second update of this frame (dt = 0); a registration baseline keeps the frame's pose
+            lm_var = landmark_variances(acq.points_cam, acq.var_world, s.mean_var, frame.K)
             upd = landmark_update(self.backend, s.T_cam_obj, s.T_world_obj, acq.points_world, acq.points_cam,
                                   acq.pixels, acq.valid & mask[:, None], lm_var, frame.K, frame.T_color_depth)  # fmt: skip
             s = replace(s, T_cam_obj=upd.T_cam_obj)
             acq = acq._replace(valid=acq.valid & (upd.used | ~upd.updated[:, None]), T_world_depth=s.T_world_depth)
-        if self.landmarks.refiner is not None and self._frame_var is not None:  # issue 24: the keyframe window
+        if self.landmarks.refiner is not None and s.mean_var is not None:  # the keyframe window
             s, acq = self._refined(s, acq, frame, cur, keep, mask)
         T_world_depth = torch.where(mask[:, None, None], acq.T_world_depth, s.T_world_depth)
         found = acq.valid & mask[:, None]
@@ -310,9 +307,7 @@ class Tracker:
         """``s`` and ``acq`` after the keyframe window's refinement (:mod:`torchtrack.pipeline.landmark_window`): the
         refined camera becomes the back end's pose (``set_pose``), the re-acquired landmarks take their refined
         positions and inliers."""
-        var, valid = self._frame_var
-        n = valid.sum(1).clamp_min(1)
-        v_pix, v_xyz = (var.var_pix * valid).sum(1) / n, (var.var_xyz * valid).sum(1) / n
+        v_pix, v_xyz = s.mean_var.unbind(1)
         X_tr, has = measure_points(cur.depth, frame.K, frame.T_color_depth, s.pixels)
         world = transform_points(s.T_world_obj, s.points_obj.double())
         ref = refine_at_reselection(self.landmarks, self.keyframes, self.landmarks.refiner, acq, s.pixels, keep & has,
@@ -350,10 +345,7 @@ class Tracker:
         if self.landmarks is not None:  # a model keyframe's features are landmarks at their world positions
             world = transform_points(s.T_world_obj, s.points_obj.double())
             model_slot = torch.where(reselected, slot, -1)
-            var_xyz = None
-            if self._frame_var is not None:  # the frame's mean 3D variance: the landmarks' position variance
-                var, valid = self._frame_var
-                var_xyz = (var.var_xyz * valid).sum(1) / valid.sum(1).clamp_min(1)
+            var_xyz = None if s.mean_var is None else s.mean_var[:, 1]  # the landmarks' position variance
             self.landmarks.add(self.keyframes, model_slot, cur, s.pixels, world, s.cornerness, s.valid, var_xyz)
         if self.relocaliser is not None:
             self.relocaliser.add(slot, frame, cur, s.T_world_depth)
