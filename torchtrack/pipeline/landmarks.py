@@ -125,6 +125,7 @@ class LandmarkMap:
         warp: bool = LandmarkConfig.warp,
         warp_crop: int = LandmarkConfig.warp_crop,
         refine: bool = LandmarkConfig.refine,
+        window: WindowRefiner | None = None,
     ) -> None:
         if per_keyframe < 1 or max_candidates < 1:
             raise ValueError(f"LandmarkMap: per_keyframe and max_candidates must be >= 1, got "
@@ -140,7 +141,8 @@ class LandmarkMap:
             raise ValueError(f"landmarks.every must be >= 0, got {every}")
         self.every = every
         self.measure, self.warp, self.warp_crop = measure, warp, warp_crop
-        self.refiner = WindowRefiner() if refine else None  # the keyframe window (torchtrack.pipeline.landmark_window)
+        # the keyframe window (torchtrack.pipeline.landmark_window); ``window`` None: WindowConfig's refiner
+        self.refiner = (window if window is not None else WindowRefiner()) if refine else None
         self.reset()
 
     def reset(self) -> None:
