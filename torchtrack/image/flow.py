@@ -81,6 +81,41 @@ def prepare_frame(
     return FlowFrame(images, build_pyramid(images, levels, window=max_window))
 
 
+def zero_frame(images: tuple[Tensor, ...], levels: int = FlowConfig.levels, *, max_window: int = 31) -> FlowFrame:
+    """:func:`prepare_frame` of K (B, 1, H, W) images that are all zeros, without building: the pyramid of zero images
+    is zeros, laid out as :func:`~torchtrack.image.pyramid.build_pyramid` lays out K * B images (the frame's
+    ``images`` are ``images`` themselves). A buffer to copy other frames' pyramids into, image by image."""
+    (b, c, h, w), pad = images[0].shape, max_window // 2 + 3
+    b *= len(images)
+    sizes = [(h, w)]
+    for _ in range(levels - 1):
+        sizes.append(((sizes[-1][0] + 1) // 2, (sizes[-1][1] + 1) // 2))
+    heights = [hl + 2 * pad for hl, _ in sizes]
+    starts = torch.tensor([0] + heights[:-1]).cumsum(0) * b  # first buffer row of each level
+    with torch.inference_mode():
+        buf = images[0].new_zeros(c, sum(heights) * b, w + 2 * pad, dtype=torch.float32)
+        views = [buf[:, int(s0) : int(s0) + b * ht].view(c, b, ht, -1)[..., pad : pad + hl, pad : pad + wl].transpose(0, 1)
+                 for s0, ht, (hl, wl) in zip(starts, heights, sizes, strict=True)]  # fmt: skip
+    row_start = starts[:, None] + torch.arange(b)[None, :] * torch.tensor(heights)[:, None]
+    pyr = Pyramid(views, buf.view(-1), row_start, stride=w + 2 * pad, plane=buf[0].numel(), pad=pad)
+    return FlowFrame(tuple(x.float() for x in images), pyr)
+
+
+def repeat_frame(frame: FlowFrame, times: int) -> FlowFrame:
+    """``frame`` seen as ``times`` copies of its batch B, without copying a pixel: image k * (times B) + t B + b of
+    the result is image k * B + b of ``frame`` (the layout of a frame of batch times * B). The pyramid shares the
+    frame's buffer with its row table repeated; the images are shape-only (NaN) placeholders, so the result serves
+    as an LK pyramid only (the torch back end of :func:`combined_track`), e.g. the current frame as next for prev
+    frames stacked from ``times`` keyframes (:class:`~torchtrack.pipeline.landmarks.LandmarkMap`)."""
+    pyr, b, k = frame.pyramid, frame.batch, len(frame.images)
+    idx = (torch.arange(k)[:, None, None] * b + torch.arange(b)[None, None, :]).expand(k, times, b).reshape(-1)
+    nan = torch.full((), float("nan"))
+    shape = lambda x: nan.expand(x.shape[0] * times, *x.shape[1:])  # noqa: E731
+    rep = Pyramid([shape(x) for x in pyr.images], pyr.flat, pyr.row_start.index_select(1, idx), pyr.stride,
+                  pyr.plane, pyr.pad)  # fmt: skip
+    return FlowFrame(tuple(shape(x) for x in frame.images), rep)
+
+
 class TrackResult(NamedTuple):
     """Per feature (all (B, N)): the combined tracker's output.
 
