@@ -394,7 +394,9 @@ class LandmarkMap:
             for level in range(dst.levels):
                 h = dst.size(level)[0] + 2 * dst.pad  # rows of one image of this level; its images are contiguous
                 block = lambda p: p.flat[int(p.row_start[level, 0]) * p.stride :][: p.batch * h * p.stride]  # noqa: E731
-                block(dst).view(K, S, B, h, dst.stride)[:, slot, rows] = block(src).view(K, B, h, src.stride)[:, rows]
+                to, of = block(dst).view(K, S, B, h, dst.stride), block(src).view(K, B, h, src.stride)
+                for s, b in zip(slot.tolist(), rows.tolist(), strict=True):  # plain copies of each image
+                    to[:, s, b].copy_(of[:, b])
 
     def _warped(self, s: int, flow: Callable, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor,
                 store: KeyframeStore, T_world_depth: Tensor, index: Tensor, kf_pix: Tensor, proj: Tensor,
@@ -471,31 +473,38 @@ def refine_pose(K: Tensor, T_color_world: Tensor, world: Tensor, pixels: Tensor,
     Linearised at the current estimate each iteration (left perturbation ``exp(xi) T``, xi = (v, omega)).
     """
     T = T_color_world.double()
-    K = K.double()
+    K, world, measured, pixels = K.double(), world.double(), measured.double(), pixels.double()
     fx, fy, cx, cy = K[:, 0, 0, None], K[:, 1, 1, None], K[:, 0, 2, None], K[:, 1, 2, None]
     w = valid.double()
     eye = torch.eye(6, dtype=torch.float64, device=T.device)
     for i in range(iters + 1):
-        p = transform_points(T, world.double())  # B,C,3
-        x, y, z = p.unbind(-1)
-        z = z.clamp_min(1e-3)
-        r2 = torch.stack([fx * x / z + cx - pixels[..., 0], fy * y / z + cy - pixels[..., 1]], -1) / sigma_px
+        p = transform_points(T, world)  # B,C,3
+        px, py, pz = p.unbind(-1)
+        z = pz.clamp_min(1e-3)
+        r2 = torch.stack([fx * px / z + cx - pixels[..., 0], fy * py / z + cy - pixels[..., 1]], -1) / sigma_px
         sig3 = sigma_m * z.square().clamp_min(1.0)
-        r3 = (p - measured.double()) / sig3[..., None]
-        r = torch.cat([r2, r3], -1)  # B,C,5
-        err = torch.linalg.vector_norm(r, dim=-1)
+        r3 = (p - measured) / sig3[..., None]
+        err = torch.linalg.vector_norm(torch.cat([r2, r3], -1), dim=-1)
         if i == iters:
             break
+        # the pixel rows of J: Jp [I, -[p]x] / sigma_px, Jp = [[a, 0, b], [0, c, d]] the projection's derivative,
+        # written out (tiny batched matmuls are slow); the 3D rows: [I, -[p]x] / sig3
+        a, b, c, d = fx / z, -fx * px / z**2, fy / z, -fy * py / z**2
         zero = torch.zeros_like(z)
-        Jp = torch.stack([torch.stack([fx / z, zero, -fx * x / z**2], -1),
-                          torch.stack([zero, fy / z, -fy * y / z**2], -1)], -2)  # fmt: skip  # B,C,2,3
-        Jxi = point_jacobian(p)  # B,C,3,6
-        J = torch.cat([Jp @ Jxi / sigma_px, Jxi / sig3[..., None, None]], -2)  # B,C,5,6
+        J2 = torch.stack([a, zero, b, b * py, a * pz - b * px, -a * py,
+                          zero, c, d, d * py - c * pz, -d * px, c * px], -1).view(*z.shape, 2, 6) / sigma_px  # fmt: skip
+        J3 = point_jacobian(p) / sig3[..., None, None]  # B,C,3,6
         hw = torch.where(err <= huber, 1.0, huber / err.clamp_min(1e-12)) * w
-        H = torch.einsum("bcki,bckj,bc->bij", J, J, hw) + 1e-6 * eye
-        g = torch.einsum("bcki,bck,bc->bi", J, r, hw)
-        T = se3_exp(-torch.linalg.solve(H, g)) @ T
+        H2, g2 = _normal_equations(J2, r2, hw)
+        H3, g3 = _normal_equations(J3, r3, hw)
+        T = se3_exp(-torch.linalg.solve(H2 + H3 + 1e-6 * eye, g2 + g3)) @ T
     return PoseFit(T, valid & (err <= inlier))
+
+
+def _normal_equations(J: Tensor, r: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
+    """sum_c w_c J_c^T J_c (B, 6, 6) and sum_c w_c J_c^T r_c (B, 6) of J (B, C, k, 6), r (B, C, k), w (B, C)."""
+    Jw = (J * w[..., None, None]).flatten(1, 2).mT  # B,6,Ck
+    return Jw @ J.flatten(1, 2), (Jw @ r.flatten(1, 2)[..., None])[..., 0]
 
 
 def _take(x: Tensor, order: Tensor, n: int) -> Tensor:
