@@ -84,6 +84,7 @@ STAGES = {
     "backend": ("backend: EKF (total)", 0),
     "backend/predict": ("predict (eqs. 3-4)", 1),
     "backend/linearize": ("linearise h (eqs. 6-7; filter.jacobian)", 1),
+    "landmarks": ("landmarks: re-acquisition at re-selections (its LK call counted in flow too)", 0),
     "region": ("selection: region", 0),
     "select": ("selection: features (eq. 9)", 0),
     "record": ("run loop: per-frame recording (run.py)", 0),
@@ -122,6 +123,8 @@ class StageTimer:
             finally:
                 self.running.pop()
                 self.add(name, time.perf_counter() - t0)
+                if self.running:  # nested: also under its caller's name (the landmarks' flow call: counted twice)
+                    self.add(f"{self.running[-1]}/{name}", time.perf_counter() - t0)
 
         return timed
 
@@ -192,8 +195,11 @@ def instrument(tracker, timer: StageTimer) -> contextlib.ExitStack:
         ekf.predicted = timer.wrap("backend/predict", ekf.predicted)
         ekf.linearize_at = timer.wrap("backend/linearize", ekf.linearize_at)
     backend.step = timer.wrap("backend", backend.step)
-    for attr in ("frontend", "flow", "weighting", "region", "select"):
-        setattr(tracker, attr, Timed(getattr(tracker, attr), attr, timer))
+    for owner, attr in ((tracker, "frontend"), (tracker, "flow"), (tracker, "weighting"), (tracker.reselect, "region"),
+                        (tracker.reselect, "select")):  # fmt: skip
+        setattr(owner, attr, Timed(getattr(owner, attr), attr, timer))
+    if tracker.landmarks is not None:
+        tracker.landmarks.reacquire = timer.wrap("landmarks", tracker.landmarks.reacquire)
     stack = contextlib.ExitStack()
     for method, stage in (("add", "record"), ("finish", "write")):
         original = getattr(run_module.Recorder, method)
@@ -400,6 +406,7 @@ def stage_table(runs: list[dict], ops: dict | None = None) -> str:
     for key, (label, indent) in STAGES.items():
         lines.append(row("&nbsp;&nbsp;" * indent + label, key, [r["stages"].get(key) for r in runs]))
     rest = [r["wall_s"] - sum(r["stages"].get(k, 0.0) for k in TOP_LEVEL) for r in runs]
+    rest = [x + r["stages"].get("landmarks/flow", 0.0) for x, r in zip(rest, runs, strict=True)]  # counted twice
     lines.append(row("other (tracker step glue: state, eq. 16, re-selection)", "other", rest))
     if ops:
         ops["ops"]["total"] = sum(ops["ops"].get(k, 0) for k in [*TOP_LEVEL, "other"])
