@@ -393,8 +393,8 @@ class LandmarkMap:
         with torch.inference_mode():  # the pyramids' buffers are inference tensors (build_pyramid)
             for level in range(dst.levels):
                 h = dst.size(level)[0] + 2 * dst.pad  # rows of one image of this level; its images are contiguous
-                block = lambda p: p.flat[int(p.row_start[level, 0]) * p.stride :][: p.batch * h * p.stride]  # noqa: E731
-                to, of = block(dst).view(K, S, B, h, dst.stride), block(src).view(K, B, h, src.stride)
+                to, of = (p.flat[int(p.row_start[level, 0]) * p.stride :][: p.batch * h * p.stride] for p in (dst, src))
+                to, of = to.view(K, S, B, h, dst.stride), of.view(K, B, h, src.stride)
                 for s, b in zip(slot.tolist(), rows.tolist(), strict=True):  # plain copies of each image
                     to[:, s, b].copy_(of[:, b])
 
