@@ -20,6 +20,10 @@ into a temporary folder; no plots). So decoding and writing are included. Report
   forward and backward ``cv2.calcOpticalFlowPyrLK`` (the CLI's LK parameters, forward-backward error <= 1 px),
   depth at the tracked points, Horn's closed form frame to frame, Shi-Tomasi re-detection when half are lost.
   Target (issue 25): the CLI's ms per frame <= 1.45x it, and >= 30 fps.
+- Landmark re-acquisition (issue 25, ``--only reacquire``): main-thread CPU per call and per frame of
+  ``LandmarkMap.reacquire`` with one batched LK call over all keyframe slots vs one call per slot (the reference),
+  alternating in this process. Target: <= 2 ms per frame.
+- One LK forward pass of 300 points vs OpenCV's (issue 25, ``--only lk``): ``bench_lk.py --one-pass``'s table.
 
 All timings are wall clock on a shared machine: the header prints the load average; ratios come from runs
 interleaved in one session.
@@ -313,6 +317,21 @@ def reacquire_report(cfg: DictConfig, seq, repeats: int) -> None:
           f"<= {TARGET_REACQUIRE_MS:.0f} ms per frame: {'met' if new['frame_ms'] <= TARGET_REACQUIRE_MS else 'NOT met'})")  # fmt: skip
 
 
+def lk_report(threads: int, repeats: int = 40) -> None:
+    """The issue's LK row: one forward LK pass of 300 points with the next frame's pyramid vs OpenCV's
+    (``bench_lk.py --one-pass``, the same table)."""
+    import argparse as _argparse
+
+    import bench_lk
+    import cv2
+
+    cv2.setNumThreads(threads)
+    data = bench_lk.load_pairs("sun3d_fragment1", 1, 300)
+    args = dict(winSize=(21, 21), maxLevel=2, minEigThreshold=1e-4,
+                criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))  # fmt: skip
+    bench_lk.print_one_pass(data, args, _argparse.Namespace(levels=3, window=21, repeats=repeats, threads=threads))
+
+
 def median_of(repeats: int, fn) -> dict:
     """The run of median wall time among ``repeats`` runs, with the spread of their fps."""
     runs = sorted((fn() for _ in range(repeats)), key=lambda r: r["wall_s"])
@@ -503,7 +522,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--batch", type=int, default=8, help="B of the lockstep run (the same sequence B times)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads of the B=1 runs and of the processes")
     ap.add_argument("--repeats", type=int, default=5, help="uninstrumented runs at B=1; the median is reported")
-    ap.add_argument("--only", choices=("b1", "batch", "startup", "reacquire"), help="one part only")
+    ap.add_argument("--only", choices=("b1", "batch", "startup", "reacquire", "lk"), help="one part only")
     ap.add_argument("--no-peer", action="store_true", help="skip Open3D's RGB-D odometry")
     ap.add_argument("--worker", type=int, default=0, help=argparse.SUPPRESS)  # internal: a parallel B=1 process
     args = ap.parse_args([a for a in argv if a not in overrides])
@@ -548,6 +567,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"Open3D RGB-D odometry (peer), same frames: {peer:.1f} fps; ours / peer = {plain['fps'] / peer:.2f}")
     if args.only in (None, "b1", "reacquire"):
         reacquire_report(cfg, seq, 3)
+    if args.only in (None, "lk") and root is not None:
+        lk_report(args.threads)
     if args.only in (None, "batch"):
         batch_report(args, overrides, cfg, seq, plain)
     if args.only in (None, "startup"):
