@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchtrack.geometry.rotation import _sinc_terms, hat, so3_exp, so3_log
+from torchtrack.geometry.rotation import _sinc_terms, hat, so3_log
 
 
 def make_T(R: Tensor, t: Tensor) -> Tensor:

@@ -26,7 +26,7 @@ from torch import Tensor
 
 from torchtrack.config import FlowConfig
 from torchtrack.image.lk import lk_track_flat, tim_error
-from torchtrack.image.pyramid import Pyramid, build_pyramid
+from torchtrack.image.pyramid import Pyramid, build_pyramid, layout
 
 Mode = Literal["combined", "intensity", "sim"]
 _CHANNELS = {"combined": (0, 1), "intensity": (0,), "sim": (1,)}
@@ -85,18 +85,13 @@ def zero_frame(images: tuple[Tensor, ...], levels: int = FlowConfig.levels, *, m
     """:func:`prepare_frame` of K (B, 1, H, W) images that are all zeros, without building: the pyramid of zero images
     is zeros, laid out as :func:`~torchtrack.image.pyramid.build_pyramid` lays out K * B images (the frame's
     ``images`` are ``images`` themselves). A buffer to copy other frames' pyramids into, image by image."""
-    (b, c, h, w), pad = images[0].shape, max_window // 2 + 3
+    b, c, h, w = images[0].shape
     b *= len(images)
-    sizes = [(h, w)]
-    for _ in range(levels - 1):
-        sizes.append(((sizes[-1][0] + 1) // 2, (sizes[-1][1] + 1) // 2))
-    heights = [hl + 2 * pad for hl, _ in sizes]
-    starts = torch.tensor([0] + heights[:-1]).cumsum(0) * b  # first buffer row of each level
+    pad, sizes, heights, starts, row_start = layout(b, h, w, levels, max_window)
     with torch.inference_mode():
         buf = images[0].new_zeros(c, sum(heights) * b, w + 2 * pad, dtype=torch.float32)
         views = [buf[:, int(s0) : int(s0) + b * ht].view(c, b, ht, -1)[..., pad : pad + hl, pad : pad + wl].transpose(0, 1)
                  for s0, ht, (hl, wl) in zip(starts, heights, sizes, strict=True)]  # fmt: skip
-    row_start = starts[:, None] + torch.arange(b)[None, :] * torch.tensor(heights)[:, None]
     pyr = Pyramid(views, buf.view(-1), row_start, stride=w + 2 * pad, plane=buf[0].numel(), pad=pad)
     return FlowFrame(tuple(x.float() for x in images), pyr)
 
