@@ -173,13 +173,3 @@ def test_point_jacobian_is_the_derivative_of_the_exponential_at_zero():
         )
         torch.testing.assert_close(point_jacobian(q), auto, atol=1e-12, rtol=0)
     assert point_jacobian(p).shape == (2, 3, 6)
-
-
-def test_se3_exp_rotation_is_so3_exp_bit_for_bit():
-    """se3_exp shares its terms with V (one computation): its rotation is so3_exp's, exactly, small angles included."""
-    from torchtrack.geometry.rotation import so3_exp
-
-    g = torch.Generator().manual_seed(0)
-    for dtype in (torch.float32, torch.float64):
-        xi = torch.randn(64, 6, generator=g, dtype=dtype) * torch.logspace(-6, 0, 64, dtype=dtype)[:, None]
-        assert torch.equal(se3_exp(xi)[..., :3, :3], so3_exp(xi[..., 3:]))

@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchtrack.geometry.rotation import _sinc_terms, hat, so3_log
+from torchtrack.geometry.rotation import _sinc_terms, hat, so3_exp, so3_log
 
 
 def make_T(R: Tensor, t: Tensor) -> Tensor:
@@ -32,28 +32,22 @@ def transform_points(T: Tensor, points: Tensor) -> Tensor:
     return points @ T[..., :3, :3].transpose(-1, -2) + T[..., None, :3, 3]
 
 
-def _V_matrix(omega: Tensor, R_out: list | None = None) -> Tensor:
-    """V of the SE(3) exponential; with ``R_out`` (a list) also appends ``so3_exp(omega)``, sharing the terms."""
+def _V_matrix(omega: Tensor) -> Tensor:
     theta2 = (omega * omega).sum(-1)[..., None, None]
-    a, b = _sinc_terms(theta2)
+    _, b = _sinc_terms(theta2)
     small = theta2 < 1e-4 if omega.dtype == torch.float32 else theta2 < 1e-8
     t2 = torch.where(small, torch.ones_like(theta2), theta2)
     t = t2.sqrt()
     c = torch.where(small, 1 / 6 - theta2 / 120, (t - torch.sin(t)) / (t2 * t))
     W = hat(omega)
     eye = torch.eye(3, dtype=omega.dtype, device=omega.device).expand_as(W)
-    W2 = W @ W
-    if R_out is not None:  # so3_exp's arithmetic on the same terms
-        R_out.append(eye + a * W + b * W2)
-    return eye + b * W + c * W2
+    return eye + b * W + c * (W @ W)
 
 
 def se3_exp(xi: Tensor) -> Tensor:
     """Twist (..., 6) = (v, omega) -> transform (..., 4, 4)."""
     v, omega = xi[..., :3], xi[..., 3:]
-    R: list[Tensor] = []
-    V = _V_matrix(omega, R)
-    return make_T(R[0], (V @ v[..., None])[..., 0])
+    return make_T(so3_exp(omega), (_V_matrix(omega) @ v[..., None])[..., 0])
 
 
 def se3_log(T: Tensor) -> Tensor:
