@@ -103,8 +103,9 @@ def repeat_frame(frame: FlowFrame, times: int) -> FlowFrame:
     as an LK pyramid only (the torch back end of :func:`combined_track`), e.g. the current frame as next for prev
     frames stacked from ``times`` keyframes (:class:`~torchtrack.pipeline.landmarks.LandmarkMap`)."""
     pyr, b, k = frame.pyramid, frame.batch, len(frame.images)
-    idx = (torch.arange(k)[:, None, None] * b + torch.arange(b)[None, None, :]).expand(k, times, b).reshape(-1)
-    nan = torch.full((), float("nan"))
+    ar = partial(torch.arange, device=pyr.row_start.device)
+    idx = (ar(k)[:, None, None] * b + ar(b)[None, None, :]).expand(k, times, b).reshape(-1)
+    nan = pyr.flat.new_full((), float("nan"))
     shape = lambda x: nan.expand(x.shape[0] * times, *x.shape[1:])  # noqa: E731
     rep = Pyramid([shape(x) for x in pyr.images], pyr.flat, pyr.row_start.index_select(1, idx), pyr.stride,
                   pyr.plane, pyr.pad)  # fmt: skip
