@@ -322,7 +322,8 @@ class _OpTables:
 
 def _track_op(prev, next, points, image_index, init, *, window, levels, iters, eps, min_eig, ic_iters, with_residual):
     """:func:`lk_track_flat` by the compiled operator (all points in one call)."""
-    if (prev.stride, prev.plane, prev.pad, prev.flat.numel()) != (next.stride, next.plane, next.pad, next.flat.numel()):
+    same = (prev.plane, prev.flat.numel()) == (next.plane, next.flat.numel()) or prev.channels == next.channels == 1
+    if (prev.stride, prev.pad) != (next.stride, next.pad) or not same:  # one channel: buffers of any length
         raise ValueError("lk_track_flat: prev and next pyramids must have the same geometry")
     tables_prev, tables_next = _OpTables.of(prev, levels), _OpTables.of(next, levels)
     base_prev, base_next, sizes = tables_prev.base, tables_next.base, tables_prev.sizes

@@ -38,7 +38,7 @@ from torchtrack.geometry import (
     se3_log,
     transform_points,
 )
-from torchtrack.image.flow import FlowFrame, TrackResult, prepare_frame
+from torchtrack.image.flow import FlowFrame, TrackResult, prepare_frame, repeat_frame, zero_frame
 from torchtrack.image.warp import warped_landmark_tracks
 from torchtrack.pipeline.keyframes import KeyframeStore
 from torchtrack.pipeline.landmark_window import Identities
@@ -143,12 +143,14 @@ class LandmarkMap:
         self.measure, self.warp, self.warp_crop = measure, warp, warp_crop
         # the keyframe window (torchtrack.pipeline.landmark_window); ``window`` None: WindowConfig's refiner
         self.refiner = (window if window is not None else WindowRefiner()) if refine else None
+        self.per_slot = False  # True: one LK call per keyframe slot (the reference of the batched call; tests, benches)
         self.reset()
 
     def reset(self) -> None:
         """No landmarks (the tracker's first frame)."""
         self.gray = self.sim = None  # (S, B, 1, H, W) the keyframes' LK images, per slot of the keyframe store
-        self.pyramids: dict[int, FlowFrame] = {}  # LK pyramids of the slots, built on first use
+        self.pyramids: dict[int, FlowFrame] = {}  # LK pyramids of the slots, built on first use (per-slot tracking)
+        self.stack: FlowFrame | None = None  # all slots' LK images as one frame of S * B sequences (s * B + b)
         self.pixels = self.world = self.cornerness = self.valid = None  # (B, S, P, ...) the keyframes' features
         self.depth = None  # (S, B, 1, H, W) the keyframes' depth (registered to colour), with ``warp``
         self.var_kf = None  # (B, S) m^2 the keyframes' 3D variance: their landmarks' position variance
@@ -179,6 +181,8 @@ class LandmarkMap:
         gray, sim = cur.flow.images[0], (cur.flow.images[1] if cur.flow.has_sim else None)  # what LK tracks
         if self.gray is None:
             self._allocate(store.size, gray, sim)
+            images = (self.gray.flatten(0, 1),) + (() if sim is None else (self.sim.flatten(0, 1),))
+            self.stack = zero_frame(images, cur.flow.pyramid.levels, max_window=cur.flow.pyramid.max_window)
         rows = (slot >= 0).nonzero().squeeze(1)
         if len(rows) == 0:
             return
@@ -188,6 +192,7 @@ class LandmarkMap:
         self.gray[slot, rows] = gray[rows]
         if self.sim is not None:
             self.sim[slot, rows] = sim[rows]
+        self._store_pyramid(slot, rows, cur.flow)
         order = torch.sort((~valid).to(torch.uint8), dim=1, stable=True).indices[:, : self.P]  # valid first
         self.pixels[rows, slot] = _take(pixels.float(), order, self.P)[rows]
         self.world[rows, slot] = _take(points_world.double(), order, self.P)[rows]
@@ -270,28 +275,11 @@ class LandmarkMap:
         S, P = store.size, self.P
         slot = index // P
         kf_pix = self.pixels.reshape(B, S * P, 2).gather(1, index[..., None].expand(-1, -1, 2))
-        pixels, good = proj.clone(), torch.zeros_like(ok)
-        residual = torch.full(ok.shape, float("inf"), device=ok.device)
-        for s in slot[ok].unique().tolist():  # one LK call per keyframe slot, batched over B
-            sel = ok & (slot == s)
-            if s not in self.pyramids:
-                sim = None if self.sim is None else self.sim[s]
-                self.pyramids[s] = prepare_frame(self.gray[s], sim, cur.flow.pyramid.levels)
-            kf = self.pyramids[s]
-            # eq. (10), from the keyframe, started at the projection and (second half) probe_px away from it: a second
-            # start must converge there too. One call for both (every point's track is independent of the others).
-            n = kf_pix.shape[1]
-            if self.warp:
-                both = self._warped(s, flow, cur, K, T_color_depth, store, T_world_depth, index, kf_pix, proj, sel)
-            else:
-                both = flow(kf, cur.flow, kf_pix.repeat(1, 2, 1), sel.repeat(1, 2), with_residual=True,
-                            init=torch.cat([proj, proj + self.probe_px], 1))  # fmt: skip
-            tr_points, probe_points = both.points.float().split(n, 1)
-            tr_valid, probe_valid = both.valid.split(n, 1)
-            same = torch.linalg.vector_norm(tr_points - probe_points, dim=-1) <= self.converge_px
-            pixels = torch.where(sel[..., None], tr_points, pixels)
-            good = torch.where(sel, tr_valid & probe_valid & same, good)
-            residual = torch.where(sel, both.residual[:, :n], residual)
+        if self.warp or self.per_slot or getattr(flow, "kwargs", {}).get("backend") != "torch":
+            pixels, good, residual = self._track_per_slot(store, flow, cur, K, T_color_depth, T_world_depth, index,
+                                                          slot, ok, kf_pix, proj)  # fmt: skip
+        else:
+            pixels, good, residual = self._track_batched(flow, cur, slot, ok, kf_pix, proj)
         X_meas, has_depth = measure_points(cur.depth, K, T_color_depth, pixels)
         z = X_pred[..., 2]
         offset = torch.linalg.vector_norm(X_meas.double() - X_pred, dim=-1)
@@ -323,6 +311,94 @@ class LandmarkMap:
                                                 self.ids.ident[rows, newest], self.valid[rows, newest], pixels,
                                                 self.last_ident, good & mask[:, None])  # fmt: skip
         return Reacquired(pixels, world, X_meas, corner, good, T_world_depth, var_world)
+
+    def _verified(self, both: TrackResult, sel: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The tracks of a (B, 2C) call of both starts (below): pixels (B, C, 2), good (B, C) (both tracked, the two
+        ends within ``converge_px``) and the LK residual (B, C), of the landmarks ``sel`` (B, C)."""
+        n = sel.shape[1]
+        tr_points, probe_points = both.points.float().split(n, 1)
+        tr_valid, probe_valid = both.valid.split(n, 1)
+        same = torch.linalg.vector_norm(tr_points - probe_points, dim=-1) <= self.converge_px
+        return tr_points, tr_valid & probe_valid & same, both.residual[:, :n]
+
+    def _track_per_slot(self, store: KeyframeStore, flow: Callable, cur: PreparedFrame, K: Tensor,
+                        T_color_depth: Tensor, T_world_depth: Tensor, index: Tensor, slot: Tensor, ok: Tensor,
+                        kf_pix: Tensor, proj: Tensor) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
+        """The candidates ``ok`` (B, C) re-tracked from their keyframe slots ``slot`` (B, C) with one ``flow`` call per
+        slot (batched over B): pixels (B, C, 2) (the projection ``proj`` where not tracked), good (B, C), residual
+        (B, C) (inf where not tracked). The reference of :meth:`_track_batched`; the path of ``warp`` and of the
+        OpenCV back end."""
+        pixels, good = proj.clone(), torch.zeros_like(ok)
+        residual = torch.full(ok.shape, float("inf"), device=ok.device)
+        for s in slot[ok].unique().tolist():  # one LK call per keyframe slot, batched over B
+            sel = ok & (slot == s)
+            if s not in self.pyramids:
+                sim = None if self.sim is None else self.sim[s]
+                self.pyramids[s] = prepare_frame(self.gray[s], sim, cur.flow.pyramid.levels)
+            kf = self.pyramids[s]
+            # eq. (10), from the keyframe, started at the projection and (second half) probe_px away from it: a second
+            # start must converge there too. One call for both (every point's track is independent of the others).
+            if self.warp:
+                both = self._warped(s, flow, cur, K, T_color_depth, store, T_world_depth, index, kf_pix, proj, sel)
+            else:
+                both = flow(kf, cur.flow, kf_pix.repeat(1, 2, 1), sel.repeat(1, 2), with_residual=True,
+                            init=torch.cat([proj, proj + self.probe_px], 1))  # fmt: skip
+            tr_points, tr_good, tr_residual = self._verified(both, sel)
+            pixels = torch.where(sel[..., None], tr_points, pixels)
+            good = torch.where(sel, tr_good, good)
+            residual = torch.where(sel, tr_residual, residual)
+        return pixels, good, residual
+
+    def _track_batched(self, flow: Callable, cur: PreparedFrame, slot: Tensor, ok: Tensor, kf_pix: Tensor,
+                       proj: Tensor) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
+        """:meth:`_track_per_slot` as ONE ``flow`` call over all S keyframe slots: the slots' frames stacked as S * B
+        sequences (:attr:`stack`, kept up to date by :meth:`add`), the current frame repeated S times as next
+        (:func:`~torchtrack.image.flow.repeat_frame`, no copy); landmark c of sequence b is tracked in row
+        slot[b, c] * B + b. Every track is independent of the others, so each equals its per-slot call's."""
+        B, C = ok.shape
+        S = self.gray.shape[0]
+        kf = self._stacked(cur.flow.pyramid.levels)
+        each = lambda x: x[None].expand(S, *x.shape).reshape(S * B, *x.shape[1:])  # noqa: E731  # row s * B + b
+        sel = ok[None] & (slot[None] == torch.arange(S, device=ok.device)[:, None, None])  # S,B,C
+        both = flow(kf, repeat_frame(cur.flow, S), each(kf_pix).repeat(1, 2, 1), sel.reshape(S * B, C).repeat(1, 2),
+                    with_residual=True, init=each(torch.cat([proj, proj + self.probe_px], 1)))  # fmt: skip
+        tr_points, tr_good, tr_residual = self._verified(both, sel.reshape(S * B, C))
+        at = slot[None].clamp(0, S - 1)  # each landmark's row of its slot
+
+        def pick(x: Tensor) -> Tensor:  # (S * B, C, ...) -> (B, C, ...)
+            x = x.view(S, B, C, *x.shape[2:])
+            return x.gather(0, at.view(1, B, C, *[1] * (x.dim() - 3)).expand(1, B, C, *x.shape[3:]))[0]
+
+        pixels = torch.where(ok[..., None], pick(tr_points), proj)
+        return pixels, ok & pick(tr_good), torch.where(ok, pick(tr_residual), float("inf"))
+
+    def _stacked(self, levels: int) -> FlowFrame:
+        """All slots' LK images as one prepared frame of S * B sequences (row s * B + b): zeros at the first
+        :meth:`add`, which then copies each new keyframe's pyramid in (not rebuilt); built from the slots' images
+        where there is none of ``levels``."""
+        if self.stack is None or self.stack.pyramid.levels != levels:
+            sim = None if self.sim is None else self.sim.flatten(0, 1)
+            self.stack = prepare_frame(self.gray.flatten(0, 1), sim, levels)
+        return self.stack
+
+    def _store_pyramid(self, slot: Tensor, rows: Tensor, frame: FlowFrame) -> None:
+        """Copy the pyramid of ``frame`` (the current frame's, B sequences) of sequences ``rows`` (R,) into the stack's
+        slots ``slot`` (R,): the stack then equals the stack rebuilt from the slots' images. A pyramid of another
+        geometry drops the stack (rebuilt on use)."""
+        if self.stack is None:
+            return
+        dst, src = self.stack.pyramid, frame.pyramid
+        if (dst.levels, dst.pad, dst.stride, dst.channels) != (src.levels, src.pad, src.stride, 1):
+            self.stack = None
+            return
+        S, B, K = self.gray.shape[0], frame.batch, len(frame.images)
+        with torch.inference_mode():  # the pyramids' buffers are inference tensors (build_pyramid)
+            for level in range(dst.levels):
+                h = dst.size(level)[0] + 2 * dst.pad  # rows of one image of this level; its images are contiguous
+                to, of = (p.flat[int(p.row_start[level, 0]) * p.stride :][: p.batch * h * p.stride] for p in (dst, src))
+                to, of = to.view(K, S, B, h, dst.stride), of.view(K, B, h, src.stride)
+                for s, b in zip(slot.tolist(), rows.tolist(), strict=True):  # plain copies of each image
+                    to[:, s, b].copy_(of[:, b])
 
     def _warped(self, s: int, flow: Callable, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor,
                 store: KeyframeStore, T_world_depth: Tensor, index: Tensor, kf_pix: Tensor, proj: Tensor,
@@ -399,31 +475,38 @@ def refine_pose(K: Tensor, T_color_world: Tensor, world: Tensor, pixels: Tensor,
     Linearised at the current estimate each iteration (left perturbation ``exp(xi) T``, xi = (v, omega)).
     """
     T = T_color_world.double()
-    K = K.double()
+    K, world, measured, pixels = K.double(), world.double(), measured.double(), pixels.double()
     fx, fy, cx, cy = K[:, 0, 0, None], K[:, 1, 1, None], K[:, 0, 2, None], K[:, 1, 2, None]
     w = valid.double()
     eye = torch.eye(6, dtype=torch.float64, device=T.device)
     for i in range(iters + 1):
-        p = transform_points(T, world.double())  # B,C,3
-        x, y, z = p.unbind(-1)
-        z = z.clamp_min(1e-3)
-        r2 = torch.stack([fx * x / z + cx - pixels[..., 0], fy * y / z + cy - pixels[..., 1]], -1) / sigma_px
+        p = transform_points(T, world)  # B,C,3
+        px, py, pz = p.unbind(-1)
+        z = pz.clamp_min(1e-3)
+        r2 = torch.stack([fx * px / z + cx - pixels[..., 0], fy * py / z + cy - pixels[..., 1]], -1) / sigma_px
         sig3 = sigma_m * z.square().clamp_min(1.0)
-        r3 = (p - measured.double()) / sig3[..., None]
-        r = torch.cat([r2, r3], -1)  # B,C,5
-        err = torch.linalg.vector_norm(r, dim=-1)
+        r3 = (p - measured) / sig3[..., None]
+        err = torch.linalg.vector_norm(torch.cat([r2, r3], -1), dim=-1)
         if i == iters:
             break
+        # the pixel rows of J: Jp [I, -[p]x] / sigma_px, Jp = [[a, 0, b], [0, c, d]] the projection's derivative,
+        # written out (tiny batched matmuls are slow); the 3D rows: [I, -[p]x] / sig3
+        a, b, c, d = fx / z, -fx * px / z**2, fy / z, -fy * py / z**2
         zero = torch.zeros_like(z)
-        Jp = torch.stack([torch.stack([fx / z, zero, -fx * x / z**2], -1),
-                          torch.stack([zero, fy / z, -fy * y / z**2], -1)], -2)  # fmt: skip  # B,C,2,3
-        Jxi = point_jacobian(p)  # B,C,3,6
-        J = torch.cat([Jp @ Jxi / sigma_px, Jxi / sig3[..., None, None]], -2)  # B,C,5,6
+        J2 = torch.stack([a, zero, b, b * py, a * pz - b * px, -a * py,
+                          zero, c, d, d * py - c * pz, -d * px, c * px], -1).view(*z.shape, 2, 6) / sigma_px  # fmt: skip
+        J3 = point_jacobian(p) / sig3[..., None, None]  # B,C,3,6
         hw = torch.where(err <= huber, 1.0, huber / err.clamp_min(1e-12)) * w
-        H = torch.einsum("bcki,bckj,bc->bij", J, J, hw) + 1e-6 * eye
-        g = torch.einsum("bcki,bck,bc->bi", J, r, hw)
-        T = se3_exp(-torch.linalg.solve(H, g)) @ T
+        H2, g2 = _normal_equations(J2, r2, hw)
+        H3, g3 = _normal_equations(J3, r3, hw)
+        T = se3_exp(-torch.linalg.solve(H2 + H3 + 1e-6 * eye, g2 + g3)) @ T
     return PoseFit(T, valid & (err <= inlier))
+
+
+def _normal_equations(J: Tensor, r: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
+    """sum_c w_c J_c^T J_c (B, 6, 6) and sum_c w_c J_c^T r_c (B, 6) of J (B, C, k, 6), r (B, C, k), w (B, C)."""
+    Jw = (J * w[..., None, None]).flatten(1, 2).mT  # B,6,Ck
+    return Jw @ J.flatten(1, 2), (Jw @ r.flatten(1, 2)[..., None])[..., 0]
 
 
 def _take(x: Tensor, order: Tensor, n: int) -> Tensor:
