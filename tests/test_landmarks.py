@@ -19,7 +19,8 @@ from torchtrack.geometry import T_inv, backproject, make_T, project, sample_dept
 from torchtrack.image.flow import CombinedTracker, prepare_frame
 from torchtrack.image.select import select_features
 from torchtrack.pipeline.keyframes import KeyframeStore
-from torchtrack.pipeline.landmarks import LandmarkMap, refine_pose
+from torchtrack.pipeline.landmarks import LandmarkMap
+from torchtrack.pipeline.pose_fit import refine_pose
 
 
 def random_scene(B: int, C: int, seed: int = 0):
