@@ -20,6 +20,10 @@ into a temporary folder; no plots). So decoding and writing are included. Report
   forward and backward ``cv2.calcOpticalFlowPyrLK`` (the CLI's LK parameters, forward-backward error <= 1 px),
   depth at the tracked points, Horn's closed form frame to frame, Shi-Tomasi re-detection when half are lost.
   Target (issue 25): the CLI's ms per frame <= 1.45x it, and >= 30 fps.
+- Landmark re-acquisition (issue 25, ``--only reacquire``): main-thread CPU per call and per frame of
+  ``LandmarkMap.reacquire`` with one batched LK call over all keyframe slots vs one call per slot (the reference),
+  alternating in this process. Target: <= 2 ms per frame.
+- One LK forward pass of 300 points vs OpenCV's (issue 25, ``--only lk``): ``bench_lk.py --one-pass``'s table.
 
 All timings are wall clock on a shared machine: the header prints the load average; ratios come from runs
 interleaved in one session.
@@ -69,6 +73,7 @@ DATA = REPO.parent / "shared" / "data"
 DEFAULT_ROOT = DATA / "sun3d_fragment1"
 TARGET_FPS, TARGET_BATCH, TARGET_STARTUP_S = 30.0, 3.0, 2.0  # issue 15
 TARGET_KLT_RATIO, TARGET_BATCH_25 = 1.45, 2.0  # issue 25: per frame vs OpenCV KLT + Horn; B=8 lockstep vs B=1
+TARGET_REACQUIRE_MS = 2.0  # issue 25: landmark re-acquisition, CPU ms per frame
 
 # (row label, indent) in print order; the keys are the timer names used below.
 STAGES = {
@@ -83,6 +88,7 @@ STAGES = {
     "backend": ("backend: EKF (total)", 0),
     "backend/predict": ("predict (eqs. 3-4)", 1),
     "backend/linearize": ("linearise h (eqs. 6-7; filter.jacobian)", 1),
+    "landmarks": ("landmarks: re-acquisition at re-selections (its LK call counted in flow too)", 0),
     "region": ("selection: region", 0),
     "select": ("selection: features (eq. 9)", 0),
     "record": ("run loop: per-frame recording (run.py)", 0),
@@ -121,6 +127,8 @@ class StageTimer:
             finally:
                 self.running.pop()
                 self.add(name, time.perf_counter() - t0)
+                if self.running:  # nested: also under its caller's name (the landmarks' flow call: counted twice)
+                    self.add(f"{self.running[-1]}/{name}", time.perf_counter() - t0)
 
         return timed
 
@@ -191,8 +199,11 @@ def instrument(tracker, timer: StageTimer) -> contextlib.ExitStack:
         ekf.predicted = timer.wrap("backend/predict", ekf.predicted)
         ekf.linearize_at = timer.wrap("backend/linearize", ekf.linearize_at)
     backend.step = timer.wrap("backend", backend.step)
-    for attr in ("frontend", "flow", "weighting", "region", "select"):
-        setattr(tracker, attr, Timed(getattr(tracker, attr), attr, timer))
+    for owner, attr in ((tracker, "frontend"), (tracker, "flow"), (tracker, "weighting"), (tracker.reselect, "region"),
+                        (tracker.reselect, "select")):  # fmt: skip
+        setattr(owner, attr, Timed(getattr(owner, attr), attr, timer))
+    if tracker.landmarks is not None:
+        tracker.landmarks.reacquire = timer.wrap("landmarks", tracker.landmarks.reacquire)
     stack = contextlib.ExitStack()
     for method, stage in (("add", "record"), ("finish", "write")):
         original = getattr(run_module.Recorder, method)
@@ -261,6 +272,64 @@ def run(cfg: DictConfig, sequences: list, *, instrumented: bool = False, count_o
         "calls": dict(timer.calls),
         "ops": dict(counter.counts) if count_ops else None,
     }
+
+
+def reacquire_costs(cfg: DictConfig, seq, repeats: int) -> dict:
+    """Landmark re-acquisition (``LandmarkMap.reacquire``, the tracker's main thread) with one LK call per keyframe
+    slot (``per_slot``, before) and one batched call over all slots (after), alternating in this process: the median
+    over ``repeats`` runs of each of CPU ms per call and per frame (thread time: robust to the load)."""
+    out: dict = {True: defaultdict(list), False: defaultdict(list)}
+    for _ in range(repeats):
+        for per_slot in (True, False):
+            tracker = build_tracker(cfg)
+            lm = tracker.landmarks
+            if lm is None:
+                return {}
+            lm.per_slot, spent, calls, real = per_slot, [0.0], [0], lm.reacquire
+
+            def timed(*args, _real=real, _spent=spent, _calls=calls, **kwargs):
+                t0 = time.thread_time()
+                try:
+                    return _real(*args, **kwargs)
+                finally:
+                    _spent[0] += time.thread_time() - t0
+                    _calls[0] += 1
+
+            lm.reacquire = timed
+            with tempfile.TemporaryDirectory(prefix="bench_pipeline_") as folder:
+                frames = sum(r["frames"] for r in run_module.run_tracker(tracker, [seq], Path(folder), plots=False))
+            out[per_slot]["call_ms"].append(1e3 * spent[0] / max(calls[0], 1))
+            out[per_slot]["frame_ms"].append(1e3 * spent[0] / frames)
+            out[per_slot]["calls"].append(calls[0])
+    return {k: {m: statistics.median(v) for m, v in d.items()} for k, d in out.items()}
+
+
+def reacquire_report(cfg: DictConfig, seq, repeats: int) -> None:
+    costs = reacquire_costs(cfg, seq, repeats)
+    if not costs:
+        print("landmark re-acquisition: landmarks disabled")
+        return
+    old, new = costs[True], costs[False]
+    print(f"landmark re-acquisition (main-thread CPU, median of {repeats} runs each, {torch.get_num_threads()} thread(s), "
+          f"{new['calls']:.0f} calls in {seq.name}): one LK call per keyframe slot {old['call_ms']:.1f} ms per call, "
+          f"{old['frame_ms']:.2f} ms per frame; one batched call over all slots {new['call_ms']:.1f} ms per call, "
+          f"**{new['frame_ms']:.2f} ms per frame** (batched / per slot = {new['call_ms'] / old['call_ms']:.2f}; target "
+          f"<= {TARGET_REACQUIRE_MS:.0f} ms per frame: {'met' if new['frame_ms'] <= TARGET_REACQUIRE_MS else 'NOT met'})")  # fmt: skip
+
+
+def lk_report(threads: int, repeats: int = 40) -> None:
+    """The issue's LK row: one forward LK pass of 300 points with the next frame's pyramid vs OpenCV's
+    (``bench_lk.py --one-pass``, the same table)."""
+    import argparse as _argparse
+
+    import bench_lk
+    import cv2
+
+    cv2.setNumThreads(threads)
+    data = bench_lk.load_pairs("sun3d_fragment1", 1, 300)
+    args = dict(winSize=(21, 21), maxLevel=2, minEigThreshold=1e-4,
+                criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01))  # fmt: skip
+    bench_lk.print_one_pass(data, args, _argparse.Namespace(levels=3, window=21, repeats=repeats, threads=threads))
 
 
 def median_of(repeats: int, fn) -> dict:
@@ -356,6 +425,7 @@ def stage_table(runs: list[dict], ops: dict | None = None) -> str:
     for key, (label, indent) in STAGES.items():
         lines.append(row("&nbsp;&nbsp;" * indent + label, key, [r["stages"].get(key) for r in runs]))
     rest = [r["wall_s"] - sum(r["stages"].get(k, 0.0) for k in TOP_LEVEL) for r in runs]
+    rest = [x + r["stages"].get("landmarks/flow", 0.0) for x, r in zip(rest, runs, strict=True)]  # counted twice
     lines.append(row("other (tracker step glue: state, eq. 16, re-selection)", "other", rest))
     if ops:
         ops["ops"]["total"] = sum(ops["ops"].get(k, 0) for k in [*TOP_LEVEL, "other"])
@@ -452,7 +522,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--batch", type=int, default=8, help="B of the lockstep run (the same sequence B times)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads of the B=1 runs and of the processes")
     ap.add_argument("--repeats", type=int, default=5, help="uninstrumented runs at B=1; the median is reported")
-    ap.add_argument("--only", choices=("b1", "batch", "startup"), help="one part only")
+    ap.add_argument("--only", choices=("b1", "batch", "startup", "reacquire", "lk"), help="one part only")
     ap.add_argument("--no-peer", action="store_true", help="skip Open3D's RGB-D odometry")
     ap.add_argument("--worker", type=int, default=0, help=argparse.SUPPRESS)  # internal: a parallel B=1 process
     args = ap.parse_args([a for a in argv if a not in overrides])
@@ -495,6 +565,10 @@ def main(argv: list[str] | None = None) -> int:
         if not args.no_peer:
             peer = peer_fps(seq)
             print(f"Open3D RGB-D odometry (peer), same frames: {peer:.1f} fps; ours / peer = {plain['fps'] / peer:.2f}")
+    if args.only in (None, "b1", "reacquire"):
+        reacquire_report(cfg, seq, 3)
+    if args.only in (None, "lk") and root is not None:
+        lk_report(args.threads)
     if args.only in (None, "batch"):
         batch_report(args, overrides, cfg, seq, plain)
     if args.only in (None, "startup"):

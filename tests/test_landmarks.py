@@ -7,18 +7,20 @@ import math
 
 import pytest
 import torch
+from tolerances import LK_OP_OUTLIERS, LK_OP_PX
 
 from torchtrack.data.frame import FrameBatch
 from torchtrack.data.synthetic import SyntheticConfig
 from torchtrack.data.synthetic.motion import SCENE_EYE, SCENE_TARGET, look_at
 from torchtrack.data.synthetic.render import render_frame
 from torchtrack.data.synthetic.scene import default_scene
-from torchtrack.frontend import FrontEnd, smooth_depth_mask
-from torchtrack.geometry import T_inv, backproject, make_T, project, se3_exp, se3_log, transform_points
-from torchtrack.image.flow import CombinedTracker
+from torchtrack.frontend import FrontEnd, PreparedFrame, smooth_depth_mask
+from torchtrack.geometry import T_inv, backproject, make_T, project, sample_depth, se3_exp, se3_log, transform_points
+from torchtrack.image.flow import CombinedTracker, prepare_frame
 from torchtrack.image.select import select_features
 from torchtrack.pipeline.keyframes import KeyframeStore
-from torchtrack.pipeline.landmarks import LandmarkMap, refine_pose
+from torchtrack.pipeline.landmarks import LandmarkMap
+from torchtrack.pipeline.pose_fit import refine_pose
 
 
 def random_scene(B: int, C: int, seed: int = 0):
@@ -76,11 +78,7 @@ class _Prepared:
     """A stand-in for PreparedFrame with only what LandmarkMap.add reads (the LK images)."""
 
     def __init__(self, value: float, B: int = 2):
-        class Flow:
-            images = (torch.full((B, 1, 8, 8), value), torch.full((B, 1, 8, 8), -value))
-            has_sim = True
-
-        self.flow = Flow()
+        self.flow = prepare_frame(torch.full((B, 1, 8, 8), value), torch.full((B, 1, 8, 8), -value), 1)
 
 
 def test_ring_keeps_the_last_keyframes_per_sequence():
@@ -105,6 +103,9 @@ def test_ring_keeps_the_last_keyframes_per_sequence():
     assert store.newest_first(0) == [1, 0, 2] and store.newest_first(1) == [2, 1, 0]
     assert lm.valid.sum(-1).tolist() == [[4, 4, 3], [1, 3, 4]]  # at most per_keyframe, valid ones first
     assert lm.world[0, 1, :, 0].tolist() == [4.0] * 4
+    assert lm.stack.images[0][:, 0, 0, 0].tolist() == [3.0, 0.0, 4.0, 2.0, 2.0, 4.0]  # row s * B + b
+    assert lm.stack.pyramid.images[0][:, 0, 0, 0].tolist() == [3.0, 0.0, 4.0, 2.0, 2.0, 4.0, -3.0, -0.0, -4.0, -2.0,
+                                                                -2.0, -4.0]  # the pyramids copied in too  # fmt: skip
 
 
 def test_keyframes_are_model_frames_and_every_kth_tracked_frame():
@@ -162,7 +163,7 @@ def rendered():
                        active=torch.ones(1, dtype=torch.bool), index=torch.zeros(1, dtype=torch.long))  # fmt: skip
         return fe(f)
 
-    return dict(K=K, T_kf=T_kf, T_cur=T_cur, kf=prepared(T_kf), cur=prepared(T_cur))
+    return dict(K=K, T_kf=T_kf, T_cur=T_cur, kf=prepared(T_kf), cur=prepared(T_cur), prepared=prepared)
 
 
 def landmarks_of(r, lm: LandmarkMap):
@@ -242,3 +243,63 @@ def test_occluded_and_far_views_are_not_candidates(rendered):
         @ se3_exp(torch.tensor([0, 0, 0, 0, 0.4, 0], dtype=torch.float64))
     )  # the keyframe turned by 23 degrees
     assert not lm.candidates(*args)[1].any()
+
+
+def _two_sequences(r, T0, T1):
+    """A prepared frame of B = 2 sequences seen from T0 and T1 (the rendered room corner)."""
+    a, b = r["prepared"](T0), r["prepared"](T1)
+    sim = type(a.sim)(*(torch.cat([x, y]) for x, y in zip(a.sim, b.sim, strict=True)))
+    flow = prepare_frame(*(torch.cat([x, y]) for x, y in zip(a.flow.images, b.flow.images, strict=True)),
+                         a.flow.pyramid.levels)  # fmt: skip
+    return PreparedFrame(torch.cat([a.gray, b.gray]), torch.cat([a.depth, b.depth]), sim, flow)
+
+
+@pytest.mark.equivalence
+def test_reacquisition_batched_over_slots_equals_slot_by_slot(rendered):
+    """One LK call over all keyframe slots (the slots' frames stacked as S * B sequences, the current frame repeated as
+    next) re-acquires what one call per slot does: B = 2 sequences, landmarks in 3 slots of 2 keyframes (the even and
+    odd features of the first in slots 0 and 2, the second's in slot 1), tracks within LK_OP_PX and at most
+    LK_OP_OUTLIERS of them differing (same operator per point: measured identical). The stacked pyramid, updated by
+    copying each new keyframe's pyramid in, equals the one rebuilt from the slots' images."""
+    r = rendered
+    move = lambda *v: se3_exp(torch.tensor(v, dtype=torch.float64))  # noqa: E731
+    T_kf = [torch.stack([r["T_kf"], r["T_kf"] @ move(0.01, 0, 0, 0, 0.01, 0)]), None]
+    T_kf[1] = T_kf[0] @ move(0.01, 0.005, 0, 0, -0.01, 0.005)
+    T_cur = torch.stack([r["T_cur"], r["T_cur"] @ move(-0.01, 0, 0.01, 0.005, 0, 0)])
+    runs = []
+    for per_slot in (True, False):
+        store, lm = KeyframeStore(size=3), LandmarkMap(per_keyframe=128, max_candidates=256, correct=False)
+        lm.per_slot = per_slot
+        store.reset(2)
+        for k, split in ((0, slice(0, None, 2)), (1, slice(None)), (0, slice(1, None, 2))):
+            kf = _two_sequences(r, *T_kf[k])
+            feats = select_features(kf.gray, kf.depth, r["K"].expand(2, 3, 3), roi=smooth_depth_mask(kf.depth, 0.03),
+                                    sim=kf.sim)  # fmt: skip
+            valid = feats.valid.clone()
+            keep = torch.zeros_like(valid)
+            keep[:, split] = True
+            valid &= keep
+            pix = feats.pixels.float()
+            z = sample_depth(kf.depth, pix).double()
+            world = transform_points(T_kf[k], backproject(r["K"].double().expand(2, 3, 3), pix.double(), z))
+            slot = store.add(torch.zeros(2), T_kf[k], torch.ones(2, dtype=torch.bool), torch.ones(2, dtype=torch.bool))
+            lm.add(store, slot, kf, pix, world, torch.zeros(*pix.shape[:2], 2), valid & (z > 0))
+        cur = _two_sequences(r, *T_cur)
+        none = torch.zeros(2, 0, 2)
+        acq = lm.reacquire(store, CombinedTracker(), cur, r["K"].expand(2, 3, 3), torch.eye(4).expand(2, 4, 4), T_cur,
+                           none, torch.zeros(2, 0, dtype=torch.bool), torch.ones(2, dtype=torch.bool))  # fmt: skip
+        runs.append((acq, lm))
+    (ref, lm_ref), (got, lm) = runs
+    index, ok = lm.candidates(store, cur, r["K"].expand(2, 3, 3), torch.eye(4).expand(2, 4, 4), T_cur, none,
+                              torch.zeros(2, 0, dtype=torch.bool), torch.ones(2, dtype=torch.bool))[:2]  # fmt: skip
+    slots = (index // 128)[ok]
+    assert all(int((slots == s).sum()) >= 5 for s in range(3))  # every slot contributes (measured: 59, 61, 11)
+    assert int(ref.valid.sum()) >= 90  # measured: 131 of 131 candidates
+    differ = (ref.valid != got.valid) | ((ref.pixels - got.pixels).abs().amax(-1) > LK_OP_PX)
+    assert int(differ.sum()) <= LK_OP_OUTLIERS * ref.valid.numel()
+    both = ref.valid & got.valid
+    torch.testing.assert_close(got.pixels[both], ref.pixels[both], atol=LK_OP_PX, rtol=0)
+    assert torch.equal(got.points_world[both], ref.points_world[both])
+    # the stack kept up to date by copies equals the stack built from the slots' images (pyrDown: rounding only)
+    fresh = prepare_frame(lm.gray.flatten(0, 1), lm.sim.flatten(0, 1), lm.stack.pyramid.levels).pyramid
+    torch.testing.assert_close(lm.stack.pyramid.flat, fresh.flat, atol=1e-6, rtol=0)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 from test_tracker import make_tracker, synth  # noqa: F401  (fixture)
 from tolerances import F64_UNIT
@@ -35,10 +36,12 @@ def _empty_observation(B: int) -> tuple[Observation, Variances]:
     return obs, Variances(ones, ones * 1e-4)
 
 
-def test_ekf_set_pose_moves_the_mean_pose_of_the_masked_sequences_only():
+@pytest.mark.parametrize("state", ["se3", "euler"])
+def test_ekf_set_pose_moves_the_mean_pose_of_the_masked_sequences_only(state):
     """After set_pose a step with no features (zero velocity: the prediction stays) returns the pose that was set,
-    also across the Euler angles' wrap at 180 degrees; the other sequence and the covariance are untouched."""
-    backend = EKFBackend(FusionEKF())
+    also across the Euler angles' wrap at 180 degrees (the paper's state); the other sequence and the covariance are
+    untouched."""
+    backend = EKFBackend(FusionEKF(state=state))
     T0 = torch.stack([_pose(179.0, [0.1, 0.0, 1.0]), _pose(10.0, [0.0, 0.2, 2.0])])
     backend.reset(T0, torch.ones(2, dtype=torch.bool))
     cov = backend.state.cov.clone()
@@ -90,6 +93,9 @@ def test_the_tracker_applies_the_relocalisers_decision(synth):  # noqa: F811
             newest = tracker.keyframes.newest_first(0)[0]
             torch.testing.assert_close(tracker.keyframes.T_world_kf[0, newest], T[0], atol=F64_UNIT, rtol=0)
             assert float(tracker.keyframes.time[0, newest]) == float(frame.timestamp[0])
+            assert not tracker.state.velocity.any()  # the lost frame's motion is not carried into the next start
+        elif k == 2:
+            assert tracker.state.velocity.abs().sum() > 0  # a moving camera: the zero above is the reset
 
 
 def test_reacquired_landmarks_as_measurements_of_the_model():
@@ -106,3 +112,16 @@ def test_reacquired_landmarks_as_measurements_of_the_model():
     back = transform_points(T_world_obj, obs.points_obj.double())
     torch.testing.assert_close(back[valid], world[valid], atol=1e-6, rtol=0)
     assert not obs.points_obj[~valid].any() and torch.equal(obs.valid, valid) and torch.equal(obs.pixels, acq.pixels)
+
+
+def test_a_tracker_run_again_gives_the_same_trajectory(synth):  # noqa: F811
+    """After ``reset`` the first frame starts everything anew, the back end's noise scales included (they adapt during a
+    run): a second run of the same tracker on the same frames is the first run again (the same computation: exactly)."""
+    seq = synth(seed=2, frames=6)
+    tracker, runs = make_tracker("data=tum", "tracker.noise_scale=true"), []
+    for _ in range(2):
+        tracker.reset()
+        runs.append([tracker.step(f).T_world_depth for f in iterate_batched([seq], prefetch=False)])
+    assert float(tracker.backend.scale_state.scale.sub(1).abs().max()) > 1e-3  # the scales did move in a run
+    for a, b in zip(*runs, strict=True):
+        assert torch.equal(a, b)

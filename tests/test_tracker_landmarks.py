@@ -147,14 +147,61 @@ def test_batched_equals_looped():
     assert int(tracker.state.reacquired_total.min()) > 0
 
 
-def test_returning_camera_with_landmarks_estimated(pan):
+def test_returning_camera_with_landmarks_estimated(pan, monkeypatch):
     """Issue 24, all three switches: the landmarks fused by the filter (``measure``), re-tracked from warped templates
     (``warp``), the keyframe window refined at re-selections (``refine``): back at the start view the camera is as close
     to the truth as on the first pass (the oracle of the test above), with landmarks re-acquired. Measured: first pass
-    (frames 1-3) 0.8 / 1.5 / 2.1 mm, last two 2.3 / 1.5 mm, 106 re-acquired. This bound guards the integration (the
-    switches run together in the tracker); it does not single out the update: ignoring the landmarks' update
-    (``measure`` alone) gives 4.3 / 1.9 mm, within it too. The update's oracles are in tests/test_landmark_update.py."""
+    (frames 1-3) 0.8 / 1.5 / 2.1 mm, last two 2.3 / 1.5 mm, 106 re-acquired. The bound guards the integration; each
+    switch is seen to act (a landmark update that moved a pose, a refinement that was used, warped re-tracks), since
+    the bound alone holds with them off too. The update's oracles are in tests/test_landmark_update.py."""
+    import torchtrack.pipeline.tracker as tracker_module
+
+    acted = {"update": 0, "refine": 0, "warp": 0}
+    update, refine, warped = tracker_module.landmark_update, tracker_module.refine_at_reselection, LandmarkMap._warped
+
+    def spy(name, fn, did):
+        def wrapped(*args, **kwargs):
+            out = fn(*args, **kwargs)
+            acted[name] += int(did(out))
+            return out
+
+        return wrapped
+
+    monkeypatch.setattr(tracker_module, "landmark_update", spy("update", update, lambda o: o.updated.any()))
+    monkeypatch.setattr(tracker_module, "refine_at_reselection", spy("refine", refine, lambda o: o.used.any()))
+    monkeypatch.setattr(LandmarkMap, "_warped", spy("warp", warped, lambda o: True))
     poses, frames = pan
     err, tracker = run(frames, poses, *ON, "landmarks.measure=true", "landmarks.warp=true", "landmarks.refine=true")
     assert int(tracker.state.reacquired_total.sum()) > 50
     assert float(err[-2:].mean()) < 1.5 * float(err[1:4].mean()), err
+    assert min(acted.values()) > 0, acted
+
+
+def test_reanchored_features_keep_their_per_feature_outputs(pan):
+    """``landmarks.every``: a re-acquisition re-orders the model's features and adds landmarks; each feature's
+    ``winner`` and ``d_tim`` in the StepResult are still its own (the pixel it was tracked to is the key: the result's
+    pixels are the tracker's copies), and a landmark added this frame has none (-1, 0)."""
+    poses, frames = pan
+    tracker = build_tracker(compose_cfg(*ON, "landmarks.every=3"))
+    seen, flow = [], tracker.flow
+
+    def recording(*args, **kwargs):
+        seen.append(flow(*args, **kwargs))
+        return seen[-1]
+
+    tracker.flow, added = recording, 0
+    for frame in frames:  # re-acquisitions on the way back (frames 25-39)
+        n = len(seen)
+        res = tracker.step(frame)
+        if len(seen) == n or res.reselected[0]:  # the first frame, or a new model (the result is the frame as tracked)
+            continue
+        track = seen[n]  # the frame's own tracking call (landmark re-acquisitions come after it)
+        for i in res.valid[0].nonzero()[:, 0].tolist():
+            j = (track.points[0] == res.pixels[0, i]).all(-1).nonzero()[:, 0]
+            if len(j) == 0:  # a landmark re-acquired into the model this frame
+                added += 1
+                assert int(res.winner[0, i]) == -1 and float(res.d_tim[0, i]) == 0.0
+            else:
+                assert int(res.winner[0, i]) == int(track.winner[0, j[0]])
+                assert float(res.d_tim[0, i]) == float(track.d_tim[0, j[0]])
+    assert added > 0  # re-acquisitions happened in these frames

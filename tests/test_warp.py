@@ -99,7 +99,8 @@ def test_warped_template_tracks_a_known_homography_exactly(angle_deg, scale):
     if angle_deg == 0:
         torch.testing.assert_close(plain.pixels, warped.pixels, rtol=0, atol=1e-3)
     else:
-        assert len(e_p) == 0 or e_p.median() > 0.3, e_p
+        # without the warp the rotated patch is lost (most tracks fail) or biased (the rest sit > 0.3 px off)
+        assert 2 * plain.status.sum() < warped.status.sum() or e_p.median() > 0.3, (plain.status.sum(), e_p)
 
 
 def _grid(M: torch.Tensor, H: int, W: int) -> torch.Tensor:

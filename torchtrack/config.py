@@ -376,6 +376,7 @@ class LandmarkConfig:
     warp: bool = False  # re-track them from pose-warped templates (plane homography, normal from the keyframe depth)
     warp_crop: int = 96  # ... the side (px) of the warped crops
     refine: bool = False  # at a re-selection, refine the keyframe window (torchtrack.pipeline.landmark_window)
+    window: WindowConfig = field(default_factory=WindowConfig)  # ... with this refiner (landmarks.window.loss=cauchy)
 
 
 @dataclass

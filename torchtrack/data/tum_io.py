@@ -17,6 +17,11 @@ import torch
 from torch import Tensor
 
 from torchtrack.data.errors import DataError
+
+try:  # a faster PNG decoder than OpenCV's (same pixels); optional: without it OpenCV decodes everything
+    import imagecodecs
+except ImportError:  # pragma: no cover - installed with torchtrack
+    imagecodecs = None
 from torchtrack.geometry import matrix_to_quat_xyzw, quat_xyzw_to_matrix
 from torchtrack.io import write_text
 
@@ -205,9 +210,32 @@ def _unreadable(path: PathLike, kind: str) -> DataError:
     return DataError(f"{path}: {why}")
 
 
-def load_rgb(path: PathLike) -> Tensor:
-    """Colour image (PNG/JPEG, 8 or 16 bit, colour or grayscale) -> (3, H, W) float32 RGB in [0, 1]."""
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+_PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def imread(path: PathLike, decoder: str = "auto") -> tuple[np.ndarray | None, bool]:
+    """``cv2.imread(path, IMREAD_UNCHANGED)``'s pixels and whether its channels are in RGB(A) order (else OpenCV's
+    BGR(A)). ``decoder="auto"``: 8- and 16-bit grayscale, RGB and RGBA PNGs are decoded by imagecodecs where installed
+    (the same pixels, ``tests/test_tum_io.py``; measured 4.8 vs 6.7 ms of CPU per 640x480 colour frame, 2.1 vs 2.4 ms
+    per depth frame), everything else by OpenCV; ``"opencv"``: OpenCV only. None where unreadable."""
+    if decoder == "auto" and imagecodecs is not None:
+        try:
+            data = Path(path).read_bytes()
+        except OSError:
+            data = b""
+        # IHDR: bit depth at byte 24, colour type at 25 (0 grey, 2 RGB, 6 RGBA; palettes and grey+alpha go to OpenCV)
+        if data[:8] == _PNG and len(data) > 25 and data[24] in (8, 16) and data[25] in (0, 2, 6):
+            try:
+                return imagecodecs.png_decode(data), True
+            except Exception:  # noqa: BLE001 - any decoder error: OpenCV decides below
+                pass
+    return cv2.imread(str(path), cv2.IMREAD_UNCHANGED), False
+
+
+def load_rgb(path: PathLike, decoder: str = "auto") -> Tensor:
+    """Colour image (PNG/JPEG, 8 or 16 bit, colour or grayscale) -> (3, H, W) float32 RGB in [0, 1] (``decoder``:
+    :func:`imread`'s)."""
+    img, rgb_order = imread(path, decoder)
     if img is None:
         raise _unreadable(path, "colour")
     if img.dtype not in (np.uint8, np.uint16):
@@ -215,16 +243,17 @@ def load_rgb(path: PathLike) -> Tensor:
     if img.ndim == 2:
         chans = (img, img, img)
     elif img.shape[2] in (3, 4):
-        chans = (img[..., 2], img[..., 1], img[..., 0])  # OpenCV stores BGR(A)
+        chans = (img[..., 0], img[..., 1], img[..., 2]) if rgb_order else (img[..., 2], img[..., 1], img[..., 0])
     else:
         raise DataError(f"{path}: colour image must have 1, 3 or 4 channels, got {img.shape[2]}")
     rgb = torch.from_numpy(np.stack(chans))  # 3,H,W; the stack copies into contiguous channel planes
     return rgb.float().div_(255.0 if img.dtype == np.uint8 else 65535.0)
 
 
-def load_depth(path: PathLike, depth_scale: float) -> Tensor:
-    """16-bit depth PNG -> (1, H, W) float32 metres (value / depth_scale), 0 = no measurement."""
-    d = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+def load_depth(path: PathLike, depth_scale: float, decoder: str = "auto") -> Tensor:
+    """16-bit depth PNG -> (1, H, W) float32 metres (value / depth_scale), 0 = no measurement (``decoder``:
+    :func:`imread`'s)."""
+    d = imread(path, decoder)[0]
     if d is None:
         raise _unreadable(path, "depth")
     if d.dtype != np.uint16 or d.ndim != 2:

@@ -62,6 +62,9 @@ class PoseBackend(Protocol):
 
     fuses: bool
 
+    def start(self) -> None:
+        """A new run (the tracker's first frame): forget everything; the next :meth:`reset` covers every sequence."""
+
     def reset(self, T_cam_obj: Tensor, mask: Tensor) -> None:
         """Start over at pose ``T_cam_obj`` (B, 4, 4) for the sequences where ``mask`` (B,) is True."""
 
@@ -294,13 +297,19 @@ class EKFBackend:
         self.state: FilterState | None = None
         self.scale_state: ScaleState | None = None  # the online noise scale's, (B, 2) each
 
+    def start(self) -> None:
+        """A new run: the filter state and the noise scales are forgotten (the scales are the sensor's within a run,
+        a re-selection keeps them; a new run starts them at 1 again)."""
+        self.state, self.scale_state = None, None
+
     def reset(self, T_cam_obj: Tensor, mask: Tensor) -> None:
         """Start the sequences in ``mask`` (B,) over at ``T_cam_obj`` (B, 4, 4), zero velocity, initial covariance.
-        The noise scales are kept (they start at 1 with the first reset or a new batch size)."""
+        The noise scales are kept (they start at 1 after :meth:`start` or with a new batch size)."""
         init = self.ekf.initial_state(T_cam_obj)
         if self.state is None or self.state.mean.shape[0] != T_cam_obj.shape[0]:
             if not bool(mask.all()):
-                raise ValueError("EKFBackend.reset: the first reset (or a new batch size) must cover every sequence")
+                raise ValueError("EKFBackend.reset: the first reset (after start, or a new batch size) must cover every "
+                                 "sequence")
             self.state = init
             B = T_cam_obj.shape[0]
             self.scale_state = None if self.noise is None else self.noise.initial(B, device=T_cam_obj.device)
@@ -360,6 +369,10 @@ class RegistrationBackend:
         self.estimator = estimator
         self.weighted = weighted
         self.T_prev: Tensor | None = None
+
+    def start(self) -> None:
+        """A new run: no previous pose."""
+        self.T_prev = None
 
     def reset(self, T_cam_obj: Tensor, mask: Tensor) -> None:
         if self.T_prev is None:

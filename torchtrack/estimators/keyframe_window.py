@@ -87,7 +87,7 @@ def refine_keyframes(
     pix_all = torch.cat([take(pixels.to(**f64)).reshape(B, S * P, 2), pixels_now.to(**f64)], 1)
     pts_all = torch.cat([take(points.to(**f64)).reshape(B, S * P, 3), points_now.to(**f64)], 1)
     wld_all = torch.cat([take(world.to(**f64)).reshape(B, S * P, 3), world_now.to(**f64)], 1)
-    pose_of = torch.cat([torch.arange(S, device=ident.device).repeat_interleave(P), torch.full((C,), S)])
+    pose_of = torch.cat([torch.arange(S, device=ident.device).repeat_interleave(P), torch.full((C,), S, device=ident.device)])
     pose_of = pose_of.expand(B, -1)
     flat = torch.where(in_win, pose_of * U + obs_col, Kn * U)  # B, S*P + C index into K*U (+1: the unused)
     zeros = lambda *s: torch.zeros(B, Kn * U + 1, *s, **f64)  # noqa: E731

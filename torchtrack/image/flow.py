@@ -26,7 +26,7 @@ from torch import Tensor
 
 from torchtrack.config import FlowConfig
 from torchtrack.image.lk import lk_track_flat, tim_error
-from torchtrack.image.pyramid import Pyramid, build_pyramid
+from torchtrack.image.pyramid import Pyramid, build_pyramid, layout
 
 Mode = Literal["combined", "intensity", "sim"]
 _CHANNELS = {"combined": (0, 1), "intensity": (0,), "sim": (1,)}
@@ -79,6 +79,37 @@ def prepare_frame(
         raise ValueError(f"prepare_frame: sim must match gray {tuple(gray.shape)}, got {tuple(sim.shape)}")
     images = (gray.float(), sim.float()) if sim is not None else (gray.float(),)
     return FlowFrame(images, build_pyramid(images, levels, window=max_window))
+
+
+def zero_frame(images: tuple[Tensor, ...], levels: int = FlowConfig.levels, *, max_window: int = 31) -> FlowFrame:
+    """:func:`prepare_frame` of K (B, 1, H, W) images that are all zeros, without building: the pyramid of zero images
+    is zeros, laid out as :func:`~torchtrack.image.pyramid.build_pyramid` lays out K * B images (the frame's
+    ``images`` are ``images`` themselves). A buffer to copy other frames' pyramids into, image by image."""
+    b, c, h, w = images[0].shape
+    b *= len(images)
+    pad, sizes, heights, starts, row_start = layout(b, h, w, levels, max_window)
+    with torch.inference_mode():
+        buf = images[0].new_zeros(c, sum(heights) * b, w + 2 * pad, dtype=torch.float32)
+        views = [buf[:, int(s0) : int(s0) + b * ht].view(c, b, ht, -1)[..., pad : pad + hl, pad : pad + wl].transpose(0, 1)
+                 for s0, ht, (hl, wl) in zip(starts, heights, sizes, strict=True)]  # fmt: skip
+    pyr = Pyramid(views, buf.view(-1), row_start, stride=w + 2 * pad, plane=buf[0].numel(), pad=pad)
+    return FlowFrame(tuple(x.float() for x in images), pyr)
+
+
+def repeat_frame(frame: FlowFrame, times: int) -> FlowFrame:
+    """``frame`` seen as ``times`` copies of its batch B, without copying a pixel: image k * (times B) + t B + b of
+    the result is image k * B + b of ``frame`` (the layout of a frame of batch times * B). The pyramid shares the
+    frame's buffer with its row table repeated; the images are shape-only (NaN) placeholders, so the result serves
+    as an LK pyramid only (the torch back end of :func:`combined_track`), e.g. the current frame as next for prev
+    frames stacked from ``times`` keyframes (:class:`~torchtrack.pipeline.landmarks.LandmarkMap`)."""
+    pyr, b, k = frame.pyramid, frame.batch, len(frame.images)
+    ar = partial(torch.arange, device=pyr.row_start.device)
+    idx = (ar(k)[:, None, None] * b + ar(b)[None, None, :]).expand(k, times, b).reshape(-1)
+    nan = pyr.flat.new_full((), float("nan"))
+    shape = lambda x: nan.expand(x.shape[0] * times, *x.shape[1:])  # noqa: E731
+    rep = Pyramid([shape(x) for x in pyr.images], pyr.flat, pyr.row_start.index_select(1, idx), pyr.stride,
+                  pyr.plane, pyr.pad)  # fmt: skip
+    return FlowFrame(tuple(shape(x) for x in frame.images), rep)
 
 
 class TrackResult(NamedTuple):

@@ -271,7 +271,8 @@ def lk_track_flat(
         points: (P, 2) level-0 positions in prev. image_index: (P,) int64 batch index of each point.
         init: (P, 2) initial guess of the positions in next.
         chunk: points tracked together at most (each point's track is independent of the others; torch backend).
-        backend: "cpp" (the compiled operator), "torch" (the reference) or "auto" (cpp where it builds).
+        backend: "cpp" (the compiled operator, CPU tensors), "torch" (the reference) or "auto" (cpp where it builds;
+            the reference for tensors on another device).
 
     Returns:
         points (P, 2) in next (the input where not tracked), status (P,) bool, residual (P,) (zeros unless
@@ -280,7 +281,7 @@ def lk_track_flat(
     if chunk < 1:
         raise ValueError(f"lk_track_flat: chunk must be >= 1, got {chunk}")
     kwargs = dict(window=window, levels=levels, iters=iters, eps=eps, min_eig=min_eig, ic_iters=ic_iters)
-    if use_cpp(backend):
+    if use_cpp(backend) and points.device.type == "cpu":  # the operator has a CPU kernel only
         return _track_op(prev, next, points, image_index, init, **kwargs, with_residual=with_residual)
     if points.shape[0] <= chunk:
         return _track_chunk(prev, next, points, image_index, init, **kwargs, with_residual=with_residual)
@@ -321,7 +322,8 @@ class _OpTables:
 
 def _track_op(prev, next, points, image_index, init, *, window, levels, iters, eps, min_eig, ic_iters, with_residual):
     """:func:`lk_track_flat` by the compiled operator (all points in one call)."""
-    if (prev.stride, prev.plane, prev.pad, prev.flat.numel()) != (next.stride, next.plane, next.pad, next.flat.numel()):
+    same = (prev.plane, prev.flat.numel()) == (next.plane, next.flat.numel()) or prev.channels == next.channels == 1
+    if (prev.stride, prev.pad) != (next.stride, next.pad) or not same:  # one channel: buffers of any length
         raise ValueError("lk_track_flat: prev and next pyramids must have the same geometry")
     tables_prev, tables_next = _OpTables.of(prev, levels), _OpTables.of(next, levels)
     base_prev, base_next, sizes = tables_prev.base, tables_next.base, tables_prev.sizes

@@ -124,7 +124,8 @@ def lk_track(
     """``torch.ops.torchtrack.lk_track``: pyramidal LK of P points, each in its own image of the pyramids' batch.
 
     Args:
-        prev_flat, next_flat: the pyramids' flat float32 buffers (``Pyramid.flat``), equal geometry.
+        prev_flat, next_flat: the pyramids' flat float32 buffers (``Pyramid.flat``), equal geometry (one channel:
+            of any lengths, each point's image addressed by the base tables).
         base_prev, base_next: (L, B) int64 flat index of pixel (0, 0) of level l of image b.
         sizes: (L, 2) int64 (H_l, W_l). points, init: (P, 2) float32 level-0 start and guess. image_index: (P,) int64.
 

@@ -115,6 +115,18 @@ def _fill_border(block: Tensor, pad: int, h: int, w: int) -> None:
     block[..., wp:] = 0.0
 
 
+def layout(b: int, h: int, w: int, levels: int, window: int):
+    """The buffer layout of the pyramid of b (h, w) images: (pad, level sizes [(H_l, W_l)], rows per image of each
+    level, first buffer row of each level (L,), row_start (L, b)); see :class:`Pyramid`."""
+    pad = window // 2 + 3  # window + 1 px for bilinear weights + 1 px for gradients + 1 px slack
+    sizes = [(h, w)]
+    for _ in range(levels - 1):
+        sizes.append(((sizes[-1][0] + 1) // 2, (sizes[-1][1] + 1) // 2))
+    heights = [hl + 2 * pad for hl, _ in sizes]
+    starts = torch.tensor([0] + heights[:-1]).cumsum(0) * b  # first buffer row of each level
+    return pad, sizes, heights, starts, starts[:, None] + torch.arange(b)[None, :] * torch.tensor(heights)[:, None]
+
+
 def build_pyramid(image: Tensor | Sequence[Tensor], levels: int, *, window: int = 21) -> Pyramid:
     """Build the LK pyramid of an image batch; do it once per frame.
 
@@ -132,13 +144,8 @@ def build_pyramid(image: Tensor | Sequence[Tensor], levels: int, *, window: int 
         raise ValueError(f"build_pyramid: image must be float (B, C, H, W), got {[tuple(x.shape) for x in parts]}")
     if levels < 1 or window < 3 or window % 2 == 0:
         raise ValueError(f"build_pyramid: need levels >= 1 and an odd window >= 3, got {levels}, {window}")
-    pad = window // 2 + 3  # window + 1 px for bilinear weights + 1 px for gradients + 1 px slack
     b, (c, h, w) = sum(x.shape[0] for x in parts), parts[0].shape[1:]
-    sizes = [(h, w)]
-    for _ in range(levels - 1):
-        sizes.append(((sizes[-1][0] + 1) // 2, (sizes[-1][1] + 1) // 2))
-    heights = [hl + 2 * pad for hl, _ in sizes]
-    starts = torch.tensor([0] + heights[:-1]).cumsum(0) * b  # first buffer row of each level
+    pad, sizes, heights, starts, row_start = layout(b, h, w, levels, window)
     with torch.inference_mode():
         buf = parts[0].new_empty(c, sum(heights) * b, w + 2 * pad)  # channel-major: (C, B, rows, S) per level
         images, prev = [], None
@@ -162,5 +169,4 @@ def build_pyramid(image: Tensor | Sequence[Tensor], levels: int, *, window: int 
                 dst.copy_(images[-1].transpose(0, 1))
             _fill_border(block, pad, hl, wl)
             prev = block
-    row_start = starts[:, None] + torch.arange(b)[None, :] * torch.tensor(heights)[:, None]
     return Pyramid(images, buf.view(-1), row_start, stride=w + 2 * pad, plane=buf[0].numel(), pad=pad)

@@ -86,7 +86,7 @@ class Refined(NamedTuple):
 def refine_at_reselection(lm, store, refiner: WindowRefiner, acq, tracked: Tensor, tracked_valid: Tensor,
                           tracked_points: Tensor, tracked_world: Tensor, survivor_ident: Tensor, T_world_depth: Tensor,
                           v_pix: Tensor, v_xyz: Tensor, K: Tensor, T_color_depth: Tensor, mask: Tensor,
-                          max_m: float = 0.1, max_rad: float = 0.0873) -> Refined:  # fmt: skip
+                          max_m: float, max_rad: float) -> Refined:  # fmt: skip
     """Refine the keyframe window of the map ``lm`` (its :class:`Identities` ``lm.ids``, the keyframe store ``store``)
     with the current frame's survivors (``tracked`` (B, N, 2), ``tracked_valid`` (B, N), measured ``tracked_points``
     (B, N, 3), ``tracked_world`` (B, N, 3), ``survivor_ident`` (B, N)) and re-acquired landmarks ``acq``, for the

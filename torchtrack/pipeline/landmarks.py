@@ -30,18 +30,17 @@ from torchtrack.filter.models import measure_points
 from torchtrack.frontend import PreparedFrame
 from torchtrack.geometry import (
     T_inv,
-    point_jacobian,
     project,
     rotation_angle,
     sample_depth,
-    se3_exp,
     se3_log,
     transform_points,
 )
-from torchtrack.image.flow import FlowFrame, TrackResult, prepare_frame
+from torchtrack.image.flow import FlowFrame, TrackResult, prepare_frame, repeat_frame, zero_frame
 from torchtrack.image.warp import warped_landmark_tracks
 from torchtrack.pipeline.keyframes import KeyframeStore
 from torchtrack.pipeline.landmark_window import Identities
+from torchtrack.pipeline.pose_fit import refine_pose
 from torchtrack.pipeline.reselect import far_from
 
 
@@ -125,6 +124,7 @@ class LandmarkMap:
         warp: bool = LandmarkConfig.warp,
         warp_crop: int = LandmarkConfig.warp_crop,
         refine: bool = LandmarkConfig.refine,
+        window: WindowRefiner | None = None,
     ) -> None:
         if per_keyframe < 1 or max_candidates < 1:
             raise ValueError(f"LandmarkMap: per_keyframe and max_candidates must be >= 1, got "
@@ -140,13 +140,16 @@ class LandmarkMap:
             raise ValueError(f"landmarks.every must be >= 0, got {every}")
         self.every = every
         self.measure, self.warp, self.warp_crop = measure, warp, warp_crop
-        self.refiner = WindowRefiner() if refine else None  # the keyframe window (torchtrack.pipeline.landmark_window)
+        # the keyframe window (torchtrack.pipeline.landmark_window); ``window`` None: WindowConfig's refiner
+        self.refiner = (window if window is not None else WindowRefiner()) if refine else None
+        self.per_slot = False  # True: one LK call per keyframe slot (the reference of the batched call; tests, benches)
         self.reset()
 
     def reset(self) -> None:
         """No landmarks (the tracker's first frame)."""
         self.gray = self.sim = None  # (S, B, 1, H, W) the keyframes' LK images, per slot of the keyframe store
-        self.pyramids: dict[int, FlowFrame] = {}  # LK pyramids of the slots, built on first use
+        self.pyramids: dict[int, FlowFrame] = {}  # LK pyramids of the slots, built on first use (per-slot tracking)
+        self.stack: FlowFrame | None = None  # all slots' LK images as one frame of S * B sequences (s * B + b)
         self.pixels = self.world = self.cornerness = self.valid = None  # (B, S, P, ...) the keyframes' features
         self.depth = None  # (S, B, 1, H, W) the keyframes' depth (registered to colour), with ``warp``
         self.var_kf = None  # (B, S) m^2 the keyframes' 3D variance: their landmarks' position variance
@@ -177,6 +180,8 @@ class LandmarkMap:
         gray, sim = cur.flow.images[0], (cur.flow.images[1] if cur.flow.has_sim else None)  # what LK tracks
         if self.gray is None:
             self._allocate(store.size, gray, sim)
+            images = (self.gray.flatten(0, 1),) + (() if sim is None else (self.sim.flatten(0, 1),))
+            self.stack = zero_frame(images, cur.flow.pyramid.levels, max_window=cur.flow.pyramid.max_window)
         rows = (slot >= 0).nonzero().squeeze(1)
         if len(rows) == 0:
             return
@@ -186,6 +191,7 @@ class LandmarkMap:
         self.gray[slot, rows] = gray[rows]
         if self.sim is not None:
             self.sim[slot, rows] = sim[rows]
+        self._store_pyramid(slot, rows, cur.flow)
         order = torch.sort((~valid).to(torch.uint8), dim=1, stable=True).indices[:, : self.P]  # valid first
         self.pixels[rows, slot] = _take(pixels.float(), order, self.P)[rows]
         self.world[rows, slot] = _take(points_world.double(), order, self.P)[rows]
@@ -268,28 +274,11 @@ class LandmarkMap:
         S, P = store.size, self.P
         slot = index // P
         kf_pix = self.pixels.reshape(B, S * P, 2).gather(1, index[..., None].expand(-1, -1, 2))
-        pixels, good = proj.clone(), torch.zeros_like(ok)
-        residual = torch.full(ok.shape, float("inf"), device=ok.device)
-        for s in slot[ok].unique().tolist():  # one LK call per keyframe slot, batched over B
-            sel = ok & (slot == s)
-            if s not in self.pyramids:
-                sim = None if self.sim is None else self.sim[s]
-                self.pyramids[s] = prepare_frame(self.gray[s], sim, cur.flow.pyramid.levels)
-            kf = self.pyramids[s]
-            # eq. (10), from the keyframe, started at the projection and (second half) probe_px away from it: a second
-            # start must converge there too. One call for both (every point's track is independent of the others).
-            n = kf_pix.shape[1]
-            if self.warp:
-                both = self._warped(s, flow, cur, K, T_color_depth, store, T_world_depth, index, kf_pix, proj, sel)
-            else:
-                both = flow(kf, cur.flow, kf_pix.repeat(1, 2, 1), sel.repeat(1, 2), with_residual=True,
-                            init=torch.cat([proj, proj + self.probe_px], 1))  # fmt: skip
-            tr_points, probe_points = both.points.float().split(n, 1)
-            tr_valid, probe_valid = both.valid.split(n, 1)
-            same = torch.linalg.vector_norm(tr_points - probe_points, dim=-1) <= self.converge_px
-            pixels = torch.where(sel[..., None], tr_points, pixels)
-            good = torch.where(sel, tr_valid & probe_valid & same, good)
-            residual = torch.where(sel, both.residual[:, :n], residual)
+        if self.warp or self.per_slot or getattr(flow, "kwargs", {}).get("backend") != "torch":
+            pixels, good, residual = self._track_per_slot(store, flow, cur, K, T_color_depth, T_world_depth, index,
+                                                          slot, ok, kf_pix, proj)  # fmt: skip
+        else:
+            pixels, good, residual = self._track_batched(flow, cur, slot, ok, kf_pix, proj)
         X_meas, has_depth = measure_points(cur.depth, K, T_color_depth, pixels)
         z = X_pred[..., 2]
         offset = torch.linalg.vector_norm(X_meas.double() - X_pred, dim=-1)
@@ -321,6 +310,94 @@ class LandmarkMap:
                                                 self.ids.ident[rows, newest], self.valid[rows, newest], pixels,
                                                 self.last_ident, good & mask[:, None])  # fmt: skip
         return Reacquired(pixels, world, X_meas, corner, good, T_world_depth, var_world)
+
+    def _verified(self, both: TrackResult, sel: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The tracks of a (B, 2C) call of both starts (below): pixels (B, C, 2), good (B, C) (both tracked, the two
+        ends within ``converge_px``) and the LK residual (B, C), of the landmarks ``sel`` (B, C)."""
+        n = sel.shape[1]
+        tr_points, probe_points = both.points.float().split(n, 1)
+        tr_valid, probe_valid = both.valid.split(n, 1)
+        same = torch.linalg.vector_norm(tr_points - probe_points, dim=-1) <= self.converge_px
+        return tr_points, tr_valid & probe_valid & same, both.residual[:, :n]
+
+    def _track_per_slot(self, store: KeyframeStore, flow: Callable, cur: PreparedFrame, K: Tensor,
+                        T_color_depth: Tensor, T_world_depth: Tensor, index: Tensor, slot: Tensor, ok: Tensor,
+                        kf_pix: Tensor, proj: Tensor) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
+        """The candidates ``ok`` (B, C) re-tracked from their keyframe slots ``slot`` (B, C) with one ``flow`` call per
+        slot (batched over B): pixels (B, C, 2) (the projection ``proj`` where not tracked), good (B, C), residual
+        (B, C) (inf where not tracked). The reference of :meth:`_track_batched`; the path of ``warp`` and of the
+        OpenCV back end."""
+        pixels, good = proj.clone(), torch.zeros_like(ok)
+        residual = torch.full(ok.shape, float("inf"), device=ok.device)
+        for s in slot[ok].unique().tolist():  # one LK call per keyframe slot, batched over B
+            sel = ok & (slot == s)
+            if s not in self.pyramids:
+                sim = None if self.sim is None else self.sim[s]
+                self.pyramids[s] = prepare_frame(self.gray[s], sim, cur.flow.pyramid.levels)
+            kf = self.pyramids[s]
+            # eq. (10), from the keyframe, started at the projection and (second half) probe_px away from it: a second
+            # start must converge there too. One call for both (every point's track is independent of the others).
+            if self.warp:
+                both = self._warped(s, flow, cur, K, T_color_depth, store, T_world_depth, index, kf_pix, proj, sel)
+            else:
+                both = flow(kf, cur.flow, kf_pix.repeat(1, 2, 1), sel.repeat(1, 2), with_residual=True,
+                            init=torch.cat([proj, proj + self.probe_px], 1))  # fmt: skip
+            tr_points, tr_good, tr_residual = self._verified(both, sel)
+            pixels = torch.where(sel[..., None], tr_points, pixels)
+            good = torch.where(sel, tr_good, good)
+            residual = torch.where(sel, tr_residual, residual)
+        return pixels, good, residual
+
+    def _track_batched(self, flow: Callable, cur: PreparedFrame, slot: Tensor, ok: Tensor, kf_pix: Tensor,
+                       proj: Tensor) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
+        """:meth:`_track_per_slot` as ONE ``flow`` call over all S keyframe slots: the slots' frames stacked as S * B
+        sequences (:attr:`stack`, kept up to date by :meth:`add`), the current frame repeated S times as next
+        (:func:`~torchtrack.image.flow.repeat_frame`, no copy); landmark c of sequence b is tracked in row
+        slot[b, c] * B + b. Every track is independent of the others, so each equals its per-slot call's."""
+        B, C = ok.shape
+        S = self.gray.shape[0]
+        kf = self._stacked(cur.flow.pyramid.levels)
+        each = lambda x: x[None].expand(S, *x.shape).reshape(S * B, *x.shape[1:])  # noqa: E731  # row s * B + b
+        sel = ok[None] & (slot[None] == torch.arange(S, device=ok.device)[:, None, None])  # S,B,C
+        both = flow(kf, repeat_frame(cur.flow, S), each(kf_pix).repeat(1, 2, 1), sel.reshape(S * B, C).repeat(1, 2),
+                    with_residual=True, init=each(torch.cat([proj, proj + self.probe_px], 1)))  # fmt: skip
+        tr_points, tr_good, tr_residual = self._verified(both, sel.reshape(S * B, C))
+        at = slot[None].clamp(0, S - 1)  # each landmark's row of its slot
+
+        def pick(x: Tensor) -> Tensor:  # (S * B, C, ...) -> (B, C, ...)
+            x = x.view(S, B, C, *x.shape[2:])
+            return x.gather(0, at.view(1, B, C, *[1] * (x.dim() - 3)).expand(1, B, C, *x.shape[3:]))[0]
+
+        pixels = torch.where(ok[..., None], pick(tr_points), proj)
+        return pixels, ok & pick(tr_good), torch.where(ok, pick(tr_residual), float("inf"))
+
+    def _stacked(self, levels: int) -> FlowFrame:
+        """All slots' LK images as one prepared frame of S * B sequences (row s * B + b): zeros at the first
+        :meth:`add`, which then copies each new keyframe's pyramid in (not rebuilt); built from the slots' images
+        where there is none of ``levels``."""
+        if self.stack is None or self.stack.pyramid.levels != levels:
+            sim = None if self.sim is None else self.sim.flatten(0, 1)
+            self.stack = prepare_frame(self.gray.flatten(0, 1), sim, levels)
+        return self.stack
+
+    def _store_pyramid(self, slot: Tensor, rows: Tensor, frame: FlowFrame) -> None:
+        """Copy the pyramid of ``frame`` (the current frame's, B sequences) of sequences ``rows`` (R,) into the stack's
+        slots ``slot`` (R,): the stack then equals the stack rebuilt from the slots' images. A pyramid of another
+        geometry drops the stack (rebuilt on use)."""
+        if self.stack is None:
+            return
+        dst, src = self.stack.pyramid, frame.pyramid
+        if (dst.levels, dst.pad, dst.stride, dst.channels) != (src.levels, src.pad, src.stride, 1):
+            self.stack = None
+            return
+        S, B, K = self.gray.shape[0], frame.batch, len(frame.images)
+        with torch.inference_mode():  # the pyramids' buffers are inference tensors (build_pyramid)
+            for level in range(dst.levels):
+                h = dst.size(level)[0] + 2 * dst.pad  # rows of one image of this level; its images are contiguous
+                to, of = (p.flat[int(p.row_start[level, 0]) * p.stride :][: p.batch * h * p.stride] for p in (dst, src))
+                to, of = to.view(K, S, B, h, dst.stride), of.view(K, B, h, src.stride)
+                for s, b in zip(slot.tolist(), rows.tolist(), strict=True):  # plain copies of each image
+                    to[:, s, b].copy_(of[:, b])
 
     def _warped(self, s: int, flow: Callable, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor,
                 store: KeyframeStore, T_world_depth: Tensor, index: Tensor, kf_pix: Tensor, proj: Tensor,
@@ -373,55 +450,6 @@ class LandmarkMap:
         T_out = torch.where(use[:, None, None], T_new, T_world_depth)
         kept = refine_pose(K, T_cd @ T_inv(T_out), world, pixels, meas, good, sigma_m=self.inlier_m, iters=0).inliers
         return T_out, kept
-
-
-class PoseFit(NamedTuple):
-    """T_color_world (B, 4, 4) float64; inliers (B, C): within ``inlier`` of the normalised residual at the end."""
-
-    T_color_world: Tensor
-    inliers: Tensor
-
-
-def refine_pose(K: Tensor, T_color_world: Tensor, world: Tensor, pixels: Tensor, measured: Tensor, valid: Tensor, *,
-                sigma_px: float = 1.0, sigma_m: float = 0.02, huber: float = 2.0, inlier: float = 3.0,
-                iters: int = 8) -> PoseFit:  # fmt: skip
-    """Gauss-Newton on the camera pose from world points seen at colour pixels, with their measured 3D points: the
-    reprojection residual (px / ``sigma_px``) and the 3D residual (m / ``sigma_m`` max(1, z^2)), Huber-weighted per
-    point, like the paper's 5 measurements per feature (eqs. 6-7) on a static pose. The pixel term fixes the pose
-    where the keyframe's depth is noisy: along the ray a depth error barely moves a projection.
-
-    Args:
-        K: (B, 3, 3) colour intrinsics; T_color_world: (B, 4, 4) the starting pose (world -> colour camera).
-        world: (B, C, 3) points in the world; pixels: (B, C, 2) where they are seen; measured: (B, C, 3) their
-            points measured from depth, in the colour camera; valid: (B, C).
-    Linearised at the current estimate each iteration (left perturbation ``exp(xi) T``, xi = (v, omega)).
-    """
-    T = T_color_world.double()
-    K = K.double()
-    fx, fy, cx, cy = K[:, 0, 0, None], K[:, 1, 1, None], K[:, 0, 2, None], K[:, 1, 2, None]
-    w = valid.double()
-    eye = torch.eye(6, dtype=torch.float64, device=T.device)
-    for i in range(iters + 1):
-        p = transform_points(T, world.double())  # B,C,3
-        x, y, z = p.unbind(-1)
-        z = z.clamp_min(1e-3)
-        r2 = torch.stack([fx * x / z + cx - pixels[..., 0], fy * y / z + cy - pixels[..., 1]], -1) / sigma_px
-        sig3 = sigma_m * z.square().clamp_min(1.0)
-        r3 = (p - measured.double()) / sig3[..., None]
-        r = torch.cat([r2, r3], -1)  # B,C,5
-        err = torch.linalg.vector_norm(r, dim=-1)
-        if i == iters:
-            break
-        zero = torch.zeros_like(z)
-        Jp = torch.stack([torch.stack([fx / z, zero, -fx * x / z**2], -1),
-                          torch.stack([zero, fy / z, -fy * y / z**2], -1)], -2)  # fmt: skip  # B,C,2,3
-        Jxi = point_jacobian(p)  # B,C,3,6
-        J = torch.cat([Jp @ Jxi / sigma_px, Jxi / sig3[..., None, None]], -2)  # B,C,5,6
-        hw = torch.where(err <= huber, 1.0, huber / err.clamp_min(1e-12)) * w
-        H = torch.einsum("bcki,bckj,bc->bij", J, J, hw) + 1e-6 * eye
-        g = torch.einsum("bcki,bck,bc->bi", J, r, hw)
-        T = se3_exp(-torch.linalg.solve(H, g)) @ T
-    return PoseFit(T, valid & (err <= inlier))
 
 
 def _take(x: Tensor, order: Tensor, n: int) -> Tensor:

@@ -101,6 +101,11 @@ class Tracker:
         self.predict_init, self.record = predict_init, record
         self.state = TrackerState()
 
+    def reset(self) -> None:
+        """Forget the run: the next :meth:`step` is a first frame (new sequences, any batch size), and every stage
+        starts anew there (the back end's noise scales included)."""
+        self.state = TrackerState()
+
     @property
     def wants_cues(self) -> bool:
         """Whether this frame's cues are computed: when recording, or for a weighting with ``needs_cues``."""
@@ -140,14 +145,17 @@ class Tracker:
         est = self.backend.step(obs, var, active=frame.active)  # eqs. (2)-(7), (15)
         s = replace(s, mean_var=mean_variances(var, valid))  # this frame's noise level, for the landmarks
         tracked = self._advanced(s, frame, cur, track.points, valid, est.T_cam_obj.double())  # and the outlier drop
-        if self.landmarks is not None and self.landmarks.every > 0:
-            tracked = self._reanchored(tracked, frame, cur)  # every k frames: landmarks back into the current model
+        winner, d_tim = track.winner, track.d_tim
+        if self.landmarks is not None and self.landmarks.every > 0:  # every k frames: landmarks back into the model
+            tracked, order = self._reanchored(tracked, frame, cur)
+            if order is not None:  # the features were re-ordered and joined by landmarks: so are their outputs
+                winner, d_tim = _gather_padded(winner, order, -1), _gather_padded(d_tim, order, 0.0)
         reselect = self.reselect.needed(tracked.valid, tracked.n_model, frame.active)
         self.state, model_T_cam_obj = tracked, None
         if reselect.any():  # §III re-selection
             self.state, model_T_cam_obj = self._new_model(tracked, frame, cur, reselect)
         extra = dict(observation=obs, variances=var, cues=cues, model_T_cam_obj=model_T_cam_obj, estimate=est)
-        return _result(tracked, track.winner, track.d_tim, reselect, **extra)  # the frame as tracked
+        return _result(tracked, winner, d_tim, reselect, **extra)  # the frame as tracked
 
     # ---------------------------------------------------------------------------------------------- per frame
     @staticmethod
@@ -191,15 +199,17 @@ class Tracker:
         return replace(s, prev=cur, timestamp=frame.timestamp, pixels=pixels, valid=self.outliers(residuals, valid),
                        age=s.age + 1, residuals=residuals, T_cam_obj=T_cam_obj, velocity=velocity)  # fmt: skip
 
-    def _reanchored(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame) -> TrackerState:
+    def _reanchored(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame) -> tuple[TrackerState, Tensor | None]:
         """``s`` where the sequences ``landmarks.every`` frames past their last model or re-acquisition re-acquired
         landmarks into the current model (no new model): the camera pose is re-fitted (``landmarks.correct``) by
         moving the model frame in the world, ``T_world_obj``, so the filter's pose of the object is untouched; the
-        verified landmarks join the model at their ORIGINAL world positions, expressed in the (moved) model frame."""
+        verified landmarks join the model at their ORIGINAL world positions, expressed in the (moved) model frame.
+        Also returns the new feature order (B, N') as indices into [the old N features, the re-acquired ones] (None:
+        nothing re-acquired, the order unchanged)."""
         since = s.since_landmarks + frame.active.long()
         mask = frame.active & (since >= self.landmarks.every)
         if not mask.any():
-            return replace(s, since_landmarks=since)
+            return replace(s, since_landmarks=since), None
         acq = self.landmarks.reacquire_into(self.keyframes, self.flow, cur, frame.K, frame.T_color_depth, s, s.valid,
                                             mask)  # fmt: skip
         found = acq.valid & mask[:, None]
@@ -214,7 +224,7 @@ class Tracker:
         residuals = feature_residuals(frame.K, frame.T_color_depth, s.T_cam_obj, merged["points_obj"],
                                       merged["pixels"], merged["valid"])  # fmt: skip
         return replace(s, **merged, residuals=residuals, T_world_obj=T_world_obj, since_landmarks=torch.where(
-            mask, 0, since), reacquired_total=s.reacquired_total + found.sum(1))  # fmt: skip
+            mask, 0, since), reacquired_total=s.reacquired_total + found.sum(1)), order  # fmt: skip
 
     # ---------------------------------------------------------------------------------------------- the model
     def _start(self, frame: FrameBatch, cur: PreparedFrame) -> StepResult:
@@ -226,6 +236,7 @@ class Tracker:
         s = TrackerState(timestamp=frame.timestamp, T_cam_obj=eye, T_world_obj=eye.clone(), velocity=zero,
                          since_landmarks=count, reacquired_total=count.clone())  # fmt: skip
         self.keyframes.reset(B, dev)
+        self.backend.start()  # a tracker can run again: nothing of the last run carries over
         if self.landmarks is not None:
             self.landmarks.reset()
         if self.relocaliser is not None:
@@ -322,11 +333,13 @@ class Tracker:
     def _relocalised(self, frame: FrameBatch, cur: PreparedFrame, res: StepResult, dec: Relocalisation) -> StepResult:
         """Apply the relocaliser's decision: the sequences it relocalised take the current frame as a new model at the
         camera pose it found (its features are dropped first: they followed the wrong motion, so no survivor carries
-        over). Returns ``res`` with their new pose."""
+        over; the motion estimate restarts at zero, so the next frame's LK is not started along it). Returns ``res``
+        with their new pose."""
         s, mask = self.state, dec.relocalised
         m3 = mask[:, None, None]
         T_world_obj = torch.where(m3, dec.T_world_depth.double() @ s.T_cam_obj, s.T_world_obj)
-        s = replace(s, valid=s.valid & ~mask[:, None], T_world_obj=T_world_obj)
+        velocity = torch.where(mask[:, None], 0.0, s.velocity)  # the lost frame's motion was the wrong one
+        s = replace(s, valid=s.valid & ~mask[:, None], T_world_obj=T_world_obj, velocity=velocity)
         self.state, T_model = self._new_model(s, frame, cur, mask)
         model = T_model if res.model_T_cam_obj is None else torch.where(m3, T_model, res.model_T_cam_obj)
         return replace(
@@ -355,6 +368,12 @@ class Tracker:
 def _flow_args(with_cues: bool, init: Tensor | None) -> dict:
     args = dict(with_residual=True) if with_cues else {}  # the LK residual is a cue
     return args if init is None else {**args, "init": init}
+
+
+def _gather_padded(x: Tensor, order: Tensor, fill: float) -> Tensor:
+    """(B, N') ``x`` (B, N) taken in ``order`` (B, N') of indices into x's features followed by new ones (``fill``)."""
+    extra = max(int(order.max()) + 1 - x.shape[1], 0) if order.numel() else 0
+    return torch.cat([x, x.new_full((x.shape[0], extra), fill)], 1).gather(1, order)
 
 
 def _result(s: TrackerState, winner: Tensor | None, d_tim: Tensor | None, reselected: Tensor, **extra) -> StepResult:

@@ -226,8 +226,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> lk_track_cpu(
     double min_eig, bool with_residual) {
   TORCH_CHECK(prev.device().is_cpu() && next.device().is_cpu(), "lk_track: CPU tensors only");
   TORCH_CHECK(prev.scalar_type() == at::kFloat && next.scalar_type() == at::kFloat && prev.is_contiguous() &&
-                  next.is_contiguous() && prev.dim() == 1 && next.numel() == prev.numel(),
-              "lk_track: prev and next must be equal contiguous 1-D float32 buffers");
+                  next.is_contiguous() && prev.dim() == 1 && next.dim() == 1 &&
+                  (next.numel() == prev.numel() || prev.numel() == plane),
+              "lk_track: prev and next must be contiguous 1-D float32 buffers, equal unless of one channel");
   const int64_t levels = sizes.size(0), batch = base_prev.size(1);
   TORCH_CHECK(sizes.dim() == 2 && sizes.size(1) == 2 && base_prev.dim() == 2 && base_prev.size(0) == levels &&
                   base_next.sizes() == base_prev.sizes() && levels >= 1,
