@@ -204,3 +204,21 @@ def test_residual_nll_at_the_ground_truth_pose_matches_its_expectation():
     assert int(residual_nll(out, win)[1]) == 5 * int(win.valid[0].sum())
     with pytest.raises(ValueError, match="residual_weight"):
         TrainConfig(residual_weight=-1.0)
+
+
+def test_the_recipe_file_and_the_schema_agree():
+    """conf/train/default.yaml (the CLI's recipe) and TrainConfig (a direct call's) hold the same values, and its
+    model block is LearnedWeighting's defaults: training from Python and from torchtrack-train is the same recipe."""
+    import dataclasses
+    import inspect
+
+    import yaml
+
+    from torchtrack.config import CONF_DIR
+    from torchtrack.learn.model import LearnedWeighting
+
+    recipe = yaml.safe_load((CONF_DIR / "train" / "default.yaml").read_text())
+    fields = {f.name: f.default for f in dataclasses.fields(TrainConfig) if f.name != "model"}
+    assert {k: v for k, v in recipe.items() if k != "model"} == fields
+    params = inspect.signature(LearnedWeighting).parameters
+    assert recipe["model"] == {k: params[k].default for k in recipe["model"]}

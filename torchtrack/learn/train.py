@@ -84,11 +84,11 @@ class TrainConfig:
     window: int = 8
     stride: int = 4
     batch: int = 32
-    epochs: int = 20
-    lr: float = 3e-3
+    epochs: int = 30
+    lr: float = 1e-3
     weight_decay: float = 0.0
     clip: float = 1.0
-    loss: str = "supervised"
+    loss: str = "nll"
     w_trans: float = 1.0
     w_rot: float = 1.0
     gate: float | None = 0.999
