@@ -82,7 +82,8 @@ class TrackerState:
         reacquired_total: (B,) long, landmarks re-acquired so far.
         mean_var: (B, 2) the last update's mean pixel (px^2) and 3D (m^2) variance of its features
             (:func:`~torchtrack.estimators.landmark_update.mean_variances`): the noise level that re-acquired landmarks,
-            the keyframe window and new keyframes' landmark positions take; None before the first update.
+            the keyframe window and new keyframes' landmark positions take; None before the first update and
+            without landmarks.
     """
 
     prev: PreparedFrame | None = None

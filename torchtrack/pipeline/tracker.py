@@ -143,7 +143,8 @@ class Tracker:
         # more measurements of the current model join ``obs`` (and ``var``) here, e.g. re-acquired landmarks
         # (:meth:`~torchtrack.pipeline.landmarks.Reacquired.observation`), so that the back end weighs them in its update
         est = self.backend.step(obs, var, active=frame.active)  # eqs. (2)-(7), (15)
-        s = replace(s, mean_var=mean_variances(var, valid))  # this frame's noise level, for the landmarks
+        if self.landmarks is not None:  # this frame's noise level: the landmarks' (nothing else reads it)
+            s = replace(s, mean_var=mean_variances(var, valid))
         tracked = self._advanced(s, frame, cur, track.points, valid, est.T_cam_obj.double())  # and the outlier drop
         winner, d_tim = track.winner, track.d_tim
         if self.landmarks is not None and self.landmarks.every > 0:  # every k frames: landmarks back into the model
