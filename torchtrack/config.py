@@ -250,6 +250,13 @@ class EKFBackendConfig:
     noise_scale_min: float = 0.01  # ... bounds of the scale
     noise_scale_max: float = 100.0
     noise_clip: float | None = 0.9  # ... chi-square quantile winsorising each feature's residual (null: none)
+    # improvement (false = paper; off while measured): online process-noise scale per block (angular, linear),
+    # Q = c Q0 with c from the update's velocity corrections (torchtrack.filter.process_scale)
+    process_scale: bool = False
+    process_forgetting: float = 0.9  # ... its forgetting factor per frame (a window of ~10 frames)
+    process_scale_min: float = 0.01  # ... bounds of c (acceleration std 0.1x-10x the filter's sigma_*_acc)
+    process_scale_max: float = 100.0
+    process_clip: float | None = 0.99  # ... chi-square (3 dof) quantile winsorising each frame's correction (null: none)
 
 
 @dataclass

@@ -19,6 +19,7 @@ from torchtrack.filter.ekf import chi2_quantile, cholesky_jittered, symmetrize
 from torchtrack.filter.fusion import FilterState, FusionEKF
 from torchtrack.filter.models import measure_pose
 from torchtrack.filter.noise_scale import NoiseScale, ScaleState, residual_statistics, scaled
+from torchtrack.filter.process_scale import ProcessScale, correction_statistics, velocity_variances
 from torchtrack.filter.weighting import Variances
 
 log = logging.getLogger(__name__)
@@ -91,6 +92,8 @@ class FrameUpdate(NamedTuple):
         updated: (B,) bool, False where no measurement was used (the prediction was kept).
         noise: the online noise scale after this frame (:class:`~torchtrack.filter.noise_scale.ScaleState`, its
             ``scale`` (B, 2) [pix, xyz]); None when the scale is off.
+        process: the online process-noise scale after this frame (a ``ScaleState``, its ``scale`` (B, 2) [ang, lin],
+            :mod:`~torchtrack.filter.process_scale`); None when it is off.
     """
 
     posterior: FilterState
@@ -102,6 +105,7 @@ class FrameUpdate(NamedTuple):
     nll: Tensor
     updated: Tensor
     noise: ScaleState | None = None
+    process: ScaleState | None = None
 
     @property
     def T_cam_obj(self) -> Tensor:
@@ -124,6 +128,12 @@ class FrameUpdate(NamedTuple):
         or None when the scale is off."""
         return None if self.noise is None else self.noise.scale
 
+    @property
+    def process_scale(self) -> Tensor | None:
+        """(B, 2) the online process-noise factors [ang, lin] after this frame (the next prediction's Q = c x the
+        model's), or None when the process scale is off."""
+        return None if self.process is None else self.process.scale
+
 
 def ekf_frame(
     ekf: FusionEKF,
@@ -136,6 +146,8 @@ def ekf_frame(
     with_nll: bool = False,
     noise_scale: NoiseScale | None = None,
     scale_state: ScaleState | None = None,
+    process_scale: ProcessScale | None = None,
+    process_state: ScaleState | None = None,
 ) -> FrameUpdate:
     """One frame of the paper's fusion EKF as a pure function: prior state, observation and variances in, posterior
     out; nothing is mutated. Differentiable in ``var``, ``state`` and the measurements; the discrete choices (gate,
@@ -149,7 +161,10 @@ def ekf_frame(
     and when a used measurement fails, the update is redone from the same prior without it. With ``noise_scale``
     (optional, :mod:`~torchtrack.filter.noise_scale`): every step above uses ``R = k R0``, k (B, 2) the running scales
     of ``scale_state`` (default: k = 1) and R0 the weighting's ``var``; the used measurements' post-fit residuals then
-    update the scales (:attr:`FrameUpdate.noise`), without gradient.
+    update the scales (:attr:`FrameUpdate.noise`), without gradient. With ``process_scale`` (optional,
+    :mod:`~torchtrack.filter.process_scale`): the prediction uses ``Q = c Q0``, c (B, 2) [ang, lin] the running
+    factors of ``process_state`` (default: c = 1), and the update's velocity correction updates them
+    (:attr:`FrameUpdate.process`), without gradient.
 
     Args:
         ekf: :class:`~torchtrack.filter.fusion.FusionEKF` (its parameters only).
@@ -159,12 +174,16 @@ def ekf_frame(
         with_nll: also compute :attr:`FrameUpdate.nll` (the self-supervised training loss).
         noise_scale: the online noise scale's parameters (None: off, the weighting's R as it is); scale_state: its
             running state before this frame.
+        process_scale: the online process-noise scale's parameters (None: off, the model's Q); process_state: its
+            running state before this frame.
     """
     if noise_scale is not None:
         if scale_state is None:
             scale_state = noise_scale.initial(obs.valid.shape[0], device=obs.valid.device)
         var = scaled(var, scale_state.scale)  # R = k R0 for every step of this frame
-    prior = ekf.predicted(state, obs.dt)  # eqs. (3)-(4)
+    if process_scale is not None and process_state is None:
+        process_state = process_scale.initial(obs.valid.shape[0], device=obs.valid.device)
+    prior = ekf.predicted(state, obs.dt, None if process_state is None else process_state.scale)  # eqs. (3)-(4)
     dt = prior.mean.dtype
     points_obj, K, T_cd = obs.points_obj.to(dt), obs.K.to(dt), obs.T_color_depth.to(dt)
     z = torch.cat([obs.points_d, obs.pixels], -1).to(dt)  # B,N,5
@@ -216,7 +235,13 @@ def ekf_frame(
             stats = residual_statistics(residual, post_hph, var5, valid5, used, scale_state.scale, noise_scale.clip)
         noise = noise_scale.updated(scale_state, stats)
     updated = used.any(-1).any(-1)
-    return FrameUpdate(posterior, prior, xyz, pix, innovation, innovation_var, nll, updated, noise)
+    process = None
+    if process_scale is not None:
+        q0 = velocity_variances(obs.dt.to(dt), ekf.sigma_ang_acc, ekf.sigma_lin_acc)
+        stats = correction_statistics(prior.mean, post.mean, prior.cov, post.cov, q0, process_state.scale, updated,
+                                      process_scale.clip)  # fmt: skip
+        process = process_scale.updated(process_state, stats)
+    return FrameUpdate(posterior, prior, xyz, pix, innovation, innovation_var, nll, updated, noise, process)
 
 
 def innovation_nll(prior_cov: Tensor, H: Tensor, innovation: Tensor, var5: Tensor, used: Tensor) -> Tensor:
@@ -273,6 +298,11 @@ class EKFBackend:
             The back end owns k; a re-selection (:meth:`reset`) keeps it (the sensor did not change).
         noise_forgetting, noise_scale_min, noise_scale_max, noise_clip: its forgetting factor, bounds and
             winsorising quantile (:class:`~torchtrack.filter.noise_scale.NoiseScale`).
+        process_scale: improvement over the paper (False = off): the online process-noise scale per sequence and
+            block (:mod:`torchtrack.filter.process_scale`): Q = c Q0 with c (B, 2) [ang, lin] estimated from the
+            update's velocity corrections. Owned and kept across re-selections like the noise scale.
+        process_forgetting, process_scale_min, process_scale_max, process_clip: its forgetting factor, bounds and
+            winsorising quantile (:class:`~torchtrack.filter.process_scale.ProcessScale`).
     """
 
     fuses = True  # step(dt = 0) is a pure update (PoseBackend)
@@ -287,6 +317,11 @@ class EKFBackend:
         noise_scale_min: float = EKFBackendConfig.noise_scale_min,
         noise_scale_max: float = EKFBackendConfig.noise_scale_max,
         noise_clip: float | None = EKFBackendConfig.noise_clip,
+        process_scale: bool = EKFBackendConfig.process_scale,
+        process_forgetting: float = EKFBackendConfig.process_forgetting,
+        process_scale_min: float = EKFBackendConfig.process_scale_min,
+        process_scale_max: float = EKFBackendConfig.process_scale_max,
+        process_clip: float | None = EKFBackendConfig.process_clip,
     ) -> None:
         for name, p in (("gate", gate), ("refit", refit)):
             if p is not None and not 0.0 < p < 1.0:
@@ -294,17 +329,21 @@ class EKFBackend:
         self.ekf = ekf
         self.gate, self.refit = gate, refit
         self.noise = NoiseScale(noise_forgetting, noise_scale_min, noise_scale_max, noise_clip) if noise_scale else None
+        self.process = (
+            ProcessScale(process_forgetting, process_scale_min, process_scale_max, process_clip) if process_scale else None
+        )
         self.state: FilterState | None = None
         self.scale_state: ScaleState | None = None  # the online noise scale's, (B, 2) each
+        self.process_state: ScaleState | None = None  # the online process-noise scale's, (B, 2) each
 
     def start(self) -> None:
-        """A new run: the filter state and the noise scales are forgotten (the scales are the sensor's within a run,
-        a re-selection keeps them; a new run starts them at 1 again)."""
-        self.state, self.scale_state = None, None
+        """A new run: the filter state and the noise and process scales are forgotten (the scales are the sensor's
+        and the motion's within a run, a re-selection keeps them; a new run starts them at 1 again)."""
+        self.state, self.scale_state, self.process_state = None, None, None
 
     def reset(self, T_cam_obj: Tensor, mask: Tensor) -> None:
         """Start the sequences in ``mask`` (B,) over at ``T_cam_obj`` (B, 4, 4), zero velocity, initial covariance.
-        The noise scales are kept (they start at 1 after :meth:`start` or with a new batch size)."""
+        The noise and process scales are kept (they start at 1 after :meth:`start` or with a new batch size)."""
         init = self.ekf.initial_state(T_cam_obj)
         if self.state is None or self.state.mean.shape[0] != T_cam_obj.shape[0]:
             if not bool(mask.all()):
@@ -313,6 +352,7 @@ class EKFBackend:
             self.state = init
             B = T_cam_obj.shape[0]
             self.scale_state = None if self.noise is None else self.noise.initial(B, device=T_cam_obj.device)
+            self.process_state = None if self.process is None else self.process.initial(B, device=T_cam_obj.device)
             return
         self.state = init.select(mask, self.state)
 
@@ -326,20 +366,29 @@ class EKFBackend:
     def step(self, obs: Observation, var: Variances, active: Tensor | None = None) -> FrameUpdate:
         """One frame: the named result of :func:`ekf_frame`; the posterior becomes the state of the sequences where
         ``active`` (B,) is True (default: all); ended sequences keep theirs (no prediction runs on without them), and
-        their noise scales (the result's ``noise`` is the back end's after the frame)."""
+        their noise and process scales (the result's ``noise`` and ``process`` are the back end's after the frame)."""
         if self.state is None:
             raise ValueError("EKFBackend: call reset(T_cam_obj, mask) before the first frame")
         out = ekf_frame(self.ekf, self.state, obs, var, gate=self.gate, refit=self.refit, noise_scale=self.noise,
-                        scale_state=self.scale_state)  # fmt: skip
+                        scale_state=self.scale_state, process_scale=self.process,
+                        process_state=self.process_state)  # fmt: skip
         self.state = out.posterior if active is None else out.posterior.select(active, self.state)
         if out.noise is not None:
-            if active is not None and self.scale_state is not None:
-                kept = (torch.where(active[:, None], n, o) for n, o in zip(out.noise, self.scale_state, strict=True))
-                out = out._replace(noise=ScaleState(*kept))
+            out = out._replace(noise=_kept(out.noise, self.scale_state, active))
             self.scale_state = out.noise
+        if out.process is not None:
+            out = out._replace(process=_kept(out.process, self.process_state, active))
+            self.process_state = out.process
         if self.ekf.euler and bool((out.mean[:, 1].abs() > 1.4).any()):
             log.warning("EKFBackend: |theta| > 80 deg, near the Euler singularity; re-select the model frame")
         return out
+
+
+def _kept(new: ScaleState, old: ScaleState | None, active: Tensor | None) -> ScaleState:
+    """A running scale after a frame: ``new`` where ``active`` (B,) is True (default: all), ``old`` elsewhere."""
+    if active is None or old is None:
+        return new
+    return ScaleState(*(torch.where(active[:, None], n, o) for n, o in zip(new, old, strict=True)))
 
 
 class Registration(NamedTuple):

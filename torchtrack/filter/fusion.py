@@ -233,17 +233,19 @@ class FusionEKF:
         P0 = torch.diag_embed(self.init_var.to(T.device).expand(B, STATE_SIZE))
         return FilterState(x0, P0, T)
 
-    def predicted(self, state: FilterState, dt: Tensor) -> FilterState:
-        """Constant-velocity prediction, eqs. (3)-(4), over ``dt`` (B,) seconds."""
+    def predicted(self, state: FilterState, dt: Tensor, process_scale: Tensor | None = None) -> FilterState:
+        """Constant-velocity prediction, eqs. (3)-(4), over ``dt`` (B,) seconds. ``process_scale`` (B, 2) [angular,
+        linear] (optional, :mod:`~torchtrack.filter.process_scale`): Q's angular and linear blocks times these
+        factors, i.e. accelerations of std ``sqrt(c) sigma``."""
         if dt.shape != (state.mean.shape[0],):
             raise ValueError(f"predict: dt must be ({state.mean.shape[0]},), got {tuple(dt.shape)}")
         dt = dt.to(self.dtype)
         if self.euler:
             F, Q = constant_velocity(dt, self.sigma_ang_acc, self.sigma_lin_acc)
-            mean, cov = ekf.predict(state.mean, state.cov, F, Q)
+            mean, cov = ekf.predict(state.mean, state.cov, F, _scaled_q(Q, process_scale))
             return FilterState(mean, cov, state_to_pose(mean))
         F, Q = error_state.transition(dt, state.mean[:, 6:9], self.sigma_ang_acc, self.sigma_lin_acc)
-        _, cov = ekf.predict(state.mean, state.cov, F, Q)  # the error's mean stays [0, v]: the nominal moves
+        _, cov = ekf.predict(state.mean, state.cov, F, _scaled_q(Q, process_scale))  # the error's mean stays [0, v]: the nominal moves
         return FilterState(
             state.mean, cov, error_state.predict_nominal(state.T_cam_obj, state.mean[:, 6:], dt, F[:, :3, :3])
         )
@@ -297,3 +299,16 @@ class FusionEKF:
 
     def _nominal(self, state: FilterState) -> Tensor | None:
         return None if self.euler else state.T_cam_obj
+
+
+_BLOCK_OF_ROW = (0, 0, 0, 1, 1, 1, 0, 0, 0, 1, 1, 1)  # angular (0) or linear (1) block of each of the 12 state rows
+
+
+def _scaled_q(Q: Tensor, process_scale: Tensor | None) -> Tensor:
+    """``Q`` (B, 12, 12) with its angular and linear blocks times ``process_scale`` (B, 2) (detached): Q couples only
+    rows of one block (an axis' pose with its velocity), so scaling the rows scales each block."""
+    if process_scale is None:
+        return Q
+    rows = process_scale.detach().to(Q.dtype)[:, list(_BLOCK_OF_ROW)]  # B,12
+    return Q * rows[:, :, None]
+
