@@ -123,9 +123,10 @@ PARTNERS = {
     EKFBackendConfig: ("torchtrack.estimators.backends.ekf_frame",),
 }
 KNOWN: set[tuple[str, str]] = set()  # known disagreements between a signature and its schema: none
-# Not the schema's knob under the same name: ekf_frame takes the NoiseScale object itself (None: off, as false).
-# Nor LandmarkMap's window: it takes the WindowRefiner built from landmarks.window (None: WindowConfig's defaults).
-OTHER_MEANING = {("ekf_frame", "noise_scale"), ("LandmarkMap", "window")}
+# Not the schema's knob under the same name: ekf_frame takes the NoiseScale and ProcessScale objects themselves (None:
+# off, as false). Nor LandmarkMap's window: it takes the WindowRefiner built from landmarks.window (None: WindowConfig's
+# defaults).
+OTHER_MEANING = {("ekf_frame", "noise_scale"), ("ekf_frame", "process_scale"), ("LandmarkMap", "window")}
 
 
 def differences(schema: type) -> dict[str, tuple]:
