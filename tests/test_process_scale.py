@@ -9,12 +9,13 @@ the Euler state, bounds, configuration, frames.csv."""
 
 from __future__ import annotations
 
-from dataclasses import fields, replace
+from dataclasses import replace
 
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
+from test_noise_scale import sequence  # sequence b of oracle windows alone (B = 1)
 
 from torchtrack.config import CONF_DIR, EKFBackendConfig
 from torchtrack.estimators.backends import EKFBackend, ekf_frame
@@ -22,7 +23,7 @@ from torchtrack.filter import FusionEKF, Variances
 from torchtrack.filter.process_scale import ANG, LIN, ProcessScale
 from torchtrack.geometry import make_T, project, so3_exp, transform_points
 from torchtrack.learn.oracle import OracleWindows, oracle_windows
-from torchtrack.learn.rollout import PER_WINDOW, pose_errors
+from torchtrack.learn.rollout import pose_errors
 
 F64 = torch.float64
 TOL = {F64: 1e-9}  # batched vs looped: other shapes sum in other orders
@@ -80,8 +81,12 @@ def track(oracle, q_scale=1.0, *, var_scale=(1.0, 1.0), process_scale=False, sta
         poses.append(out.T_cam_obj)
         proc.append(out.process_scale)
         noise.append(out.noise_scale)
-    stack = (lambda xs: None if xs[0] is None else torch.stack(xs))  # fmt: skip
-    return torch.stack(poses), stack(proc), stack(noise)
+    return torch.stack(poses), _stacked(proc), _stacked(noise)
+
+
+def _stacked(xs):
+    """The frames' (B, 2) scales stacked to (T, B, 2), or None when the scale is off."""
+    return None if xs[0] is None else torch.stack(xs)
 
 
 def settled(scales):
@@ -159,15 +164,6 @@ def test_batched_equals_looped():
         p, s, _ = track(sequence(oracle, b), process_scale=True)
         torch.testing.assert_close(s[:, 0], scales[:, b], atol=TOL[F64], rtol=TOL[F64])
         torch.testing.assert_close(p[:, 0], poses[:, b], atol=TOL[F64], rtol=TOL[F64])
-
-
-def sequence(oracle, b: int):
-    """Sequence b of the oracle's windows alone (B = 1)."""
-    w = oracle.windows
-    rows = {f.name: getattr(w, f.name)[b : b + 1] if f.name in PER_WINDOW else getattr(w, f.name)[:, b : b + 1]
-            for f in fields(w)}  # fmt: skip
-    return oracle._replace(windows=replace(w, **rows), var_pix=oracle.var_pix[:, b : b + 1],
-                           var_xyz=oracle.var_xyz[:, b : b + 1])  # fmt: skip
 
 
 def test_inactive_featureless_and_dt0_frames_keep_the_scale():

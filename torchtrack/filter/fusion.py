@@ -245,7 +245,8 @@ class FusionEKF:
             mean, cov = ekf.predict(state.mean, state.cov, F, _scaled_q(Q, process_scale))
             return FilterState(mean, cov, state_to_pose(mean))
         F, Q = error_state.transition(dt, state.mean[:, 6:9], self.sigma_ang_acc, self.sigma_lin_acc)
-        _, cov = ekf.predict(state.mean, state.cov, F, _scaled_q(Q, process_scale))  # the error's mean stays [0, v]: the nominal moves
+        # the error's mean stays [0, v]: the nominal moves
+        _, cov = ekf.predict(state.mean, state.cov, F, _scaled_q(Q, process_scale))
         return FilterState(
             state.mean, cov, error_state.predict_nominal(state.T_cam_obj, state.mean[:, 6:], dt, F[:, :3, :3])
         )
@@ -311,4 +312,3 @@ def _scaled_q(Q: Tensor, process_scale: Tensor | None) -> Tensor:
         return Q
     rows = process_scale.detach().to(Q.dtype)[:, list(_BLOCK_OF_ROW)]  # B,12
     return Q * rows[:, :, None]
-

@@ -162,14 +162,10 @@ class ProcessScale(NoiseScale):
         max_scale: float = EKFBackendConfig.process_scale_max,
         clip: float | None = EKFBackendConfig.process_clip,
     ) -> None:
-        if not 0.0 < forgetting <= 1.0 or not 0.0 < min_scale <= 1.0 <= max_scale:
-            raise ValueError(
-                f"ProcessScale: need 0 < forgetting <= 1 and 0 < min_scale <= 1 <= max_scale, got {forgetting}, "
-                f"{min_scale}, {max_scale}"
-            )
-        if clip is not None and not 0.0 < clip < 1.0:
-            raise ValueError(f"ProcessScale: clip is a probability in (0, 1) or None, got {clip}")
-        super().__init__(forgetting, min_scale, max_scale, clip)
+        try:
+            super().__init__(forgetting, min_scale, max_scale, clip)  # the same checks
+        except ValueError as e:
+            raise ValueError(str(e).replace("NoiseScale", "ProcessScale")) from None
 
     def initial(self, B: int, dtype: torch.dtype = torch.float64, device: torch.device | None = None) -> ScaleState:
         """c = 1 (the model's Q) for B sequences, with the weight of PRIOR_WEIGHT steady-state frames."""
