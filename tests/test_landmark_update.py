@@ -1,4 +1,5 @@
-"""Landmarks as filter measurements (torchtrack/estimators/landmark_update.py): oracles on exact synthetic landmarks."""
+"""Landmarks as filter measurements (torchtrack/estimators/landmark_update.py): the frame's update redone with them;
+oracles on exact synthetic features and landmarks."""
 
 from __future__ import annotations
 
@@ -6,8 +7,8 @@ import math
 
 import torch
 
-from torchtrack.estimators.backends import EKFBackend
-from torchtrack.estimators.landmark_update import landmark_update, landmark_variances, mean_variances
+from torchtrack.estimators.backends import EKFBackend, Observation, ekf_frame
+from torchtrack.estimators.landmark_update import FrameFusion, joint_update, landmark_variances, mean_variances
 from torchtrack.filter import FusionEKF, Variances
 from torchtrack.geometry import T_inv, make_T, project, se3_exp, se3_log, so3_exp, transform_points
 
@@ -42,33 +43,89 @@ def _var(C, B=2):
     return Variances(torch.full((B, C), 0.25, dtype=F64), torch.full((B, C), 2e-6, dtype=F64))
 
 
-def test_exact_landmarks_pull_an_uncertain_pose_onto_the_truth():
-    """Prior 1 cm / 0.6 deg off with a 1 m / 1 rad standard deviation, iterated EKF: the landmarks alone decide."""
+def _obs(points_obj, X_cam, pixels, valid, K, T_cd, dt=1 / 30):
+    B = valid.shape[0]
+    return Observation(torch.full((B,), dt, dtype=F64), points_obj, X_cam, pixels, valid, K, T_cd)
+
+
+def _frame(T0, T_world_obj, world, X_cam, pixels, K, T_cd, frame_valid, **ekf):
+    """A back end after one frame whose features are the first 10 points (``frame_valid`` (B, 10)), and the
+    :class:`FrameFusion` it keeps; the landmarks are the other 20 points (their model points from the world)."""
+    be = _backend(T0, **ekf)
+    points_obj = transform_points(T_inv(T_world_obj), world)
+    obs = _obs(points_obj[:, :10], X_cam[:, :10], pixels[:, :10], frame_valid, K, T_cd)
+    before = be.snapshot()
+    be.step(obs, _var(10), active=torch.ones(2, dtype=torch.bool))
+    landmarks = _obs(points_obj[:, 10:], X_cam[:, 10:], pixels[:, 10:], torch.ones(2, 20, dtype=torch.bool), K, T_cd)
+    return be, FrameFusion(before, obs, _var(10), torch.ones(2, dtype=torch.bool)), landmarks
+
+
+def test_joint_update_is_one_update_of_features_and_landmarks():
+    """The frame redone with the landmarks equals one :func:`ekf_frame` of all 30 points from the frame's start (the
+    same computation: exactly), and with exact points, a prior 1 cm / 0.6 deg off with a 1 m / 1 rad deviation and an
+    iterated EKF, it is the truth."""
     T_world_obj, T_true, world, X_cam, pixels, K, T_cd = _setup()
     T0 = se3_exp(torch.tensor([0.01, -0.01, 0.005, 0.01, 0.0, -0.005], dtype=F64)).expand(2, 4, 4) @ T_true
-    be = _backend(T0, init_sigma_angle=1.0, init_sigma_trans=1.0, iterations=5)
-    valid = torch.ones(2, 30, dtype=torch.bool)
-    out = landmark_update(be, T0, T_world_obj, world, X_cam, pixels, valid, _var(30), K, T_cd)
+    ekf = dict(init_sigma_angle=1.0, init_sigma_trans=1.0, init_sigma_ang_vel=1e-6, init_sigma_lin_vel=1e-6,
+               iterations=5)  # fmt: skip
+    be, fusion, landmarks = _frame(T0, T_world_obj, world, X_cam, pixels, K, T_cd, torch.ones(2, 10, dtype=torch.bool),
+                                   **ekf)  # fmt: skip
+    out = joint_update(be, fusion, landmarks, _var(20))
     assert bool(out.updated.all()) and bool(out.used.all())
+    points_obj = transform_points(T_inv(T_world_obj), world)
+    alone = ekf_frame(FusionEKF(**ekf), fusion.before[0], _obs(points_obj, X_cam, pixels, torch.ones(2, 30,
+                      dtype=torch.bool), K, T_cd), _var(30), gate=None, refit=None)  # fmt: skip
+    assert torch.equal(out.T_cam_obj, alone.T_cam_obj) and torch.equal(be.state.cov, alone.cov)
     err = se3_log(out.T_cam_obj @ T_inv(T_true))
-    assert err.abs().max() < 1e-6, err  # the prior's pull: 1e-6 m^2 / 1 m^2 of the 1 cm offset ~ 1e-8
+    assert err.abs().max() < 1e-6, err
 
 
-def test_uncertain_positions_move_nothing_and_masks_keep_the_state():
+def test_landmarks_weigh_against_the_features_by_their_variances():
+    """Features exact under one pose, landmarks exact under another 2 cm away, both with the same variance: the
+    update lands between them (more than 1 mm from either); with the landmarks' variance 1e6 x larger it is the features' pose (within 1e-6 m), and
+    1e6 x smaller the landmarks' (the prior is vague, the EKF iterated)."""
+    T_world_obj, T_true, world, X_cam, pixels, K, T_cd = _setup()
+    shift = se3_exp(torch.tensor([0.02, 0, 0, 0, 0, 0], dtype=F64)).expand(2, 4, 4)
+    T_lm = shift @ T_true  # the landmarks' world positions agree with this pose instead
+    world = torch.cat([world[:, :10], transform_points(T_world_obj @ T_inv(T_lm), X_cam[:, 10:])], 1)
+    ekf = dict(init_sigma_angle=1.0, init_sigma_trans=1.0, init_sigma_ang_vel=1e-6, init_sigma_lin_vel=1e-6,
+               iterations=5)  # fmt: skip
+    ones = torch.ones(2, 10, dtype=torch.bool)
+    poses = []
+    for factor in (1e6, 1.0, 1e-6):
+        be, fusion, landmarks = _frame(T_true, T_world_obj, world, X_cam, pixels, K, T_cd, ones, **ekf)
+        var = Variances(*(v * factor for v in _var(20)))
+        poses.append(joint_update(be, fusion, landmarks, var).T_cam_obj)
+    assert se3_log(poses[0] @ T_inv(T_true)).abs().max() < 1e-6
+    assert se3_log(poses[2] @ T_inv(T_lm)).abs().max() < 1e-6
+    for end in (T_true, T_lm):
+        gap = poses[1][:, :3, 3] - end[:, :3, 3]
+        assert bool((torch.linalg.vector_norm(gap, dim=-1) > 1e-3).all()), gap
+
+
+def test_sequences_without_landmarks_keep_the_frames_update():
     T_world_obj, T_true, world, X_cam, pixels, K, T_cd = _setup()
     T0 = se3_exp(torch.tensor([0.01, 0, 0, 0, 0, 0], dtype=F64)).expand(2, 4, 4) @ T_true
-    be = _backend(T0)
-    valid = torch.ones(2, 30, dtype=torch.bool)
-    valid[1] = False  # sequence 1 found none: its filter state is not touched
-    before = be.state.mean.clone(), be.state.cov.clone()
-    frame = Variances(torch.full((2, 5), 0.25, dtype=F64), torch.full((2, 5), 1e-6, dtype=F64))
-    var = landmark_variances(
-        X_cam, torch.full((2, 30), 1e6, dtype=F64), mean_variances(frame, torch.ones(2, 5, dtype=torch.bool)), K
-    )
-    out = landmark_update(be, T0, T_world_obj, world, X_cam, pixels, valid, var, K, T_cd)
-    assert (se3_log(out.T_cam_obj @ T_inv(T0)).abs().max()) < 1e-8  # positions known to +-1 km: no information
-    assert torch.equal(be.state.mean[1], before[0][1]) and torch.equal(be.state.cov[1], before[1][1])
-    assert torch.equal(out.T_cam_obj[1], T0[1]) and out.updated.tolist() == [True, False]
+    be, fusion, landmarks = _frame(T0, T_world_obj, world, X_cam, pixels, K, T_cd, torch.ones(2, 10, dtype=torch.bool))
+    after = be.snapshot()
+    landmarks.valid[1] = False  # sequence 1 found none: its state stays the frame's update, bit for bit
+    out = joint_update(be, fusion, landmarks, _var(20))
+    assert out.updated.tolist() == [True, False] and not bool(out.used[1].any())
+    assert torch.equal(be.state.mean[1], after[0].mean[1]) and torch.equal(be.state.cov[1], after[0].cov[1])
+    assert torch.equal(out.T_cam_obj[1], after[0].T_cam_obj[1])
+    assert not torch.equal(out.T_cam_obj[0], after[0].T_cam_obj[0])
+
+
+def test_uncertain_landmarks_move_nothing():
+    """Positions known to +-1 km (``position_variance``): the joint update is the frame's own within 1e-8."""
+    T_world_obj, T_true, world, X_cam, pixels, K, T_cd = _setup()
+    T0 = se3_exp(torch.tensor([0.01, 0, 0, 0, 0, 0], dtype=F64)).expand(2, 4, 4) @ T_true
+    be, fusion, landmarks = _frame(T0, T_world_obj, world, X_cam, pixels, K, T_cd, torch.ones(2, 10, dtype=torch.bool))
+    frame_pose = be.state.T_cam_obj
+    mean = mean_variances(fusion.var, fusion.obs.valid)
+    var = landmark_variances(X_cam[:, 10:], torch.full((2, 20), 1e6, dtype=F64), mean, K)
+    out = joint_update(be, fusion, landmarks, var)
+    assert se3_log(out.T_cam_obj @ T_inv(frame_pose)).abs().max() < 1e-8
 
 
 def test_landmark_variances_add_the_position_variance():
@@ -82,3 +139,11 @@ def test_landmark_variances_add_the_position_variance():
     torch.testing.assert_close(out.var_xyz, torch.tensor([[6e-6, 3e-6]], dtype=F64))
     torch.testing.assert_close(out.var_pix, torch.tensor([[2 + 250**2 * 4e-6, 2 + 125**2 * 1e-6]], dtype=F64))
     assert math.isclose(float(out.var_pix[0, 0]), 2.25)
+
+
+def test_landmark_variances_without_the_position_are_the_frames():
+    X = torch.tensor([[[0.0, 0.0, 2.0], [0.1, 0.0, 4.0]]], dtype=F64)
+    K = torch.tensor([[[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]], dtype=F64)
+    out = landmark_variances(X, None, torch.tensor([[2.0, 3e-6]], dtype=F64), K)
+    assert torch.equal(out.var_pix, torch.full((1, 2), 2.0, dtype=F64))
+    assert torch.equal(out.var_xyz, torch.full((1, 2), 3e-6, dtype=F64))

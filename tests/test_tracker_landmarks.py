@@ -157,7 +157,7 @@ def test_returning_camera_with_landmarks_estimated(pan, monkeypatch):
     import torchtrack.pipeline.tracker as tracker_module
 
     acted = {"update": 0, "refine": 0, "warp": 0}
-    update, refine, warped = tracker_module.landmark_update, tracker_module.refine_at_reselection, LandmarkMap._warped
+    update, refine, warped = tracker_module.joint_update, tracker_module.refine_at_reselection, LandmarkMap._warped
 
     def spy(name, fn, did):
         def wrapped(*args, **kwargs):
@@ -167,7 +167,7 @@ def test_returning_camera_with_landmarks_estimated(pan, monkeypatch):
 
         return wrapped
 
-    monkeypatch.setattr(tracker_module, "landmark_update", spy("update", update, lambda o: o.updated.any()))
+    monkeypatch.setattr(tracker_module, "joint_update", spy("update", update, lambda o: o.updated.any()))
     monkeypatch.setattr(tracker_module, "refine_at_reselection", spy("refine", refine, lambda o: o.used.any()))
     monkeypatch.setattr(LandmarkMap, "_warped", spy("warp", warped, lambda o: True))
     poses, frames = pan

@@ -376,10 +376,11 @@ class LandmarkConfig:
     converge_px: float = 0.5  # a second LK started probe_px away must end within this of the first
     probe_px: float = 3.0
     every: int = 0  # also every this many frames into the current model (0: only at re-selections)
-    # issue 24 (measured on and off in RESULTS.md): the re-acquired landmarks enter the back end's update (a second
-    # update of the frame, dt = 0, their variance the frame's plus their stored position's) instead of ``correct``'s
-    # re-fit outside the filter (``correct`` is then not applied)
+    # issue 24 (measured on and off in RESULTS.md): the re-acquired landmarks are measurements of the back end: the
+    # frame's update is redone with them as more of its features (torchtrack.estimators.landmark_update.joint_update)
+    # instead of ``correct``'s re-fit outside the filter (``correct`` is then not applied)
     measure: bool = False
+    position_variance: bool = False  # ... their variance adds their stored position's (false: the frame's, as a model point's)
     warp: bool = False  # re-track them from pose-warped templates (plane homography, normal from the keyframe depth)
     warp_crop: int = 96  # ... the side (px) of the warped crops
     refine: bool = False  # at a re-selection, refine the keyframe window (torchtrack.pipeline.landmark_window)

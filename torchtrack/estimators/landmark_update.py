@@ -2,17 +2,26 @@
 
 A landmark found again in the current frame gives the same two measurements as a tracked feature (eqs. 6-7): its 3D
 point read from depth and its colour pixel, predicted from its stored world position moved into the current model
-frame, ``X_o = T_world_obj^-1 X_w``. The stored position is itself uncertain (it was measured from depth at its
-keyframe, with the keyframe's 3D variance ``var_world``, isotropic), so each measurement's variance is the filter's
-variance for a feature now plus that of the prediction it is compared with:
+frame, ``X_o = T_world_obj^-1 X_w``. The landmarks are re-acquired at a re-selection, after the frame's update (they
+are searched for around the updated pose); :func:`joint_update` then redoes that update from the same start with the
+landmarks as more features of the frame. So there is one prediction and one update per frame, the landmarks and the
+model's features are weighed against each other by their variances, and the gate and the refit judge both alike.
+
+Their variances (:func:`landmark_variances`). The paper's filter takes model points as exact: a model point was
+measured from depth once, at its model frame, like a landmark at its keyframe, and its error is not in R. By default a
+landmark is treated alike, with this frame's mean variances of the tracked features (the weighting's, eqs. 11-14, times
+the online noise scale inside the update when that is on). With ``landmarks.position_variance`` the stored position's
+own variance ``var_world`` (its keyframe's mean 3D variance, isotropic) is added::
 
     var_xyz = v_xyz + var_world,        var_pix = v_pix + (f / z)^2 var_world,
 
-(the position's error moves the projection by f / z per metre across the ray), with ``v_xyz``, ``v_pix`` this
-frame's mean variances of the tracked features (the weighting's, eqs. 11-14: their mean is the nominal one). The
-landmarks enter the back end as a second update of the same frame, ``dt = 0``: the constant-velocity prediction over
-zero time is the identity with zero process noise, so the update fuses them with the frame's posterior (the gate and
-the refit drop the landmarks that disagree with it, as they drop features).
+(the position's error moves the projection by f / z per metre across the ray). Measured both ways on 7-Scenes
+(RESULTS, issue 24): with the position variance the landmarks weigh several times less than the model's own points
+and the update drifts like the tracker without landmarks.
+
+Retired: a second update of the frame with ``dt = 0`` after the first (the landmarks fused into the frame's
+posterior, whose covariance, after hundreds of features, is ~100x tighter than the pose's real error, so that the
+landmarks barely moved it: 7-Scenes 70.0 mm ATE against 60.0 with the outside re-fit; RESULTS).
 """
 
 from __future__ import annotations
@@ -24,23 +33,26 @@ from torch import Tensor
 
 from torchtrack.estimators.backends import Observation
 from torchtrack.filter.weighting import Variances
-from torchtrack.geometry import T_inv, transform_points
 
 
-def landmark_variances(points_cam: Tensor, var_world: Tensor, mean_var: Tensor, K: Tensor) -> Variances:
+def landmark_variances(points_cam: Tensor, var_world: Tensor | None, mean_var: Tensor, K: Tensor) -> Variances:
     """(B, C) variances of re-acquired landmarks as measurements (module docstring).
 
     Args:
         points_cam: (B, C, 3) their points measured from depth now (depth camera; z sets the pixel term).
-        var_world: (B, C) m^2 per coordinate, the variance of their stored world positions.
+        var_world: (B, C) m^2 per coordinate, the variance of their stored world positions, or None: the frame's mean
+            variances alone (as the model's own points).
         mean_var: (B, 2) the frame's mean (pixel px^2, 3D m^2) variance of its tracked features
             (:func:`mean_variances`).
         K: (B, 3, 3) colour intrinsics (its focal length).
     """
+    v = mean_var.to(points_cam.dtype)
+    if var_world is None:
+        shape = points_cam.shape[:2]
+        return Variances(v[:, :1].expand(shape), v[:, 1:].expand(shape))
     f = K[:, 0, 0, None].to(points_cam.dtype)
     z = points_cam[..., 2].clamp_min(1e-3)
     vw = var_world.to(points_cam.dtype)
-    v = mean_var.to(vw.dtype)
     return Variances(v[:, :1] + (f / z) ** 2 * vw, v[:, 1:] + vw)
 
 
@@ -53,37 +65,53 @@ def mean_variances(var: Variances, valid: Tensor) -> Tensor:
 
 
 class LandmarkUpdate(NamedTuple):
-    """T_cam_obj: (B, 4, 4) the back end's pose after the landmarks' update (unchanged where none was used);
-    used: (B, C) bool, the landmarks the update kept (the gate's and refit's choice; all given ones for a back end
-    that reports none); updated: (B,) bool."""
+    """T_cam_obj: (B, 4, 4) the back end's pose after :func:`joint_update` (the frame's own update where no landmark
+    was given); used: (B, C) bool, the landmarks the update kept (the gate's and refit's choice); updated: (B,) bool,
+    where landmarks were given."""
 
     T_cam_obj: Tensor
     used: Tensor
     updated: Tensor
 
 
-def landmark_update(backend, T_cam_obj: Tensor, T_world_obj: Tensor, points_world: Tensor, points_cam: Tensor,
-                    pixels: Tensor, valid: Tensor, var: Variances, K: Tensor, T_color_depth: Tensor) -> LandmarkUpdate:  # fmt: skip
-    """Fuse the landmarks (B, C) into ``backend``'s state of the current frame: an update with ``dt = 0``.
+class FrameFusion(NamedTuple):
+    """A frame's update, kept until its re-acquired landmarks are known (a re-selection re-acquires them after the
+    update): ``before`` the back end's :meth:`~torchtrack.estimators.backends.EKFBackend.snapshot` from before it,
+    the frame's ``obs`` (N features) and ``var`` (B, N), and ``active`` (B,)."""
+
+    before: tuple
+    obs: Observation
+    var: Variances
+    active: Tensor
+
+
+def _cat_obs(a: Observation, b: Observation) -> Observation:
+    """The features of ``a`` then those of ``b`` (same frame: a's dt, K, T_color_depth)."""
+    cat = lambda x, y: torch.cat([x, y.to(x.dtype)], 1)  # noqa: E731
+    return Observation(a.dt, cat(a.points_obj, b.points_obj), cat(a.points_d, b.points_d), cat(a.pixels, b.pixels),
+                       torch.cat([a.valid, b.valid], 1), a.K, a.T_color_depth)  # fmt: skip
+
+
+def joint_update(backend, fusion: FrameFusion, landmarks: Observation, var: Variances) -> LandmarkUpdate:
+    """The frame's update redone from the same start (``fusion.before``) with the landmarks (B, C) as more features
+    of the frame: one prediction, one update, the features' and the landmarks' measurements weighed by their
+    variances alike, the gate and the refit judging both (:func:`~torchtrack.estimators.backends.ekf_frame`).
+    Sequences without a valid landmark keep the frame's update as it was.
 
     Args:
-        backend: the pose back end (:class:`~torchtrack.estimators.backends.EKFBackend`), already updated with this
-            frame's features; T_cam_obj: (B, 4, 4) its pose now; T_world_obj: (B, 4, 4) the current model frame.
-        points_world: (B, C, 3) the landmarks' stored positions; points_cam: (B, C, 3) measured now (depth camera);
-            pixels: (B, C, 2) tracked now; valid: (B, C); var: their :func:`landmark_variances`.
-        K: (B, 3, 3); T_color_depth: (B, 4, 4).
+        backend: the :class:`~torchtrack.estimators.backends.EKFBackend` right after the frame's update.
+        fusion: that update's start, observation (N features) and variances.
+        landmarks: the landmarks' :class:`Observation` (:meth:`~torchtrack.pipeline.landmarks.Reacquired.observation`,
+            same frame); var: their (B, C) :func:`landmark_variances`.
+    Returns: the pose (B, 4, 4), the landmarks the update kept (B, C) and where any was given (B,).
     """
-    B = valid.shape[0]
-    run = valid.any(1)
+    N = fusion.obs.valid.shape[1]
+    run = landmarks.valid.any(1) & fusion.active
     if not bool(run.any()):
-        return LandmarkUpdate(T_cam_obj, valid, run)
-    dtype = points_cam.dtype
-    points_obj = transform_points(T_inv(T_world_obj.double()), points_world.double()).to(dtype)
-    ok = valid[..., None]
-    obs = Observation(torch.zeros(B, dtype=dtype, device=valid.device), torch.where(ok, points_obj, 0.0),
-                      torch.where(ok, points_cam, 0.0), torch.where(ok, pixels.to(dtype), 0.0), valid, K,
-                      T_color_depth)  # fmt: skip
-    est = backend.step(obs, var, active=run)
-    used = getattr(est, "used_xyz", valid) & valid
-    T_new = torch.where(run[:, None, None], est.T_cam_obj.to(T_cam_obj.dtype), T_cam_obj)
-    return LandmarkUpdate(T_new, used, run)
+        return LandmarkUpdate(backend.state.T_cam_obj, landmarks.valid & False, run)
+    obs = _cat_obs(fusion.obs, landmarks)
+    both = Variances(*(torch.cat([a, b.to(a.dtype)], 1) for a, b in zip(fusion.var, var, strict=True)))
+    backend.restore(fusion.before, run)
+    est = backend.step(obs, both, active=run)  # the other sequences keep their state: the frame's update
+    used = getattr(est, "used_xyz", obs.valid)[:, N:] & landmarks.valid & run[:, None]
+    return LandmarkUpdate(backend.state.T_cam_obj, used, run)

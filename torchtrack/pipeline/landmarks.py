@@ -94,6 +94,11 @@ class LandmarkMap:
         converge_px, probe_px: a second LK started ``probe_px`` away must end within ``converge_px`` of the first.
         every: > 0: the tracker also re-acquires landmarks into the current model every that many frames (no new
             model); 0: only at re-selections.
+        measure: the landmarks re-acquired at a re-selection are measurements of the back end: the tracker redoes
+            the frame's update with them as more of its features (:func:`~torchtrack.estimators.landmark_update.
+            joint_update`); ``correct`` is then not applied.
+        position_variance: ... their variances add their stored position's (:func:`~torchtrack.estimators.
+            landmark_update.landmark_variances`); false: the frame's mean variances, as the model's own points.
 
     The map is the tracker's ``landmarks`` stage: :meth:`reacquire_into` gives the landmarks found again in the current
     frame (:class:`Reacquired`) and :meth:`Reacquired.observation` states them as back-end measurements of the
@@ -121,6 +126,7 @@ class LandmarkMap:
         probe_px: float = LandmarkConfig.probe_px,
         every: int = LandmarkConfig.every,
         measure: bool = LandmarkConfig.measure,
+        position_variance: bool = LandmarkConfig.position_variance,
         warp: bool = LandmarkConfig.warp,
         warp_crop: int = LandmarkConfig.warp_crop,
         refine: bool = LandmarkConfig.refine,
@@ -139,7 +145,7 @@ class LandmarkMap:
         if every < 0:
             raise ValueError(f"landmarks.every must be >= 0, got {every}")
         self.every = every
-        self.measure, self.warp, self.warp_crop = measure, warp, warp_crop
+        self.measure, self.position_variance, self.warp, self.warp_crop = measure, position_variance, warp, warp_crop
         # the keyframe window (torchtrack.pipeline.landmark_window); ``window`` None: WindowConfig's refiner
         self.refiner = (window if window is not None else WindowRefiner()) if refine else None
         self.per_slot = False  # True: one LK call per keyframe slot (the reference of the batched call; tests, benches)

@@ -26,7 +26,7 @@ from torchtrack.config import PipelineConfig
 from torchtrack.data.frame import FrameBatch
 from torchtrack.estimators.backends import Observation, PoseBackend
 from torchtrack.estimators.base import masked_mean
-from torchtrack.estimators.landmark_update import landmark_update, landmark_variances, mean_variances
+from torchtrack.estimators.landmark_update import FrameFusion, joint_update, landmark_variances, mean_variances
 from torchtrack.filter.cues import stack_cues, window_cues
 from torchtrack.filter.models import measure_points
 from torchtrack.filter.weighting import WeightingInputs
@@ -140,9 +140,12 @@ class Tracker:
         obs = Observation(
             dt.to(points_d.dtype), s.points_obj, points_d, track.points, valid, frame.K, frame.T_color_depth
         )
-        # more measurements of the current model join ``obs`` (and ``var``) here, e.g. re-acquired landmarks
-        # (:meth:`~torchtrack.pipeline.landmarks.Reacquired.observation`), so that the back end weighs them in its update
+        # with ``landmarks.measure`` a re-selection redoes this update with the re-acquired landmarks as more features
+        # of the frame (:func:`~torchtrack.estimators.landmark_update.joint_update`): keep what it started from
+        joint = self.landmarks is not None and self.landmarks.measure and self.backend.fuses
+        before = self.backend.snapshot() if joint else None
         est = self.backend.step(obs, var, active=frame.active)  # eqs. (2)-(7), (15)
+        fusion = FrameFusion(before, obs, var, frame.active) if joint else None
         if self.landmarks is not None:  # this frame's noise level: the landmarks' (nothing else reads it)
             s = replace(s, mean_var=mean_variances(var, valid))
         tracked = self._advanced(s, frame, cur, track.points, valid, est.T_cam_obj.double())  # and the outlier drop
@@ -154,7 +157,7 @@ class Tracker:
         reselect = self.reselect.needed(tracked.valid, tracked.n_model, frame.active)
         self.state, model_T_cam_obj = tracked, None
         if reselect.any():  # §III re-selection
-            self.state, model_T_cam_obj = self._new_model(tracked, frame, cur, reselect)
+            self.state, model_T_cam_obj = self._new_model(tracked, frame, cur, reselect, fusion)
         extra = dict(observation=obs, variances=var, cues=cues, model_T_cam_obj=model_T_cam_obj, estimate=est)
         return _result(tracked, winner, d_tim, reselect, **extra)  # the frame as tracked
 
@@ -246,12 +249,13 @@ class Tracker:
         self.state, model_T_cam_obj = self._new_model(s, frame, cur, everyone)
         return _result(self.state, None, None, everyone, model_T_cam_obj=model_T_cam_obj)
 
-    def _new_model(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, mask: Tensor):
+    def _new_model(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, mask: Tensor,
+                   fusion: FrameFusion | None = None):
         """The state ``s`` after the sequences in ``mask`` (B,) took the current frame as their model: the features
         kept (survivors, re-acquired landmarks), then new PCM features (eq. 9), pose and chain; the back end starts
         over there. Returns (the new state, the pose (B, 4, 4) the
         back end was reset to, meaningful where ``mask``)."""
-        kept, n_found, s = self._kept(s, frame, cur, mask)  # may correct T_world_obj (the landmarks' re-fit)
+        kept, n_found, s = self._kept(s, frame, cur, mask, fusion)  # may correct T_world_obj (the landmarks' re-fit)
         roi = self.reselect.roi(cur.depth)
         feats = self.reselect.select(cur.gray, cur.depth, frame.K, roi=roi, sim=cur.sim)  # eq. (9)
         pixels, cornerness = feats.pixels, torch.stack([feats.cornerness_int, feats.cornerness_sim], -1)
@@ -284,7 +288,8 @@ class Tracker:
         self.backend.reset(T_cam_obj, mask)
         return replace(state, since_landmarks=torch.where(mask, 0, state.since_landmarks)), T_cam_obj
 
-    def _kept(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, mask: Tensor):
+    def _kept(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, mask: Tensor,
+              fusion: FrameFusion | None = None):
         """What a re-selection of the sequences in ``mask`` (B,) keeps before it selects new features, in the current
         camera: the survivors (``reselect.keep_survivors``; their model points moved into the camera by the current
         pose, so that the new model frame sees them where the old one did) and then the re-acquired landmarks (their
@@ -298,12 +303,14 @@ class Tracker:
         if self.landmarks is None:
             return kept, None, s
         acq = self.landmarks.reacquire_into(self.keyframes, self.flow, cur, frame.K, frame.T_color_depth, s, keep, mask)
-        if self.landmarks.measure and s.mean_var is not None and self.backend.fuses:  # fused by the filter in a
-            # second update of this frame (dt = 0); a registration baseline keeps the frame's pose
-            lm_var = landmark_variances(acq.points_cam, acq.var_world, s.mean_var, frame.K)
-            upd = landmark_update(self.backend, s.T_cam_obj, s.T_world_obj, acq.points_world, acq.points_cam,
-                                  acq.pixels, acq.valid & mask[:, None], lm_var, frame.K, frame.T_color_depth)  # fmt: skip
-            s = replace(s, T_cam_obj=upd.T_cam_obj)
+        if fusion is not None and s.mean_var is not None:  # the frame's update redone with the landmarks as more of
+            # its features (a registration baseline, which does not fuse, keeps the frame's pose)
+            found = acq.valid & mask[:, None]
+            var_world = acq.var_world if self.landmarks.position_variance else None
+            lm_var = landmark_variances(acq.points_cam, var_world, s.mean_var, frame.K)
+            lm_obs = acq._replace(valid=found).observation(s.T_world_obj, fusion.obs.dt, frame.K, frame.T_color_depth)
+            upd = joint_update(self.backend, fusion, lm_obs, lm_var)
+            s = replace(s, T_cam_obj=torch.where(mask[:, None, None], upd.T_cam_obj.to(s.T_cam_obj.dtype), s.T_cam_obj))
             acq = acq._replace(valid=acq.valid & (upd.used | ~upd.updated[:, None]), T_world_depth=s.T_world_depth)
         if self.landmarks.refiner is not None and s.mean_var is not None:  # the keyframe window
             s, acq = self._refined(s, acq, frame, cur, keep, mask)
