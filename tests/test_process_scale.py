@@ -202,6 +202,29 @@ def test_a_reselection_keeps_the_scale_and_a_new_batch_starts_at_one():
     assert bool((backend.process_state.scale == 1.0).all())
 
 
+def test_snapshot_and_restore_carry_the_process_scale():
+    """A frame redone from a snapshot (landmarks.measure's joint update) starts from the process scale of before it:
+    redone with the same measurements it is the same frame, bit for bit; restored for one sequence only, the other
+    keeps its after-frame scale."""
+    oracle = accelerated(4.0, B=2, T=6)
+    w = oracle.windows
+    backend = EKFBackend(FusionEKF(*SIGMA), gate=0.999, refit=0.999, process_scale=True)
+    backend.reset(w.start_T_cam_obj, torch.ones(2, dtype=torch.bool))
+    for t in range(5):
+        backend.step(w.observation(t), Variances(oracle.var_pix[t], oracle.var_xyz[t]))
+    before = backend.snapshot()
+    first = backend.step(w.observation(5), Variances(oracle.var_pix[5], oracle.var_xyz[5]))
+    backend.restore(before)
+    assert backend.process_state is before[2]
+    again = backend.step(w.observation(5), Variances(oracle.var_pix[5], oracle.var_xyz[5]))
+    assert torch.equal(again.process.scale, first.process.scale) and torch.equal(again.process.dof, first.process.dof)
+    backend.restore(before, torch.tensor([True, False]))
+    assert torch.equal(backend.process_state.scale[0], before[2].scale[0])
+    assert torch.equal(backend.process_state.scale[1], first.process.scale[1]) and bool(
+        (first.process.scale != before[2].scale).all()
+    )
+
+
 @pytest.mark.parametrize(("q_scale", "bound"), [(1e3, 0.01), (1e-3, 100.0)])  # Q 1000x too large, too small
 def test_the_scale_is_bounded(q_scale, bound):
     _, scales, _ = track(accelerated(1.0, B=2, T=30), q_scale, process_scale=True)

@@ -364,21 +364,23 @@ class EKFBackend:
         self.state = self.ekf.with_pose(self.state, T_cam_obj, mask)
 
     def snapshot(self) -> tuple:
-        """The back end's whole state now (the filter's and the noise scales'), for :meth:`restore`: a frame's update
-        can be redone from the same start with more measurements of that frame (re-acquired landmarks)."""
-        return self.state, self.scale_state
+        """The back end's whole state now (the filter's, the noise and the process scales'), for :meth:`restore`: a
+        frame's update can be redone from the same start with more measurements of that frame (re-acquired
+        landmarks)."""
+        return self.state, self.scale_state, self.process_state
 
     def restore(self, snapshot: tuple, mask: Tensor | None = None) -> None:
         """Go back to a :meth:`snapshot` (tensors are never modified in place, so it is the state as it was), for the
         sequences where ``mask`` (B,) is True (default: all)."""
-        state, scale_state = snapshot
+        state, scale_state, process_state = snapshot
         if mask is None:
-            self.state, self.scale_state = state, scale_state
+            self.state, self.scale_state, self.process_state = state, scale_state, process_state
             return
         self.state = state.select(mask, self.state)
         if scale_state is not None:
-            self.scale_state = ScaleState(*(torch.where(mask[:, None], a, b)
-                                            for a, b in zip(scale_state, self.scale_state, strict=True)))  # fmt: skip
+            self.scale_state = _kept(scale_state, self.scale_state, mask)
+        if process_state is not None:
+            self.process_state = _kept(process_state, self.process_state, mask)
 
     def step(self, obs: Observation, var: Variances, active: Tensor | None = None) -> FrameUpdate:
         """One frame: the named result of :func:`ekf_frame`; the posterior becomes the state of the sequences where
