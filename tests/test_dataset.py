@@ -14,12 +14,13 @@ from torchtrack.learn.cache import load_observations
 from torchtrack.learn.dataset import build_synthetic_set, synthetic_variants
 
 
-def tiny_config(tmp_path, photometric_seeds):
+def tiny_config(tmp_path, photometric_seeds, *overrides: str):
     os.environ["TORCHTRACK_CACHE"] = str(tmp_path / "cache")
     try:
         with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
             cfg = compose(
-                "learn", overrides=["dataset=synthetic_tiny", f"+dataset.photometric_seeds={photometric_seeds}"]
+                "learn",
+                overrides=["dataset=synthetic_tiny", f"+dataset.photometric_seeds={photometric_seeds}", *overrides],
             )
         OmegaConf.resolve(cfg)
     finally:

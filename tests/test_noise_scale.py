@@ -159,7 +159,7 @@ def test_the_scale_is_bounded(k, bound):
 def test_off_is_the_filter_of_today():
     oracle = windows(4.0, 1.0, B=2, T=5)
     w, ekf = oracle.windows, FusionEKF()
-    state, off = ekf.initial_state(w.start_T_cam_obj), EKFBackend(ekf, gate=0.999, refit=0.999)
+    state, off = ekf.initial_state(w.start_T_cam_obj), EKFBackend(ekf, gate=0.999, refit=0.999, noise_scale=False)
     off.reset(w.start_T_cam_obj, torch.ones(2, dtype=torch.bool))
     for t in range(5):
         var = Variances(oracle.var_pix[t], oracle.var_xyz[t])
@@ -201,9 +201,12 @@ def test_bad_parameters_raise(kwargs):
 def test_configuration():
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         default = compose("config")
-        on = compose("config", overrides=["tracker.noise_scale=true", "tracker.noise_forgetting=0.9"])
+        on = compose("config", overrides=["tracker.noise_forgetting=0.9"])
+        off = compose("config", overrides=["tracker.noise_scale=false"])
         paper = compose("config", overrides=["+experiment=paper"])
-    assert instantiate(default.tracker).noise is None and paper.tracker.noise_scale is False
+    assert default.tracker.noise_scale is True and isinstance(instantiate(default.tracker).noise, NoiseScale)
+    assert instantiate(off.tracker).noise is None and paper.tracker.noise_scale is False
+    assert instantiate(paper.tracker).noise is None
     noise = instantiate(on.tracker).noise
     assert isinstance(noise, NoiseScale) and noise.forgetting == 0.9 and noise.clip == EKFBackendConfig.noise_clip
 

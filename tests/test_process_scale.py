@@ -70,7 +70,7 @@ def track(oracle, q_scale=1.0, *, var_scale=(1.0, 1.0), process_scale=False, sta
     off) and noise scales (T, B, 2) (None when off)."""
     w = oracle.windows
     ekf = FusionEKF(sigma_ang_acc=SIGMA[0] * q_scale**0.5, sigma_lin_acc=SIGMA[1] * q_scale**0.5, state=state)
-    backend = EKFBackend(ekf, gate=0.999, refit=0.999, process_scale=process_scale, **kw)
+    backend = EKFBackend(ekf, gate=0.999, refit=0.999, process_scale=process_scale, **{"noise_scale": False, **kw})
     backend.reset(w.start_T_cam_obj, torch.ones(w.dt.shape[1], dtype=torch.bool))
     poses, proc, noise = [], [], []
     for t in range(w.frames):
@@ -175,7 +175,7 @@ def test_inactive_featureless_and_dt0_frames_keep_the_scale():
         assert bool((scales[:, 1] == 1.0).all())  # never updated: the initial scale
         assert bool((scales[-1, keep] > 3.0).all())  # the others moved towards theirs
     w = oracle.windows
-    backend = EKFBackend(FusionEKF(*SIGMA), gate=0.999, refit=0.999, process_scale=True)
+    backend = EKFBackend(FusionEKF(*SIGMA), gate=0.999, refit=0.999, process_scale=True, noise_scale=False)
     backend.reset(w.start_T_cam_obj, torch.ones(3, dtype=torch.bool))
     for t in range(5):
         backend.step(w.observation(t), Variances(oracle.var_pix[t], oracle.var_xyz[t]))
@@ -189,7 +189,7 @@ def test_inactive_featureless_and_dt0_frames_keep_the_scale():
 def test_a_reselection_keeps_the_scale_and_a_new_batch_starts_at_one():
     oracle = accelerated(4.0, B=2, T=10)
     w = oracle.windows
-    backend = EKFBackend(FusionEKF(*SIGMA), gate=0.999, refit=0.999, process_scale=True)
+    backend = EKFBackend(FusionEKF(*SIGMA), gate=0.999, refit=0.999, process_scale=True, noise_scale=False)
     backend.reset(w.start_T_cam_obj, torch.ones(2, dtype=torch.bool))
     for t in range(10):
         out = backend.step(w.observation(t), Variances(oracle.var_pix[t], oracle.var_xyz[t]))
@@ -208,7 +208,7 @@ def test_snapshot_and_restore_carry_the_process_scale():
     keeps its after-frame scale."""
     oracle = accelerated(4.0, B=2, T=6)
     w = oracle.windows
-    backend = EKFBackend(FusionEKF(*SIGMA), gate=0.999, refit=0.999, process_scale=True)
+    backend = EKFBackend(FusionEKF(*SIGMA), gate=0.999, refit=0.999, process_scale=True, noise_scale=False)
     backend.reset(w.start_T_cam_obj, torch.ones(2, dtype=torch.bool))
     for t in range(5):
         backend.step(w.observation(t), Variances(oracle.var_pix[t], oracle.var_xyz[t]))
@@ -238,7 +238,7 @@ def test_off_is_the_filter_of_today_and_on_is_the_filter_with_the_scaled_q(state
     oracle = accelerated(4.0, B=2, T=3)
     w, ekf = oracle.windows, FusionEKF(*SIGMA, state=state)
     state0 = ekf.initial_state(w.start_T_cam_obj)
-    off = EKFBackend(ekf, gate=0.999, refit=0.999)
+    off = EKFBackend(ekf, gate=0.999, refit=0.999, noise_scale=False)
     off.reset(w.start_T_cam_obj, torch.ones(2, dtype=torch.bool))
     s = state0
     for t in range(3):

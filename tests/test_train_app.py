@@ -125,8 +125,9 @@ def test_train_export_and_track(tmp_path):
 
 def test_replay_of_a_recording_equals_the_tracker(tmp_path):
     """The rollout of a recorded sequence with the recording's weighting reproduces the tracker's poses: replay is
-    the tracker's back end (windows from frame 0: the first model's exact pose)."""
-    cfg = tiny_config(tmp_path, [])
+    the tracker's back end (windows from frame 0: the first model's exact pose). The rollout takes the recorded
+    variances as R (training learns them), so the recording runs without the online noise scale."""
+    cfg = tiny_config(tmp_path, [], "tracker.noise_scale=false")
     (path, _) = build_synthetic_set(cfg, tmp_path / "obs", progress=False)
     seq = load_observations(path)
     win = sequence_windows(seq, window=seq.frames - 1, stride=seq.frames)  # one window: all the updates

@@ -245,7 +245,7 @@ class EKFBackendConfig:
     ekf: Any = "${filter}"
     gate: float | None = 0.999  # improvement (null = paper): chi-square gate on each feature's innovations
     refit: float | None = 0.999  # improvement (null = paper): re-update without features failing this quantile
-    noise_scale: bool = False  # improvement (false = paper; off while measured): online R scale per block (pix, 3D)
+    noise_scale: bool = True  # improvement (false = paper): online R scale per block (pix, 3D), from the residuals
     noise_forgetting: float = 0.98  # ... its forgetting factor per frame (a window of ~50 frames)
     noise_scale_min: float = 0.01  # ... bounds of the scale
     noise_scale_max: float = 100.0
