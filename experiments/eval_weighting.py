@@ -15,11 +15,12 @@ the rows above 1.05).
     python experiments/eval_weighting.py --checkpoint runs/train/model.pt  # the learned model to evaluate
     python experiments/eval_weighting.py --learned all=ckpt/all.pt --learned loo='ckpt/loo-{sequence}.pt'
     python experiments/eval_weighting.py --results experiments/RESULTS.md -- flow.backend=opencv
-    python experiments/eval_weighting.py --weightings paper --method='scale=weighting=paper tracker.noise_scale=true'
+    python experiments/eval_weighting.py --weightings paper --method=default=weighting=paper  # the default vs eqs. 11-14
 
 Weightings: ``fixed`` = ``weighting=fixed`` (the paper's EKF-3 ablation: the variances of
 conf/weighting/fixed.yaml for every feature), ``paper`` = ``weighting=paper`` (eqs. 11-14 with the default
-improvements), ``learned`` = ``weighting=learned`` with the shipped model, or ``--checkpoint PATH``, or one column
+improvements; both without the online noise scale, the weighting's R as given; the default with it:
+``--method=default=weighting=paper``), ``learned`` = ``weighting=learned`` with the shipped model, or ``--checkpoint PATH``, or one column
 per ``--learned NAME=PATH`` (``{sequence}`` in PATH becomes the real sequence's name, also for its variants: a
 leave-one-out model per sequence). A learned model whose file is missing is reported and left out (a cell says
 ``missing`` where only some sequences lack one).
@@ -67,7 +68,10 @@ CONF = CONF_DIR
 DATA = REPO.parent / "shared" / "data"
 HEADING = "## Learned weighting (issue 11)"
 VARIANTS = ("skip3", "reversed", "photometric", "depth_noise")
-BASE = {"fixed": ["weighting=fixed", "tracker.noise_scale=false"], "paper": ["weighting=paper", "tracker.noise_scale=false"]}
+BASE = {
+    "fixed": ["weighting=fixed", "tracker.noise_scale=false"],
+    "paper": ["weighting=paper", "tracker.noise_scale=false"],
+}
 # the weightings as they give R (eqs. 11-14, EKF-3), without the online noise scale of the default; the default itself
 # is the column --method=default=weighting=paper
 COLUMNS = (("ate_rmse_m", "ATE mm", 1e3, 2), ("rpe_trans_m", "RPE mm", 1e3, 2), ("rpe_rot_deg", "RPE deg", 1, 3))

@@ -9,7 +9,7 @@ import torch
 
 from torchtrack.estimators.backends import EKFBackend, Observation, ekf_frame
 from torchtrack.estimators.landmark_update import FrameFusion, joint_update, landmark_variances, mean_variances
-from torchtrack.filter import FusionEKF, Variances
+from torchtrack.filter import FusionEKF, NoiseScale, Variances
 from torchtrack.geometry import T_inv, make_T, project, se3_exp, se3_log, so3_exp, transform_points
 
 F64 = torch.float64
@@ -34,7 +34,7 @@ def _setup(B=2, C=30, seed=0):
 
 
 def _backend(T0, **ekf):
-    be = EKFBackend(FusionEKF(**ekf), gate=None, refit=None)
+    be = EKFBackend(FusionEKF(**ekf), gate=None, refit=None, noise_scale=False)  # the filter of ekf_frame's defaults
     be.reset(T0, torch.ones(T0.shape[0], dtype=torch.bool))
     return be
 
@@ -73,7 +73,7 @@ def test_joint_update_is_one_update_of_features_and_landmarks():
     out = joint_update(be, fusion, landmarks, _var(20))
     assert bool(out.updated.all()) and bool(out.used.all())
     points_obj = transform_points(T_inv(T_world_obj), world)
-    alone = ekf_frame(FusionEKF(**ekf), fusion.before[0], _obs(points_obj, X_cam, pixels, torch.ones(2, 30,
+    alone = ekf_frame(FusionEKF(**ekf), fusion.before.state, _obs(points_obj, X_cam, pixels, torch.ones(2, 30,
                       dtype=torch.bool), K, T_cd), _var(30), gate=None, refit=None)  # fmt: skip
     assert torch.equal(out.T_cam_obj, alone.T_cam_obj) and torch.equal(be.state.cov, alone.cov)
     err = se3_log(out.T_cam_obj @ T_inv(T_true))
@@ -107,13 +107,17 @@ def test_sequences_without_landmarks_keep_the_frames_update():
     T_world_obj, T_true, world, X_cam, pixels, K, T_cd = _setup()
     T0 = se3_exp(torch.tensor([0.01, 0, 0, 0, 0, 0], dtype=F64)).expand(2, 4, 4) @ T_true
     be, fusion, landmarks = _frame(T0, T_world_obj, world, X_cam, pixels, K, T_cd, torch.ones(2, 10, dtype=torch.bool))
+    be.noise = NoiseScale()  # the running scale too: sequence 1's stays the frame's
+    be.scale_state = be.noise.initial(2)._replace(scale=torch.tensor([[2.0, 3.0], [4.0, 5.0]], dtype=F64))
     after = be.snapshot()
     landmarks.valid[1] = False  # sequence 1 found none: its state stays the frame's update, bit for bit
     out = joint_update(be, fusion, landmarks, _var(20))
     assert out.updated.tolist() == [True, False] and not bool(out.used[1].any())
-    assert torch.equal(be.state.mean[1], after[0].mean[1]) and torch.equal(be.state.cov[1], after[0].cov[1])
-    assert torch.equal(out.T_cam_obj[1], after[0].T_cam_obj[1])
-    assert not torch.equal(out.T_cam_obj[0], after[0].T_cam_obj[0])
+    assert torch.equal(be.state.mean[1], after.state.mean[1]) and torch.equal(be.state.cov[1], after.state.cov[1])
+    assert torch.equal(out.T_cam_obj[1], after.state.T_cam_obj[1])
+    assert torch.equal(be.scale_state.scale[1], after.noise.scale[1]) and torch.equal(be.scale_state.dof[1],
+                                                                                      after.noise.dof[1])  # fmt: skip
+    assert not torch.equal(out.T_cam_obj[0], after.state.T_cam_obj[0])
 
 
 def test_uncertain_landmarks_move_nothing():

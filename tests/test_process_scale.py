@@ -215,13 +215,13 @@ def test_snapshot_and_restore_carry_the_process_scale():
     before = backend.snapshot()
     first = backend.step(w.observation(5), Variances(oracle.var_pix[5], oracle.var_xyz[5]))
     backend.restore(before)
-    assert backend.process_state is before[2]
+    assert backend.process_state is before.process
     again = backend.step(w.observation(5), Variances(oracle.var_pix[5], oracle.var_xyz[5]))
     assert torch.equal(again.process.scale, first.process.scale) and torch.equal(again.process.dof, first.process.dof)
     backend.restore(before, torch.tensor([True, False]))
-    assert torch.equal(backend.process_state.scale[0], before[2].scale[0])
+    assert torch.equal(backend.process_state.scale[0], before.process.scale[0])
     assert torch.equal(backend.process_state.scale[1], first.process.scale[1]) and bool(
-        (first.process.scale != before[2].scale).all()
+        (first.process.scale != before.process.scale).all()
     )
 
 

@@ -250,7 +250,7 @@ class EKFBackendConfig:
     noise_scale_min: float = 0.01  # ... bounds of the scale
     noise_scale_max: float = 100.0
     noise_clip: float | None = 0.9  # ... chi-square quantile winsorising each feature's residual (null: none)
-    # improvement (false = paper; off while measured): online process-noise scale per block (angular, linear),
+    # measured and left off (RESULTS "Online process-noise scale"): online process-noise scale per block (angular, linear),
     # Q = c Q0 with c from the update's velocity corrections (torchtrack.filter.process_scale)
     process_scale: bool = False
     process_forgetting: float = 0.9  # ... its forgetting factor per frame (a window of ~10 frames)
@@ -378,7 +378,8 @@ class LandmarkConfig:
     every: int = 0  # also every this many frames into the current model (0: only at re-selections)
     # issue 24 (measured on and off in RESULTS.md): the re-acquired landmarks are measurements of the back end: the
     # frame's update is redone with them as more of its features (torchtrack.estimators.landmark_update.joint_update)
-    # instead of ``correct``'s re-fit outside the filter (``correct`` is then not applied)
+    # instead of ``correct``'s re-fit outside the filter (which still re-fits where no frame update is redone: a
+    # relocalisation's new model, ``every``, a back end that does not fuse)
     measure: bool = False
     position_variance: bool = False  # ... their variance adds their stored position's (false: the frame's, as a model point's)
     warp: bool = False  # re-track them from pose-warped templates (plane homography, normal from the keyframe depth)

@@ -57,9 +57,10 @@ class BackendResult(Protocol):
 class PoseBackend(Protocol):
     """A pose estimator that owns its state (the filter's, or the previous pose) between frames.
 
-    ``fuses``: whether :meth:`step` with ``dt = 0`` is a pure measurement update of the current estimate (a filter),
-    so that more measurements of the same frame can be fused into it (re-acquired landmarks); a registration baseline
-    re-estimates the pose from scratch instead."""
+    ``fuses``: whether the back end is a filter whose frame update can be redone with more measurements of the same
+    frame (re-acquired landmarks, ``landmarks.measure``): such a back end also has ``snapshot()`` and
+    ``restore(snapshot, mask)`` (:class:`EKFBackend`); a registration baseline re-estimates the pose from scratch and
+    has neither."""
 
     fuses: bool
 
@@ -75,6 +76,14 @@ class PoseBackend(Protocol):
     def step(self, obs: Observation, var: Variances, active: Tensor | None = None) -> BackendResult:
         """One frame: observation and per-feature variances in, a named result with ``T_cam_obj`` (B, 4, 4) out.
         Sequences where ``active`` (B,) is False (ended) keep their state."""
+
+
+class BackendSnapshot(NamedTuple):
+    """:meth:`EKFBackend.snapshot`: the filter state and the running noise and process scales (None where off)."""
+
+    state: FilterState | None
+    noise: ScaleState | None
+    process: ScaleState | None
 
 
 class FrameUpdate(NamedTuple):
@@ -183,7 +192,8 @@ def ekf_frame(
         var = scaled(var, scale_state.scale)  # R = k R0 for every step of this frame
     if process_scale is not None and process_state is None:
         process_state = process_scale.initial(obs.valid.shape[0], device=obs.valid.device)
-    prior = ekf.predicted(state, obs.dt, None if process_state is None else process_state.scale)  # eqs. (3)-(4)
+    q_scale = process_state.scale if process_scale is not None else None  # Q = c Q0 only with the scale on
+    prior = ekf.predicted(state, obs.dt, q_scale)  # eqs. (3)-(4)
     dt = prior.mean.dtype
     points_obj, K, T_cd = obs.points_obj.to(dt), obs.K.to(dt), obs.T_color_depth.to(dt)
     z = torch.cat([obs.points_d, obs.pixels], -1).to(dt)  # B,N,5
@@ -305,7 +315,7 @@ class EKFBackend:
             winsorising quantile (:class:`~torchtrack.filter.process_scale.ProcessScale`).
     """
 
-    fuses = True  # step(dt = 0) is a pure update (PoseBackend)
+    fuses = True  # a frame update can be redone from a snapshot (PoseBackend)
 
     def __init__(
         self,
@@ -330,7 +340,9 @@ class EKFBackend:
         self.gate, self.refit = gate, refit
         self.noise = NoiseScale(noise_forgetting, noise_scale_min, noise_scale_max, noise_clip) if noise_scale else None
         self.process = (
-            ProcessScale(process_forgetting, process_scale_min, process_scale_max, process_clip) if process_scale else None
+            ProcessScale(process_forgetting, process_scale_min, process_scale_max, process_clip)
+            if process_scale
+            else None
         )
         self.state: FilterState | None = None
         self.scale_state: ScaleState | None = None  # the online noise scale's, (B, 2) each
@@ -347,8 +359,9 @@ class EKFBackend:
         init = self.ekf.initial_state(T_cam_obj)
         if self.state is None or self.state.mean.shape[0] != T_cam_obj.shape[0]:
             if not bool(mask.all()):
-                raise ValueError("EKFBackend.reset: the first reset (after start, or a new batch size) must cover every "
-                                 "sequence")
+                raise ValueError(
+                    "EKFBackend.reset: the first reset (after start, or a new batch size) must cover every sequence"
+                )
             self.state = init
             B = T_cam_obj.shape[0]
             self.scale_state = None if self.noise is None else self.noise.initial(B, device=T_cam_obj.device)
@@ -363,13 +376,13 @@ class EKFBackend:
             raise ValueError("EKFBackend: call reset(T_cam_obj, mask) before set_pose")
         self.state = self.ekf.with_pose(self.state, T_cam_obj, mask)
 
-    def snapshot(self) -> tuple:
+    def snapshot(self) -> BackendSnapshot:
         """The back end's whole state now (the filter's, the noise and the process scales'), for :meth:`restore`: a
         frame's update can be redone from the same start with more measurements of that frame (re-acquired
         landmarks)."""
-        return self.state, self.scale_state, self.process_state
+        return BackendSnapshot(self.state, self.scale_state, self.process_state)
 
-    def restore(self, snapshot: tuple, mask: Tensor | None = None) -> None:
+    def restore(self, snapshot: BackendSnapshot, mask: Tensor | None = None) -> None:
         """Go back to a :meth:`snapshot` (tensors are never modified in place, so it is the state as it was), for the
         sequences where ``mask`` (B,) is True (default: all)."""
         state, scale_state, process_state = snapshot
@@ -398,7 +411,8 @@ class EKFBackend:
         if out.process is not None:
             out = out._replace(process=_kept(out.process, self.process_state, active))
             self.process_state = out.process
-        if self.ekf.euler and bool((out.mean[:, 1].abs() > 1.4).any()):
+        near = out.mean[:, 1].abs() > 1.4  # only the sequences this step updated
+        if self.ekf.euler and bool((near if active is None else near & active).any()):
             log.warning("EKFBackend: |theta| > 80 deg, near the Euler singularity; re-select the model frame")
         return out
 

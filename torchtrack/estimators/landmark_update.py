@@ -31,7 +31,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.estimators.backends import Observation
+from torchtrack.estimators.backends import BackendSnapshot, EKFBackend, Observation
 from torchtrack.filter.weighting import Variances
 
 
@@ -79,7 +79,7 @@ class FrameFusion(NamedTuple):
     update): ``before`` the back end's :meth:`~torchtrack.estimators.backends.EKFBackend.snapshot` from before it,
     the frame's ``obs`` (N features) and ``var`` (B, N), and ``active`` (B,)."""
 
-    before: tuple
+    before: BackendSnapshot
     obs: Observation
     var: Variances
     active: Tensor
@@ -87,12 +87,15 @@ class FrameFusion(NamedTuple):
 
 def _cat_obs(a: Observation, b: Observation) -> Observation:
     """The features of ``a`` then those of ``b`` (same frame: a's dt, K, T_color_depth)."""
-    cat = lambda x, y: torch.cat([x, y.to(x.dtype)], 1)  # noqa: E731
+
+    def cat(x: Tensor, y: Tensor) -> Tensor:
+        return torch.cat([x, y.to(x.dtype)], 1)
+
     return Observation(a.dt, cat(a.points_obj, b.points_obj), cat(a.points_d, b.points_d), cat(a.pixels, b.pixels),
                        torch.cat([a.valid, b.valid], 1), a.K, a.T_color_depth)  # fmt: skip
 
 
-def joint_update(backend, fusion: FrameFusion, landmarks: Observation, var: Variances) -> LandmarkUpdate:
+def joint_update(backend: EKFBackend, fusion: FrameFusion, landmarks: Observation, var: Variances) -> LandmarkUpdate:
     """The frame's update redone from the same start (``fusion.before``) with the landmarks (B, C) as more features
     of the frame: one prediction, one update, the features' and the landmarks' measurements weighed by their
     variances alike, the gate and the refit judging both (:func:`~torchtrack.estimators.backends.ekf_frame`).
@@ -108,7 +111,7 @@ def joint_update(backend, fusion: FrameFusion, landmarks: Observation, var: Vari
     N = fusion.obs.valid.shape[1]
     run = landmarks.valid.any(1) & fusion.active
     if not bool(run.any()):
-        return LandmarkUpdate(backend.state.T_cam_obj, landmarks.valid & False, run)
+        return LandmarkUpdate(backend.state.T_cam_obj, torch.zeros_like(landmarks.valid), run)
     obs = _cat_obs(fusion.obs, landmarks)
     both = Variances(*(torch.cat([a, b.to(a.dtype)], 1) for a, b in zip(fusion.var, var, strict=True)))
     backend.restore(fusion.before, run)

@@ -32,8 +32,8 @@ So per block the velocity rows are used, whitened (a weighted least squares inst
 unbiased at its fixed point (E[d_b] = 3 for the filter run with the c it estimates: measured 0.99-1.06 on the
 oracle) and, since ``Var(c_t) / c'^2 = 2 / (3 g^2)``, weighted by ``W_t = min(g_b, 1)^2``: right after a
 (re-)selection the velocity prior (init_sigma_*_vel) dominates A, the frame says little about c and weighs little;
-in steady state W_t = 1. Frames without an update (no measurement; ``dt = 0``, a second update of the same frame:
-``Q0 = 0``) weigh 0 and change nothing.
+in steady state W_t = 1. Frames without an update (no measurement; ``dt = 0``: ``Q0 = 0``) weigh 0 and change
+nothing.
 
 Combining frames. Away from the fixed point one frame's ``c_t`` moves only part of the way: ``E[d] / 3 ~
 (c_true / c')^gamma`` with an elasticity gamma that falls with the tracking index (the filter that follows its

@@ -96,7 +96,8 @@ class LandmarkMap:
             model); 0: only at re-selections.
         measure: the landmarks re-acquired at a re-selection are measurements of the back end: the tracker redoes
             the frame's update with them as more of its features (:func:`~torchtrack.estimators.landmark_update.
-            joint_update`); ``correct`` is then not applied.
+            joint_update`); ``correct`` then re-fits only where there is no frame update to redo (a relocalisation's
+            new model, ``every``, a back end that does not fuse).
         position_variance: ... their variances add their stored position's (:func:`~torchtrack.estimators.
             landmark_update.landmark_variances`); false: the frame's mean variances, as the model's own points.
 
@@ -266,7 +267,7 @@ class LandmarkMap:
 
     def reacquire(self, store: KeyframeStore, flow: Callable, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor, T_world_depth: Tensor,
                   tracked: Tensor, tracked_valid: Tensor, mask: Tensor, tracked_world: Tensor | None = None,
-                  ) -> Reacquired:  # fmt: skip
+                  fused: bool = False) -> Reacquired:  # fmt: skip
         """Re-track the visible landmarks of the sequences in ``mask`` (B,) from their keyframes into ``cur`` with
         ``flow`` (the combined LK + TIM tracker, started at the projection under ``T_world_depth`` (B, 4, 4) float64)
         and verify them; ``tracked`` (B, N, 2) / ``tracked_valid`` (B, N): the features the model keeps, at
@@ -295,7 +296,7 @@ class LandmarkMap:
         world = self.world.reshape(B, S * P, 3).gather(1, index[..., None].expand(-1, -1, 3))
         corner = self.cornerness.reshape(B, S * P, 2).gather(1, index[..., None].expand(-1, -1, 2))
         T_world_depth = T_world_depth.double()
-        if self.correct and not self.measure:
+        if self.correct and not fused:  # the re-fit, unless the back end fuses them (``measure``)
             n = good.shape[1]
             if tracked_world is not None:  # the current model's features: the prior of the fit
                 X_tr, has = measure_points(cur.depth, K, T_color_depth, tracked)
@@ -427,13 +428,13 @@ class LandmarkMap:
                            cat(r.residual).float())  # fmt: skip
 
     def reacquire_into(self, store: KeyframeStore, flow: Callable, cur: PreparedFrame, K: Tensor,
-                       T_color_depth: Tensor, state, keep: Tensor, mask: Tensor) -> Reacquired:  # fmt: skip
+                       T_color_depth: Tensor, state, keep: Tensor, mask: Tensor, fused: bool = False) -> Reacquired:  # fmt: skip
         """:meth:`reacquire` for the tracker's model: the landmarks of the sequences in ``mask`` (B,) around the
         features ``keep`` (B, N) of ``state`` (a :class:`~torchtrack.pipeline.state.TrackerState`: its camera pose,
         pixels and model points at their world positions, which take part in the re-fit)."""
         world = transform_points(state.T_world_obj, state.points_obj.double())
         return self.reacquire(store, flow, cur, K, T_color_depth, state.T_world_depth, state.pixels, keep, mask,
-                              tracked_world=world)  # fmt: skip
+                              tracked_world=world, fused=fused)  # fmt: skip
 
     def _corrected(self, K: Tensor, T_color_depth: Tensor, T_world_depth: Tensor, world: Tensor, pixels: Tensor,
                    X_meas: Tensor, good: Tensor, n: int) -> tuple[Tensor, Tensor]:  # fmt: skip

@@ -249,8 +249,9 @@ class Tracker:
         self.state, model_T_cam_obj = self._new_model(s, frame, cur, everyone)
         return _result(self.state, None, None, everyone, model_T_cam_obj=model_T_cam_obj)
 
-    def _new_model(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, mask: Tensor,
-                   fusion: FrameFusion | None = None):
+    def _new_model(
+        self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, mask: Tensor, fusion: FrameFusion | None = None
+    ):
         """The state ``s`` after the sequences in ``mask`` (B,) took the current frame as their model: the features
         kept (survivors, re-acquired landmarks), then new PCM features (eq. 9), pose and chain; the back end starts
         over there. Returns (the new state, the pose (B, 4, 4) the
@@ -288,8 +289,9 @@ class Tracker:
         self.backend.reset(T_cam_obj, mask)
         return replace(state, since_landmarks=torch.where(mask, 0, state.since_landmarks)), T_cam_obj
 
-    def _kept(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, mask: Tensor,
-              fusion: FrameFusion | None = None):
+    def _kept(
+        self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, mask: Tensor, fusion: FrameFusion | None = None
+    ):
         """What a re-selection of the sequences in ``mask`` (B,) keeps before it selects new features, in the current
         camera: the survivors (``reselect.keep_survivors``; their model points moved into the camera by the current
         pose, so that the new model frame sees them where the old one did) and then the re-acquired landmarks (their
@@ -302,9 +304,11 @@ class Tracker:
         kept = Kept(s.pixels, transform_points(s.T_cam_obj.float(), s.points_obj.float()), keep, s.age, s.cornerness)
         if self.landmarks is None:
             return kept, None, s
-        acq = self.landmarks.reacquire_into(self.keyframes, self.flow, cur, frame.K, frame.T_color_depth, s, keep, mask)
-        if fusion is not None and s.mean_var is not None:  # the frame's update redone with the landmarks as more of
-            # its features (a registration baseline, which does not fuse, keeps the frame's pose)
+        fused = fusion is not None and s.mean_var is not None  # the back end fuses them; else the re-fit (correct)
+        acq = self.landmarks.reacquire_into(self.keyframes, self.flow, cur, frame.K, frame.T_color_depth, s, keep, mask,
+                                            fused=fused)  # fmt: skip
+        if fused:  # the frame's update redone with the landmarks as more of its features (without a frame update to
+            # redo, a relocalisation's new model, or a back end that does not fuse: the re-fit above, ``correct``)
             found = acq.valid & mask[:, None]
             var_world = acq.var_world if self.landmarks.position_variance else None
             lm_var = landmark_variances(acq.points_cam, var_world, s.mean_var, frame.K)
