@@ -105,6 +105,15 @@ def test_returning_camera_finds_its_first_pass_accuracy(pan):
     assert float(every[-2:].mean()) < 1.5 * first_pass
 
 
+def test_returning_camera_with_the_default_noise_model(pan):
+    """The same return under the default (the online noise scale on): the landmarks still roughly halve the error the
+    chained models keep. Measured: the last two frames off 6.2 mm, on 3.2 mm (1.9x). Bound: 1.5x."""
+    poses, frames = pan
+    off, _ = run(frames, poses, *OFF)
+    on, _ = run(frames, poses, *ON)
+    assert float(off[-2:].mean()) > 1.5 * float(on[-2:].mean()), (off[-2:], on[-2:])
+
+
 def test_reacquired_landmarks_keep_their_world_positions(pan, monkeypatch):
     """Every re-acquired landmark enters the new model at exactly its stored world position: T_world_obj X_o after the
     re-selection equals it (to float32 rounding of the model points)."""
