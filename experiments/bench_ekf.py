@@ -86,6 +86,11 @@ def bench_batch(B: int, N: int, reps: int) -> dict:
                 backend.step(obs, fixed_var)
 
             steps[f"EKFBackend step (predict+update), state={state}, jacobian={jac}"] = step
+    scaled = EKFBackend(FusionEKF(), gate=None, refit=None, noise_scale=True)  # the default's online noise scale
+    scaled.reset(make_T(torch.eye(3, dtype=F64).expand(B, 3, 3), x[:, 3:6]), valid[:, 0])
+    steps["EKFBackend step (predict+update), state=se3, jacobian=analytic, with the online noise scale"] = (
+        lambda: scaled.step(obs, fixed_var)
+    )
     res.update(timeit(steps, reps))
     return res
 

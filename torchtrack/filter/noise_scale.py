@@ -175,11 +175,11 @@ class NoiseScale:
     ) -> None:
         if not 0.0 < forgetting <= 1.0 or not 0.0 < min_scale <= 1.0 <= max_scale:
             raise ValueError(
-                f"NoiseScale: need 0 < forgetting <= 1 and 0 < min_scale <= 1 <= max_scale, got {forgetting}, "
+                f"{type(self).__name__}: need 0 < forgetting <= 1 and 0 < min_scale <= 1 <= max_scale, got {forgetting}, "
                 f"{min_scale}, {max_scale}"
             )
         if clip is not None and not 0.0 < clip < 1.0:
-            raise ValueError(f"NoiseScale: clip is a probability in (0, 1) or None, got {clip}")
+            raise ValueError(f"{type(self).__name__}: clip is a probability in (0, 1) or None, got {clip}")
         self.forgetting, self.min_scale, self.max_scale, self.clip = forgetting, min_scale, max_scale, clip
 
     def initial(self, B: int, dtype: torch.dtype = torch.float64, device: torch.device | None = None) -> ScaleState:

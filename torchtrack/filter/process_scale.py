@@ -162,10 +162,7 @@ class ProcessScale(NoiseScale):
         max_scale: float = EKFBackendConfig.process_scale_max,
         clip: float | None = EKFBackendConfig.process_clip,
     ) -> None:
-        try:
-            super().__init__(forgetting, min_scale, max_scale, clip)  # the same checks
-        except ValueError as e:
-            raise ValueError(str(e).replace("NoiseScale", "ProcessScale")) from None
+        super().__init__(forgetting, min_scale, max_scale, clip)  # the same checks, named after this class
 
     def initial(self, B: int, dtype: torch.dtype = torch.float64, device: torch.device | None = None) -> ScaleState:
         """c = 1 (the model's Q) for B sequences, with the weight of PRIOR_WEIGHT steady-state frames."""

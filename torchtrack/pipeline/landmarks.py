@@ -68,7 +68,8 @@ class Reacquired(NamedTuple):
         points_obj = transform_points(T_inv(T_world_obj.double()), self.points_world).to(self.points_cam.dtype)
         ok = self.valid[..., None]
         return Observation(dt.to(self.points_cam.dtype), torch.where(ok, points_obj, 0.0),
-                           torch.where(ok, self.points_cam, 0.0), self.pixels, self.valid, K, T_color_depth)  # fmt: skip
+                           torch.where(ok, self.points_cam, 0.0), torch.where(ok[..., :1], self.pixels, 0.0), self.valid,
+                           K, T_color_depth)  # fmt: skip
 
 
 class LandmarkMap:
