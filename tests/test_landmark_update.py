@@ -151,23 +151,3 @@ def test_landmark_variances_without_the_position_are_the_frames():
     out = landmark_variances(X, None, torch.tensor([[2.0, 3e-6]], dtype=F64), K)
     assert torch.equal(out.var_pix, torch.full((1, 2), 2.0, dtype=F64))
     assert torch.equal(out.var_xyz, torch.full((1, 2), 3e-6, dtype=F64))
-
-
-def test_reacquired_observation_states_the_landmarks_in_the_model_frame():
-    """Valid rows: model points ``T_world_obj^-1 X_w`` (exactly the stored world positions moved into the model
-    frame), the measured points and pixels as given; rows not valid carry zeros, whatever they held (NaN here)."""
-    from torchtrack.pipeline.landmarks import Reacquired
-
-    T_world_obj, _, world, X_cam, pixels, K, T_cd = _setup(C=4)
-    valid = torch.tensor([[True, True, False, True], [False, True, True, True]])
-    pixels = torch.where(valid[..., None], pixels, torch.nan)
-    acq = Reacquired(pixels, world, torch.where(valid[..., None], X_cam, torch.nan), torch.zeros(2, 4, 2), valid,
-                     torch.eye(4, dtype=F64).expand(2, 4, 4))  # fmt: skip
-    obs = acq.observation(T_world_obj, torch.full((2,), 0.1, dtype=F64), K, T_cd)
-    ok = valid[..., None]
-    expected = transform_points(T_inv(T_world_obj), world)
-    torch.testing.assert_close(obs.points_obj[ok.expand(-1, -1, 3)], expected[ok.expand(-1, -1, 3)], rtol=0, atol=1e-12)
-    assert torch.equal(obs.pixels[ok.expand(-1, -1, 2)], pixels[ok.expand(-1, -1, 2)])
-    for x in (obs.points_obj, obs.points_d, obs.pixels):
-        assert bool((x[~valid] == 0).all())
-    assert torch.equal(obs.valid, valid)

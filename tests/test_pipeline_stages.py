@@ -111,7 +111,8 @@ def test_reacquired_landmarks_as_measurements_of_the_model():
     obs = acq.observation(T_world_obj, torch.full((2,), 0.1), K, torch.eye(4).expand(2, 4, 4))
     back = transform_points(T_world_obj, obs.points_obj.double())
     torch.testing.assert_close(back[valid], world[valid], atol=1e-6, rtol=0)
-    assert not obs.points_obj[~valid].any() and torch.equal(obs.valid, valid) and torch.equal(obs.pixels, acq.pixels)
+    assert not obs.points_obj[~valid].any() and torch.equal(obs.valid, valid)
+    assert torch.equal(obs.pixels[valid], acq.pixels[valid]) and not obs.pixels[~valid].any()
 
 
 def test_a_tracker_run_again_gives_the_same_trajectory(synth):  # noqa: F811
