@@ -18,6 +18,7 @@ from torchtrack.geometry import (
     point_jacobian,
     project,
     quat_xyzw_to_matrix,
+    rigid,
     rotation_angle,
     sample_depth,
     se3_exp,
@@ -173,3 +174,21 @@ def test_point_jacobian_is_the_derivative_of_the_exponential_at_zero():
         )
         torch.testing.assert_close(point_jacobian(q), auto, atol=1e-12, rtol=0)
     assert point_jacobian(p).shape == (2, 3, 6)
+
+
+def test_rigid_is_the_polar_factor():
+    """``rigid``: a rotation times a symmetric positive definite matrix (its polar decomposition) gives the rotation
+    back exactly (to round-off), the translation kept; a rigid transform is unchanged; a reflection becomes a proper
+    rotation."""
+    g = torch.Generator().manual_seed(0)
+    R = so3_exp(torch.randn(5, 3, generator=g, dtype=torch.float64))
+    A = torch.randn(5, 3, 3, generator=g, dtype=torch.float64) * 1e-3
+    S = torch.eye(3, dtype=torch.float64) + A + A.transpose(-1, -2)  # symmetric, positive definite
+    t = torch.randn(5, 3, generator=g, dtype=torch.float64)
+    out = rigid(make_T(R @ S, t))
+    assert torch.allclose(out[:, :3, :3], R, atol=1e-12) and torch.equal(out[:, :3, 3], t)
+    T = make_T(R, t)
+    assert torch.allclose(rigid(T), T, atol=1e-14)
+    mirror = rigid(make_T(R @ torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)), t))[:, :3, :3]
+    assert torch.allclose(torch.linalg.det(mirror), torch.ones(5, dtype=torch.float64), atol=1e-12)
+    assert torch.allclose(mirror.transpose(-1, -2) @ mirror, torch.eye(3, dtype=torch.float64).expand(5, 3, 3), atol=1e-12)

@@ -22,11 +22,20 @@ from torchtrack.geometry.rotation import (
     so3_log,
     vee,
 )
-from torchtrack.geometry.se3 import T_inv, make_T, point_jacobian, pose_from_euler, se3_exp, se3_log, transform_points
+from torchtrack.geometry.se3 import (
+    T_inv,
+    make_T,
+    point_jacobian,
+    pose_from_euler,
+    rigid,
+    se3_exp,
+    se3_log,
+    transform_points,
+)
 
 __all__ = [
     "T_inv", "backproject", "backproject_depth", "euler_to_matrix", "hat", "intrinsics_matrix",
     "make_T", "matrix_to_euler", "matrix_to_quat_xyzw", "pixel_grid", "point_jacobian", "pose_from_euler", "project",
-    "quat_xyzw_to_matrix", "rotation_angle", "sample_depth", "sample_depth_bilinear", "se3_exp", "se3_log", "so3_exp",
+    "quat_xyzw_to_matrix", "rigid", "rotation_angle", "sample_depth", "sample_depth_bilinear", "se3_exp", "se3_log", "so3_exp",
     "so3_left_jacobian", "so3_log", "transform_points", "vee", "warp_depth",
 ]  # fmt: skip

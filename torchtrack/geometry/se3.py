@@ -27,6 +27,19 @@ def T_inv(T: Tensor) -> Tensor:
     return make_T(Rt, -(Rt @ T[..., :3, 3:])[..., 0])
 
 
+def rigid(T: Tensor) -> Tensor:
+    """(..., 4, 4) ``T`` with its 3x3 block replaced by the nearest rotation (Frobenius norm: ``U V^T`` of its SVD,
+    the sign of the last singular vector flipped where the determinant would be -1); the translation kept.
+
+    :func:`T_inv` takes the transpose for the inverse, so a pose whose rotation block drifted from orthonormality
+    (round-off fed back through products of poses and their "inverses") would amplify the drift at every round trip:
+    a pose computed from other poses, rather than by the filter or an exponential, is projected back first."""
+    U, _, Vh = torch.linalg.svd(T[..., :3, :3])
+    d = torch.linalg.det(U @ Vh)
+    U = torch.cat([U[..., :2], U[..., 2:] * d[..., None, None]], -1)
+    return make_T(U @ Vh, T[..., :3, 3])
+
+
 def transform_points(T: Tensor, points: Tensor) -> Tensor:
     """Apply T (..., 4, 4) to points (..., N, 3) -> (..., N, 3)."""
     return points @ T[..., :3, :3].transpose(-1, -2) + T[..., None, :3, 3]

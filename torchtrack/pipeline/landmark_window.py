@@ -24,7 +24,7 @@ from torch import Tensor
 
 from torchtrack.estimators.keyframe_window import KeyframeWindow, refine_keyframes
 from torchtrack.estimators.window import WindowRefiner
-from torchtrack.geometry import T_inv, se3_log, transform_points
+from torchtrack.geometry import T_inv, rigid, se3_log, transform_points
 
 _SAME_M = 1e-4  # a survivor is the newest keyframe's feature at the same world position (float32 round trips: ~1e-6)
 _SAME_PX = 1e-3  # a keyframe feature is a pending one at the same pixel (pixels pass through unchanged)
@@ -114,10 +114,10 @@ def refine_at_reselection(lm, store, refiner: WindowRefiner, acq, tracked: Tenso
     small = (step[:, :3].norm(dim=-1) <= max_m) & (step[:, 3:].norm(dim=-1) <= max_rad)
     used = kw.used & mask & finite & small  # a window that diverged or jumps further than drift changes nothing
     u4 = used[:, None, None, None]
-    kf = torch.where(u4 & has_lm[..., None, None], kw.T_world_kf, store.T_world_kf[:, :S])
+    kf = torch.where(u4 & has_lm[..., None, None], rigid(kw.T_world_kf), store.T_world_kf[:, :S])
     store.T_world_kf = torch.cat([kf, store.T_world_kf[:, S:]], 1)
     lm.world = torch.where(u4, kw.world_kf, lm.world)
     N = tracked.shape[1]
-    T = torch.where(used[:, None, None], kw.T_world_depth, T_world_depth.double())
+    T = torch.where(used[:, None, None], rigid(kw.T_world_depth), T_world_depth.double())
     points = torch.where(used[:, None, None], kw.world_now[:, N:], acq.points_world.double())
     return Refined(T, points, acq.valid & torch.where(used[:, None], kw.inlier_now[:, N:], True), used)
