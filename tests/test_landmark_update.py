@@ -3,8 +3,6 @@ oracles on exact synthetic features and landmarks."""
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from torchtrack.estimators.backends import EKFBackend, Observation, ekf_frame
@@ -121,33 +119,23 @@ def test_sequences_without_landmarks_keep_the_frames_update():
 
 
 def test_uncertain_landmarks_move_nothing():
-    """Positions known to +-1 km (``position_variance``): the joint update is the frame's own within 1e-8."""
+    """Landmarks known to +-1 km (variance 1e6 m^2, 1e12 px^2): the joint update is the frame's own within 1e-8."""
     T_world_obj, T_true, world, X_cam, pixels, K, T_cd = _setup()
     T0 = se3_exp(torch.tensor([0.01, 0, 0, 0, 0, 0], dtype=F64)).expand(2, 4, 4) @ T_true
     be, fusion, landmarks = _frame(T0, T_world_obj, world, X_cam, pixels, K, T_cd, torch.ones(2, 10, dtype=torch.bool))
     frame_pose = be.state.T_cam_obj
-    mean = mean_variances(fusion.var, fusion.obs.valid)
-    var = landmark_variances(X_cam[:, 10:], torch.full((2, 20), 1e6, dtype=F64), mean, K)
+    var = Variances(torch.full((2, 20), 1e12, dtype=F64), torch.full((2, 20), 1e6, dtype=F64))
     out = joint_update(be, fusion, landmarks, var)
     assert se3_log(out.T_cam_obj @ T_inv(frame_pose)).abs().max() < 1e-8
 
 
-def test_landmark_variances_add_the_position_variance():
+def test_landmark_variances_are_the_frames_mean():
+    """A landmark takes the mean variances of the frame's valid features, as the model's own points."""
     X = torch.tensor([[[0.0, 0.0, 2.0], [0.1, 0.0, 4.0]]], dtype=F64)
     var = Variances(torch.tensor([[1.0, 3.0, 100.0]], dtype=F64), torch.tensor([[1e-6, 3e-6, 1.0]], dtype=F64))
     frame_valid = torch.tensor([[True, True, False]])  # the mean over the valid features: 2 px^2, 2e-6 m^2
-    K = torch.tensor([[[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]], dtype=F64)
     mean = mean_variances(var, frame_valid)
     torch.testing.assert_close(mean, torch.tensor([[2.0, 2e-6]], dtype=F64))
-    out = landmark_variances(X, torch.tensor([[4e-6, 1e-6]], dtype=F64), mean, K)
-    torch.testing.assert_close(out.var_xyz, torch.tensor([[6e-6, 3e-6]], dtype=F64))
-    torch.testing.assert_close(out.var_pix, torch.tensor([[2 + 250**2 * 4e-6, 2 + 125**2 * 1e-6]], dtype=F64))
-    assert math.isclose(float(out.var_pix[0, 0]), 2.25)
-
-
-def test_landmark_variances_without_the_position_are_the_frames():
-    X = torch.tensor([[[0.0, 0.0, 2.0], [0.1, 0.0, 4.0]]], dtype=F64)
-    K = torch.tensor([[[500.0, 0, 320], [0, 500, 240], [0, 0, 1]]], dtype=F64)
-    out = landmark_variances(X, None, torch.tensor([[2.0, 3e-6]], dtype=F64), K)
+    out = landmark_variances(X, mean)
     assert torch.equal(out.var_pix, torch.full((1, 2), 2.0, dtype=F64))
-    assert torch.equal(out.var_xyz, torch.full((1, 2), 3e-6, dtype=F64))
+    assert torch.equal(out.var_xyz, torch.full((1, 2), 2e-6, dtype=F64))

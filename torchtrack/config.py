@@ -380,8 +380,7 @@ class LandmarkConfig:
     # frame's update is redone with them as more of its features (torchtrack.estimators.landmark_update.joint_update)
     # instead of ``correct``'s re-fit outside the filter (which still re-fits where no frame update is redone: a
     # relocalisation's new model, ``every``, a back end that does not fuse)
-    measure: bool = False
-    position_variance: bool = False  # ... their variance adds their stored position's (false: the frame's, as a model point's)
+    measure: bool = False  # (retired: ``position_variance``, the stored position's variance added to theirs: worse)
     warp: bool = False  # re-track them from pose-warped templates (plane homography, normal from the keyframe depth)
     warp_crop: int = 96  # ... the side (px) of the warped crops
     refine: bool = False  # at a re-selection, refine the keyframe window (torchtrack.pipeline.landmark_window)

@@ -8,20 +8,18 @@ landmarks as more features of the frame. So there is one prediction and one upda
 model's features are weighed against each other by their variances, and the gate and the refit judge both alike.
 
 Their variances (:func:`landmark_variances`). The paper's filter takes model points as exact: a model point was
-measured from depth once, at its model frame, like a landmark at its keyframe, and its error is not in R. By default a
-landmark is treated alike, with this frame's mean variances of the tracked features (the weighting's, eqs. 11-14, times
-the online noise scale inside the update when that is on). With ``landmarks.position_variance`` the stored position's
-own variance ``var_world`` (its keyframe's mean 3D variance, isotropic) is added::
+measured from depth once, at its model frame, like a landmark at its keyframe, and its error is not in R. A landmark
+is treated alike, with this frame's mean variances of the tracked features (the weighting's, eqs. 11-14, times the
+online noise scale inside the update when that is on).
 
-    var_xyz = v_xyz + var_world,        var_pix = v_pix + (f / z)^2 var_world,
-
-(the position's error moves the projection by f / z per metre across the ray). Measured both ways on 7-Scenes
-(RESULTS, issue 24): with the position variance the landmarks weigh several times less than the model's own points
-and the update drifts like the tracker without landmarks.
-
-Retired: a second update of the frame with ``dt = 0`` after the first (the landmarks fused into the frame's
-posterior, whose covariance, after hundreds of features, is ~100x tighter than the pose's real error, so that the
-landmarks barely moved it: 7-Scenes 70.0 mm ATE against 60.0 with the outside re-fit; RESULTS).
+Retired (measured worse; RESULTS, issue 24):
+- a second update of the frame with ``dt = 0`` after the first (the landmarks fused into the frame's posterior, whose
+  covariance, after hundreds of features, is ~100x tighter than the pose's real error, so that the landmarks barely
+  moved it: 7-Scenes 70.0 mm ATE against 60.0 with the outside re-fit);
+- ``landmarks.position_variance``: the stored position's own variance (its keyframe's mean 3D variance) added to the
+  landmark's, ``var_xyz + var_world`` and ``var_pix + (f / z)^2 var_world``. The landmarks then weigh several times
+  less than the model's own points: 7-Scenes 71.0 [65.7-80.4] mm against 63.9 [56.9-67.6] without it, and 65.6
+  [58.4-67.8] against 48.4 [46.3-53.9] with the noise scale on.
 """
 
 from __future__ import annotations
@@ -35,25 +33,13 @@ from torchtrack.estimators.backends import BackendSnapshot, EKFBackend, Observat
 from torchtrack.filter.weighting import Variances
 
 
-def landmark_variances(points_cam: Tensor, var_world: Tensor | None, mean_var: Tensor, K: Tensor) -> Variances:
-    """(B, C) variances of re-acquired landmarks as measurements (module docstring).
-
-    Args:
-        points_cam: (B, C, 3) their points measured from depth now (depth camera; z sets the pixel term).
-        var_world: (B, C) m^2 per coordinate, the variance of their stored world positions, or None: the frame's mean
-            variances alone (as the model's own points).
-        mean_var: (B, 2) the frame's mean (pixel px^2, 3D m^2) variance of its tracked features
-            (:func:`mean_variances`).
-        K: (B, 3, 3) colour intrinsics (its focal length).
-    """
+def landmark_variances(points_cam: Tensor, mean_var: Tensor) -> Variances:
+    """(B, C) variances of the re-acquired landmarks ``points_cam`` (B, C, 3) as measurements: the frame's mean
+    (pixel px^2, 3D m^2) variances ``mean_var`` (B, 2) of its tracked features (:func:`mean_variances`), as the model's
+    own points (module docstring)."""
     v = mean_var.to(points_cam.dtype)
-    if var_world is None:
-        shape = points_cam.shape[:2]
-        return Variances(v[:, :1].expand(shape), v[:, 1:].expand(shape))
-    f = K[:, 0, 0, None].to(points_cam.dtype)
-    z = points_cam[..., 2].clamp_min(1e-3)
-    vw = var_world.to(points_cam.dtype)
-    return Variances(v[:, :1] + (f / z) ** 2 * vw, v[:, 1:] + vw)
+    shape = points_cam.shape[:2]
+    return Variances(v[:, :1].expand(shape), v[:, 1:].expand(shape))
 
 
 def mean_variances(var: Variances, valid: Tensor) -> Tensor:

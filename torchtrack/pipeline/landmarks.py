@@ -58,7 +58,6 @@ class Reacquired(NamedTuple):
     cornerness: Tensor
     valid: Tensor
     T_world_depth: Tensor
-    var_world: Tensor | None = None  # (B, C) m^2: the variance of the stored positions (their keyframe's 3D variance)
 
     def observation(self, T_world_obj: Tensor, dt: Tensor, K: Tensor, T_color_depth: Tensor) -> Observation:
         """The re-acquired landmarks as measurements of the model frame ``T_world_obj`` (B, 4, 4): model points
@@ -99,8 +98,6 @@ class LandmarkMap:
             the frame's update with them as more of its features (:func:`~torchtrack.estimators.landmark_update.
             joint_update`); ``correct`` then re-fits only where there is no frame update to redo (a relocalisation's
             new model, ``every``, a back end that does not fuse).
-        position_variance: ... their variances add their stored position's (:func:`~torchtrack.estimators.
-            landmark_update.landmark_variances`); false: the frame's mean variances, as the model's own points.
 
     The map is the tracker's ``landmarks`` stage: :meth:`reacquire_into` gives the landmarks found again in the current
     frame (:class:`Reacquired`) and :meth:`Reacquired.observation` states them as back-end measurements of the
@@ -128,7 +125,6 @@ class LandmarkMap:
         probe_px: float = LandmarkConfig.probe_px,
         every: int = LandmarkConfig.every,
         measure: bool = LandmarkConfig.measure,
-        position_variance: bool = LandmarkConfig.position_variance,
         warp: bool = LandmarkConfig.warp,
         warp_crop: int = LandmarkConfig.warp_crop,
         refine: bool = LandmarkConfig.refine,
@@ -147,7 +143,7 @@ class LandmarkMap:
         if every < 0:
             raise ValueError(f"landmarks.every must be >= 0, got {every}")
         self.every = every
-        self.measure, self.position_variance, self.warp, self.warp_crop = measure, position_variance, warp, warp_crop
+        self.measure, self.warp, self.warp_crop = measure, warp, warp_crop
         # the keyframe window (torchtrack.pipeline.landmark_window); ``window`` None: WindowConfig's refiner
         self.refiner = (window if window is not None else WindowRefiner()) if refine else None
         self.per_slot = False  # True: one LK call per keyframe slot (the reference of the batched call; tests, benches)
@@ -160,7 +156,7 @@ class LandmarkMap:
         self.stack: FlowFrame | None = None  # all slots' LK images as one frame of S * B sequences (s * B + b)
         self.pixels = self.world = self.cornerness = self.valid = None  # (B, S, P, ...) the keyframes' features
         self.depth = None  # (S, B, 1, H, W) the keyframes' depth (registered to colour), with ``warp``
-        self.var_kf = None  # (B, S) m^2 the keyframes' 3D variance: their landmarks' position variance
+        self.var_kf = None  # (B, S) m^2 the keyframes' mean 3D variance (the keyframe window's measurement variance)
         self.ids: Identities | None = None  # with ``refine``: landmark identities across keyframes
         self.last_ident = self.survivor_ident = None  # of the last re-acquisition's landmarks (B, C) and survivors
 
@@ -308,7 +304,6 @@ class LandmarkMap:
                 pixels_fit, X_fit, good_fit = pixels, X_meas, good
             T_world_depth, inl = self._corrected(K, T_color_depth, T_world_depth, world, pixels_fit, X_fit, good_fit, n)
             world, good = world[:, :n], inl[:, :n]
-        var_world = self.var_kf.gather(1, slot)
         if self.ids is not None:  # the identities the next keyframe's features carry (survivors, re-acquired)
             self.last_ident = self.ids.ident.reshape(B, S * P).gather(1, index)
             newest = torch.where(self.valid.any(-1), store.stamp[:, :S], -1).argmax(1)  # the current model's keyframe
@@ -317,7 +312,7 @@ class LandmarkMap:
             self.survivor_ident = self.ids.note(tracked, tw, tracked_valid, self.world[rows, newest],
                                                 self.ids.ident[rows, newest], self.valid[rows, newest], pixels,
                                                 self.last_ident, good & mask[:, None])  # fmt: skip
-        return Reacquired(pixels, world, X_meas, corner, good, T_world_depth, var_world)
+        return Reacquired(pixels, world, X_meas, corner, good, T_world_depth)
 
     def _verified(self, both: TrackResult, sel: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """The tracks of a (B, 2C) call of both starts (below): pixels (B, C, 2), good (B, C) (both tracked, the two

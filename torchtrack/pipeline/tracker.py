@@ -310,8 +310,7 @@ class Tracker:
         if fused:  # the frame's update redone with the landmarks as more of its features (without a frame update to
             # redo, a relocalisation's new model, or a back end that does not fuse: the re-fit above, ``correct``)
             found = acq.valid & mask[:, None]
-            var_world = acq.var_world if self.landmarks.position_variance else None
-            lm_var = landmark_variances(acq.points_cam, var_world, s.mean_var, frame.K)
+            lm_var = landmark_variances(acq.points_cam, s.mean_var)
             lm_obs = acq._replace(valid=found).observation(s.T_world_obj, fusion.obs.dt, frame.K, frame.T_color_depth)
             upd = joint_update(self.backend, fusion, lm_obs, lm_var)
             s = replace(s, T_cam_obj=torch.where(mask[:, None, None], upd.T_cam_obj.to(s.T_cam_obj.dtype), s.T_cam_obj))
