@@ -16,6 +16,7 @@ from torch import Tensor
 
 from torchtrack.config import EKFBackendConfig
 from torchtrack.filter.ekf import chi2_quantile, cholesky_jittered, symmetrize
+from torchtrack.filter.error_state import left_twist_covariance
 from torchtrack.filter.fusion import FilterState, FusionEKF
 from torchtrack.filter.models import measure_pose
 from torchtrack.filter.noise_scale import NoiseScale, ScaleState, residual_statistics, scaled
@@ -375,6 +376,14 @@ class EKFBackend:
         if self.state is None:
             raise ValueError("EKFBackend: call reset(T_cam_obj, mask) before set_pose")
         self.state = self.ekf.with_pose(self.state, T_cam_obj, mask)
+
+    def pose_covariance(self) -> Tensor | None:
+        """(B, 6, 6) the posterior covariance of the pose as a left SE(3) twist ``(v, omega)`` of ``T_cam_obj``
+        (:func:`~torchtrack.filter.error_state.left_twist_covariance`): the prior a keyframe window gives the current
+        camera. None before the first reset, or with the paper's Euler state (its pose block is not a twist)."""
+        if self.state is None or self.ekf.state != "se3":
+            return None
+        return left_twist_covariance(self.state.cov[:, :6, :6], self.state.T_cam_obj)
 
     def snapshot(self) -> BackendSnapshot:
         """The back end's whole state now (the filter's, the noise and the process scales'), for :meth:`restore`: a

@@ -47,7 +47,7 @@ def refine_keyframes(
     T_world_kf: Tensor, stamp: Tensor, ident: Tensor, pixels: Tensor, points: Tensor, valid: Tensor, world: Tensor,
     var_pix: Tensor, var_xyz: Tensor, T_world_depth: Tensor, ident_now: Tensor, pixels_now: Tensor,
     points_now: Tensor, valid_now: Tensor, world_now: Tensor, var_pix_now: Tensor, var_xyz_now: Tensor, K: Tensor,
-    T_color_depth: Tensor, refine=refine_window, has_xyz: Tensor | None = None,
+    T_color_depth: Tensor, refine=refine_window, has_xyz: Tensor | None = None, camera_info: Tensor | None = None,
 ) -> KeyframeWindow:  # fmt: skip
     """Refine the keyframes, the current camera and the landmarks seen at least twice (module docstring).
 
@@ -62,6 +62,8 @@ def refine_keyframes(
             :class:`~torchtrack.estimators.window.WindowRefiner` or :func:`refine_window`).
         has_xyz: (B, S, P) bool, the slots' features whose 3D point was measured there (default: all valid); the
             others give their pixel only (a landmark re-acquired into a keyframe keeps its original position).
+        camera_info: (B, 6, 6) information of a prior on the current camera's left twist around ``T_world_depth``
+            (the filter's posterior), or None: the current camera is free (the keyframes are never given priors).
     """
     B, S, P = ident.shape
     C = ident_now.shape[1]
@@ -107,9 +109,14 @@ def refine_keyframes(
     pose_valid = torch.cat([slot_ok, torch.ones(B, 1, dtype=torch.bool, device=ident.device)], 1)
     ok = ok.reshape(B, Kn, U) & pose_valid[..., None]
     ok_xyz = ok_xyz.reshape(B, Kn, U) & ok
+    prior = {}
+    if camera_info is not None:  # on the current camera only (the last pose)
+        info = torch.zeros(B, Kn, 6, 6, **f64)
+        info[:, S] = camera_info.to(**f64)
+        prior = dict(pose_prior_info=info)
     res = refine(T_inv(T_world_cam), X0, z_pts.reshape(B, Kn, U, 3), z_pix.reshape(B, Kn, U, 2),
                  vx[..., None].expand(B, Kn, U), vp[..., None].expand(B, Kn, U), ok_xyz, ok, K, T_color_depth,
-                 pose_valid=pose_valid)  # fmt: skip
+                 pose_valid=pose_valid, **prior)  # fmt: skip
     used = in_win.any(1)
     T_new = T_inv(res.T_cam_world)  # B,K,4,4 in the window's order
     T_slots = torch.empty_like(T_new[:, :S]).scatter(1, order.view(B, S, 1, 1).expand(B, S, 4, 4), T_new[:, :S])

@@ -86,13 +86,14 @@ class Refined(NamedTuple):
 def refine_at_reselection(lm, store, refiner: WindowRefiner, acq, tracked: Tensor, tracked_valid: Tensor,
                           tracked_points: Tensor, tracked_world: Tensor, survivor_ident: Tensor, T_world_depth: Tensor,
                           v_pix: Tensor, v_xyz: Tensor, K: Tensor, T_color_depth: Tensor, mask: Tensor,
-                          max_m: float, max_rad: float) -> Refined:  # fmt: skip
+                          max_m: float, max_rad: float, camera_cov: Tensor | None = None) -> Refined:  # fmt: skip
     """Refine the keyframe window of the map ``lm`` (its :class:`Identities` ``lm.ids``, the keyframe store ``store``)
     with the current frame's survivors (``tracked`` (B, N, 2), ``tracked_valid`` (B, N), measured ``tracked_points``
     (B, N, 3), ``tracked_world`` (B, N, 3), ``survivor_ident`` (B, N)) and re-acquired landmarks ``acq``, for the
     sequences in ``mask`` (B,); the current camera starts at ``T_world_depth`` (B, 4, 4); ``v_pix``, ``v_xyz`` (B,)
     the frame's mean variances; a window that moves the camera more than ``max_m`` / ``max_rad`` (the landmark stage's
-    ``max_correction_m`` / ``_deg``) is not applied. Updates the map's landmark positions and the store's keyframe poses
+    ``max_correction_m`` / ``_deg``) is not applied; ``camera_cov`` (B, 6, 6): the current camera's prior covariance
+    (the back end's posterior as a left twist, ``pose_covariance``), or None: no prior. Updates the map's landmark positions and the store's keyframe poses
     in place."""
     ids = lm.ids
     B, S, P = ids.ident.shape
@@ -106,7 +107,7 @@ def refine_at_reselection(lm, store, refiner: WindowRefiner, acq, tracked: Tenso
         T_world_depth, torch.cat([survivor_ident, lm.last_ident], 1), torch.cat([tracked.float(), acq.pixels.float()], 1),
         torch.cat([tracked_points.double(), acq.points_cam.double()], 1), torch.cat([surv, found], 1),
         torch.cat([tracked_world.double(), acq.points_world.double()], 1), v_pix, v_xyz, K, T_color_depth,
-        refine=refiner, has_xyz=ids.has_xyz,
+        refine=refiner, has_xyz=ids.has_xyz, camera_info=None if camera_cov is None else torch.linalg.inv(camera_cov),
     )  # fmt: skip
     finite = torch.isfinite(kw.T_world_depth).flatten(1).all(1) & torch.isfinite(kw.T_world_kf).flatten(1).all(1)
     finite &= torch.isfinite(kw.world_kf).flatten(1).all(1) & torch.isfinite(kw.world_now).flatten(1).all(1)

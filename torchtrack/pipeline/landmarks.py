@@ -98,6 +98,11 @@ class LandmarkMap:
             the frame's update with them as more of its features (:func:`~torchtrack.estimators.landmark_update.
             joint_update`); ``correct`` then re-fits only where there is no frame update to redo (a relocalisation's
             new model, ``every``, a back end that does not fuse).
+        warp, warp_crop: re-track from pose-warped templates (:mod:`torchtrack.image.warp`), crops of this side.
+        refine, window: at a re-selection refine the keyframe window (:mod:`torchtrack.pipeline.landmark_window`)
+            with this refiner; window_prior: the current camera enters it with the back end's posterior as its prior
+            (``pose_covariance``), so that the window adds its landmarks' information to the filter's instead of
+            replacing the filter's camera with a fit to the landmarks alone.
 
     The map is the tracker's ``landmarks`` stage: :meth:`reacquire_into` gives the landmarks found again in the current
     frame (:class:`Reacquired`) and :meth:`Reacquired.observation` states them as back-end measurements of the
@@ -128,6 +133,7 @@ class LandmarkMap:
         warp: bool = LandmarkConfig.warp,
         warp_crop: int = LandmarkConfig.warp_crop,
         refine: bool = LandmarkConfig.refine,
+        window_prior: bool = LandmarkConfig.window_prior,
         window: WindowRefiner | None = None,
     ) -> None:
         if per_keyframe < 1 or max_candidates < 1:
@@ -146,6 +152,7 @@ class LandmarkMap:
         self.measure, self.warp, self.warp_crop = measure, warp, warp_crop
         # the keyframe window (torchtrack.pipeline.landmark_window); ``window`` None: WindowConfig's refiner
         self.refiner = (window if window is not None else WindowRefiner()) if refine else None
+        self.window_prior = window_prior
         self.per_slot = False  # True: one LK call per keyframe slot (the reference of the batched call; tests, benches)
         self.reset()
 

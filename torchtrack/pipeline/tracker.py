@@ -332,10 +332,11 @@ class Tracker:
         v_pix, v_xyz = s.mean_var.unbind(1)
         X_tr, has = measure_points(cur.depth, frame.K, frame.T_color_depth, s.pixels)
         world = transform_points(s.T_world_obj, s.points_obj.double())
+        cov = getattr(self.backend, "pose_covariance", lambda: None)() if self.landmarks.window_prior else None
         ref = refine_at_reselection(self.landmarks, self.keyframes, self.landmarks.refiner, acq, s.pixels, keep & has,
                                     X_tr, world, self.landmarks.survivor_ident, s.T_world_depth, v_pix, v_xyz, frame.K,
                                     frame.T_color_depth, mask, self.landmarks.max_correction_m,
-                                    self.landmarks.max_correction_rad)  # fmt: skip
+                                    self.landmarks.max_correction_rad, camera_cov=cov)  # fmt: skip
         # projected onto SE(3): a product with T_world_obj's round-off, fed back through T_inv at every window, grew
         # 7x per re-selection (a 0.4 m jump after ~20 windows on 7-Scenes)
         T_cam_obj = torch.where(ref.used[:, None, None], rigid(T_inv(ref.T_world_depth) @ s.T_world_obj), s.T_cam_obj)
