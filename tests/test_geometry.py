@@ -191,4 +191,25 @@ def test_rigid_is_the_polar_factor():
     assert torch.allclose(rigid(T), T, atol=1e-14)
     mirror = rigid(make_T(R @ torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=torch.float64)), t))[:, :3, :3]
     assert torch.allclose(torch.linalg.det(mirror), torch.ones(5, dtype=torch.float64), atol=1e-12)
-    assert torch.allclose(mirror.transpose(-1, -2) @ mirror, torch.eye(3, dtype=torch.float64).expand(5, 3, 3), atol=1e-12)
+    assert torch.allclose(
+        mirror.transpose(-1, -2) @ mirror, torch.eye(3, dtype=torch.float64).expand(5, 3, 3), atol=1e-12
+    )
+
+
+def test_rigid_flips_the_smallest_direction_and_passes_non_finite_rows():
+    """A reflection with distinct singular values, ``R diag(3, 2, -1)``: the nearest rotation flips the direction of
+    the smallest one and is R (flipping another column would not be); a transform with a NaN is returned as given
+    and the others of the batch are projected alone (batched equals one by one, the same computation per row)."""
+    g = torch.Generator().manual_seed(1)
+    R = so3_exp(torch.randn(3, 3, generator=g, dtype=torch.float64))
+    t = torch.randn(3, 3, generator=g, dtype=torch.float64)
+    D = torch.diag(torch.tensor([3.0, 2.0, -1.0], dtype=torch.float64))
+    T = make_T(R @ D, t)
+    T[1, 0, 0] = float("nan")
+    out = rigid(T)
+    assert torch.allclose(out[[0, 2], :3, :3], R[[0, 2]], atol=1e-12)
+    assert torch.equal(out[1].isnan(), T[1].isnan()) and torch.equal(out[1].nan_to_num(), T[1].nan_to_num())
+    for b in (0, 2):
+        assert torch.allclose(rigid(T[b]), out[b], atol=1e-15)
+    with pytest.raises(ValueError, match="rigid"):
+        rigid(torch.eye(3))

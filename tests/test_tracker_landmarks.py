@@ -17,6 +17,7 @@ from torchtrack.data.synthetic import SyntheticConfig
 from torchtrack.data.synthetic.motion import SCENE_EYE, SCENE_TARGET, look_at
 from torchtrack.data.synthetic.render import render_frame
 from torchtrack.data.synthetic.scene import default_scene
+from torchtrack.estimators.backends import EKFBackend
 from torchtrack.factory import build_tracker
 from torchtrack.geometry import T_inv, make_T, so3_exp, transform_points
 from torchtrack.pipeline.landmarks import LandmarkMap
@@ -179,13 +180,28 @@ def test_returning_camera_with_landmarks_estimated(pan, monkeypatch):
         return wrapped
 
     monkeypatch.setattr(tracker_module, "joint_update", spy("update", update, lambda o: o.updated.any()))
-    monkeypatch.setattr(tracker_module, "refine_at_reselection", spy("refine", refine, lambda o: o.used.any()))
+    covs, priors = [], []
+    pose_covariance = EKFBackend.pose_covariance
+
+    def recorded(self):
+        covs.append(pose_covariance(self))
+        return covs[-1]
+
+    def refine_with_prior(*args, **kwargs):  # the window gets the filter's posterior and noise scale (window_prior)
+        priors.append(kwargs["camera_cov"] is covs[-1] and bool((kwargs["xyz_scale"] > 0).all()))
+        return refine(*args, **kwargs)
+
+    monkeypatch.setattr(EKFBackend, "pose_covariance", recorded)
+
+    monkeypatch.setattr(tracker_module, "refine_at_reselection",
+                        spy("refine", refine_with_prior, lambda o: o.used.any()))  # fmt: skip
     monkeypatch.setattr(LandmarkMap, "_warped", spy("warp", warped, lambda o: True))
     poses, frames = pan
     err, tracker = run(frames, poses, *ON, "landmarks.measure=true", "landmarks.warp=true", "landmarks.refine=true")
     assert int(tracker.state.reacquired_total.sum()) > 50
     assert float(err[-2:].mean()) < 1.5 * float(err[1:4].mean()), err
     assert min(acted.values()) > 0, acted
+    assert priors and all(priors)
     # the window's poses re-enter the chain of model frames: they stay rotations (R^T R = I to float64 round-off; a
     # pose composed with another's transpose-inverse once grew 7x per window, 1e-15 -> 0.1 in 20 windows on 7-Scenes)
     for T in (tracker.state.T_world_obj, tracker.state.T_cam_obj, tracker.keyframes.T_world_kf):

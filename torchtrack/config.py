@@ -380,7 +380,8 @@ class LandmarkConfig:
     # frame's update is redone with them as more of its features (torchtrack.estimators.landmark_update.joint_update)
     # instead of ``correct``'s re-fit outside the filter (which still re-fits where no frame update is redone: a
     # relocalisation's new model, ``every``, a back end that does not fuse)
-    measure: bool = False  # (retired: ``position_variance``, the stored position's variance added to theirs: worse)
+    # (retired, measured worse: ``position_variance``, the stored position's variance added to the landmark's)
+    measure: bool = False
     warp: bool = False  # re-track them from pose-warped templates (plane homography, normal from the keyframe depth)
     warp_crop: int = 96  # ... the side (px) of the warped crops
     refine: bool = False  # at a re-selection, refine the keyframe window (torchtrack.pipeline.landmark_window)

@@ -78,6 +78,13 @@ class PoseBackend(Protocol):
         """One frame: observation and per-feature variances in, a named result with ``T_cam_obj`` (B, 4, 4) out.
         Sequences where ``active`` (B,) is False (ended) keep their state."""
 
+    def pose_covariance(self) -> Tensor | None:
+        """(B, 6, 6) the current pose's covariance as a left SE(3) twist ``(v, omega)`` of ``T_cam_obj``, or None
+        where the back end has none (a registration baseline)."""
+
+    def measurement_scale(self) -> Tensor | None:
+        """(B, 2) the factors [pix, xyz] its measurement variances are scaled by (the online noise scale), or None."""
+
 
 class BackendSnapshot(NamedTuple):
     """:meth:`EKFBackend.snapshot`: the filter state and the running noise and process scales (None where off)."""
@@ -385,6 +392,11 @@ class EKFBackend:
             return None
         return left_twist_covariance(self.state.cov[:, :6, :6], self.state.T_cam_obj)
 
+    def measurement_scale(self) -> Tensor | None:
+        """(B, 2) the online noise scale's current factors [pix, xyz] of the weighting's R (None when it is off or
+        before the first reset): what a keyframe window weighing the same measurements multiplies them by."""
+        return None if self.scale_state is None else self.scale_state.scale
+
     def snapshot(self) -> BackendSnapshot:
         """The back end's whole state now (the filter's, the noise and the process scales'), for :meth:`restore`: a
         frame's update can be redone from the same start with more measurements of that frame (re-acquired
@@ -469,6 +481,13 @@ class RegistrationBackend:
         if self.T_prev is None:
             self.T_prev = T_cam_obj.clone()
         self.T_prev = torch.where(mask[:, None, None], T_cam_obj, self.T_prev)
+
+    def pose_covariance(self) -> None:
+        """A registration has no covariance."""
+        return None
+
+    def measurement_scale(self) -> None:
+        return None
 
     def set_pose(self, T_cam_obj: Tensor, mask: Tensor) -> None:
         """The previous pose of the sequences in ``mask`` (B,) becomes ``T_cam_obj`` (B, 4, 4) (no other state)."""

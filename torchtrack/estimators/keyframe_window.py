@@ -62,8 +62,9 @@ def refine_keyframes(
             :class:`~torchtrack.estimators.window.WindowRefiner` or :func:`refine_window`).
         has_xyz: (B, S, P) bool, the slots' features whose 3D point was measured there (default: all valid); the
             others give their pixel only (a landmark re-acquired into a keyframe keeps its original position).
-        camera_info: (B, 6, 6) information of a prior on the current camera's left twist around ``T_world_depth``
-            (the filter's posterior), or None: the current camera is free (the keyframes are never given priors).
+        camera_info: (B, 6, 6) information of a prior on the left twist ``xi`` of the current camera's
+            ``exp(xi) T_cam_world``, ``T_cam_world = T_world_depth^-1`` (the filter's posterior: the same twist as its
+            ``T_cam_obj``'s), or None: the current camera is free (the keyframes are never given priors).
     """
     B, S, P = ident.shape
     C = ident_now.shape[1]

@@ -172,7 +172,8 @@ def _normal(pb: _Problem, T: Tensor, X: Tensor, lin: Linearized, w5: Tensor, r: 
 def _free(pb: _Problem, w5: Tensor) -> tuple[Tensor, Tensor]:
     """Poses (B, K) and landmarks (B, P) that are estimated: free, with a used measurement or a prior."""
     used = w5 > 0  # B,K,P,5
-    fc = pb.pose_free & (used.any(-1).any(-1) | (pb.pose_info is not None))
+    prior = pb.pose_info.abs().amax((-2, -1)) > 0 if pb.pose_info is not None else torch.zeros_like(pb.pose_free)
+    fc = pb.pose_free & (used.any(-1).any(-1) | prior)  # a pose with a zero prior and no measurement stays put
     fp = pb.point_free & (used.any(-1).any(1) | (pb.point_info is not None))
     return fc, fp
 

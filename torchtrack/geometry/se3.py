@@ -33,11 +33,17 @@ def rigid(T: Tensor) -> Tensor:
 
     :func:`T_inv` takes the transpose for the inverse, so a pose whose rotation block drifted from orthonormality
     (round-off fed back through products of poses and their "inverses") would amplify the drift at every round trip:
-    a pose computed from other poses, rather than by the filter or an exponential, is projected back first."""
-    U, _, Vh = torch.linalg.svd(T[..., :3, :3])
+    a pose computed from other poses, rather than by the filter or an exponential, is projected back first.
+    Transforms with a non-finite entry are returned as they are (the caller's finiteness check sees them). Not for
+    autograd: the SVD's gradient is undefined at repeated singular values, i.e. at every rotation."""
+    if T.shape[-2:] != (4, 4):
+        raise ValueError(f"rigid: transforms (..., 4, 4), got {tuple(T.shape)}")
+    finite = torch.isfinite(T).flatten(-2).all(-1)
+    M = torch.where(finite[..., None, None], T[..., :3, :3], torch.eye(3, dtype=T.dtype, device=T.device))
+    U, _, Vh = torch.linalg.svd(M)
     d = torch.linalg.det(U @ Vh)
     U = torch.cat([U[..., :2], U[..., 2:] * d[..., None, None]], -1)
-    return make_T(U @ Vh, T[..., :3, 3])
+    return torch.where(finite[..., None, None], make_T(U @ Vh, T[..., :3, 3]), T)
 
 
 def transform_points(T: Tensor, points: Tensor) -> Tensor:

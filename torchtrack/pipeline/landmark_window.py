@@ -86,16 +86,19 @@ class Refined(NamedTuple):
 def refine_at_reselection(lm, store, refiner: WindowRefiner, acq, tracked: Tensor, tracked_valid: Tensor,
                           tracked_points: Tensor, tracked_world: Tensor, survivor_ident: Tensor, T_world_depth: Tensor,
                           v_pix: Tensor, v_xyz: Tensor, K: Tensor, T_color_depth: Tensor, mask: Tensor,
-                          max_m: float, max_rad: float, camera_cov: Tensor | None = None) -> Refined:  # fmt: skip
+                          max_m: float, max_rad: float, camera_cov: Tensor | None = None,
+                          xyz_scale: Tensor | None = None) -> Refined:  # fmt: skip
     """Refine the keyframe window of the map ``lm`` (its :class:`Identities` ``lm.ids``, the keyframe store ``store``)
     with the current frame's survivors (``tracked`` (B, N, 2), ``tracked_valid`` (B, N), measured ``tracked_points``
     (B, N, 3), ``tracked_world`` (B, N, 3), ``survivor_ident`` (B, N)) and re-acquired landmarks ``acq``, for the
     sequences in ``mask`` (B,); the current camera starts at ``T_world_depth`` (B, 4, 4); ``v_pix``, ``v_xyz`` (B,)
     the frame's mean variances; a window that moves the camera more than ``max_m`` / ``max_rad`` (the landmark stage's
     ``max_correction_m`` / ``_deg``) is not applied; ``camera_cov`` (B, 6, 6): the current camera's prior covariance
-    (the back end's posterior as a left twist, ``pose_covariance``), or None: no prior. Updates the map's landmark positions and the store's keyframe poses
-    in place."""
+    (the back end's posterior as a left twist, ``pose_covariance``), or None: no prior; ``xyz_scale`` (B,): the
+    factor of the keyframes' stored 3D variances (the online noise scale's, as ``v_xyz`` already carries it).
+    Updates the map's landmark positions and the store's keyframe poses in place."""
     ids = lm.ids
+    var_kf = lm.var_kf if xyz_scale is None else lm.var_kf * xyz_scale.to(lm.var_kf.dtype)[:, None]
     B, S, P = ids.ident.shape
     found = acq.valid & mask[:, None]
     surv = tracked_valid & (survivor_ident >= 0) & mask[:, None]
@@ -103,7 +106,7 @@ def refine_at_reselection(lm, store, refiner: WindowRefiner, acq, tracked: Tenso
     stamp = torch.where(has_lm, store.stamp[:, :S], -1)  # the model keyframes' slots 0 .. S-1 (slot S: the tracked one)
     var_pix = torch.full((B, S), 1.0, dtype=torch.float64, device=mask.device) * v_pix.double()[:, None]
     kw: KeyframeWindow = refine_keyframes(
-        store.T_world_kf[:, :S], stamp, ids.ident, lm.pixels, ids.meas, lm.valid, lm.world, var_pix, lm.var_kf,
+        store.T_world_kf[:, :S], stamp, ids.ident, lm.pixels, ids.meas, lm.valid, lm.world, var_pix, var_kf,
         T_world_depth, torch.cat([survivor_ident, lm.last_ident], 1), torch.cat([tracked.float(), acq.pixels.float()], 1),
         torch.cat([tracked_points.double(), acq.points_cam.double()], 1), torch.cat([surv, found], 1),
         torch.cat([tracked_world.double(), acq.points_world.double()], 1), v_pix, v_xyz, K, T_color_depth,

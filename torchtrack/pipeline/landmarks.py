@@ -183,8 +183,8 @@ class LandmarkMap:
         """Attach the current frame's LK images and features to the model keyframes ``slot`` (B,) of ``store`` just
         took (-1: none; a tracked keyframe's slot is not one): pixels (B, N, 2), points_world (B, N, 3) in the
         tracker's world, cornerness (B, N, 2), valid (B, N) (the first ``per_keyframe`` valid ones are kept); var_xyz
-        (B,) m^2: the frame's mean 3D variance, the variance of these landmarks' positions (default: the weighting's
-        nominal one)."""
+        (B,) m^2: the frame's mean 3D variance, the keyframe window's measurement variance for this keyframe (default:
+        the weighting's nominal one)."""
         if pixels.shape[:2] != valid.shape or points_world.shape[:2] != valid.shape or slot.shape != valid.shape[:1]:
             raise ValueError(f"LandmarkMap.add: pixels, points_world (B, N, .), valid (B, N), slot (B,); got "
                              f"{tuple(pixels.shape)}, {tuple(points_world.shape)}, {tuple(valid.shape)}, {tuple(slot.shape)}")  # fmt: skip

@@ -332,11 +332,15 @@ class Tracker:
         v_pix, v_xyz = s.mean_var.unbind(1)
         X_tr, has = measure_points(cur.depth, frame.K, frame.T_color_depth, s.pixels)
         world = transform_points(s.T_world_obj, s.points_obj.double())
-        cov = getattr(self.backend, "pose_covariance", lambda: None)() if self.landmarks.window_prior else None
+        cov = self.backend.pose_covariance() if self.landmarks.window_prior else None
+        k = self.backend.measurement_scale()  # the window weighs the measurements by the filter's R: k R0
+        if k is not None:
+            v_pix, v_xyz = v_pix * k[:, 0].to(v_pix.dtype), v_xyz * k[:, 1].to(v_xyz.dtype)
         ref = refine_at_reselection(self.landmarks, self.keyframes, self.landmarks.refiner, acq, s.pixels, keep & has,
                                     X_tr, world, self.landmarks.survivor_ident, s.T_world_depth, v_pix, v_xyz, frame.K,
                                     frame.T_color_depth, mask, self.landmarks.max_correction_m,
-                                    self.landmarks.max_correction_rad, camera_cov=cov)  # fmt: skip
+                                    self.landmarks.max_correction_rad, camera_cov=cov,
+                                    xyz_scale=None if k is None else k[:, 1])  # fmt: skip
         # projected onto SE(3): a product with T_world_obj's round-off, fed back through T_inv at every window, grew
         # 7x per re-selection (a 0.4 m jump after ~20 windows on 7-Scenes)
         T_cam_obj = torch.where(ref.used[:, None, None], rigid(T_inv(ref.T_world_depth) @ s.T_world_obj), s.T_cam_obj)
@@ -354,6 +358,7 @@ class Tracker:
         T_world_obj = torch.where(m3, dec.T_world_depth.double() @ s.T_cam_obj, s.T_world_obj)
         velocity = torch.where(mask[:, None], 0.0, s.velocity)  # the lost frame's motion was the wrong one
         s = replace(s, valid=s.valid & ~mask[:, None], T_world_obj=T_world_obj, velocity=velocity)
+        self.backend.reset(s.T_cam_obj, mask)  # the lost filter's posterior is no prior of the new model (its window)
         self.state, T_model = self._new_model(s, frame, cur, mask)
         model = T_model if res.model_T_cam_obj is None else torch.where(m3, T_model, res.model_T_cam_obj)
         return replace(
@@ -372,7 +377,7 @@ class Tracker:
         if self.landmarks is not None:  # a model keyframe's features are landmarks at their world positions
             world = transform_points(s.T_world_obj, s.points_obj.double())
             model_slot = torch.where(reselected, slot, -1)
-            var_xyz = None if s.mean_var is None else s.mean_var[:, 1]  # the landmarks' position variance
+            var_xyz = None if s.mean_var is None else s.mean_var[:, 1]  # the keyframe's (its window's) 3D variance
             self.landmarks.add(self.keyframes, model_slot, cur, s.pixels, world, s.cornerness, s.valid, var_xyz)
         if self.relocaliser is not None:
             self.relocaliser.add(slot, frame, cur, s.T_world_depth)
