@@ -27,7 +27,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from torchtrack.config import FlowConfig, LandmarkConfig
-from torchtrack.geometry import T_inv, backproject, transform_points
+from torchtrack.geometry import T_inv, backproject
 from torchtrack.image.lk import forward_backward
 from torchtrack.image.pyramid import Pyramid, build_pyramid, layout
 
@@ -103,16 +103,6 @@ def crop_at(image: Tensor, origin: Tensor, size: int) -> Tensor:
     flat = (y.clamp(0, H - 1)[:, :, :, None] * W + x.clamp(0, W - 1)[:, :, None, :]).reshape(B, 1, C * size * size)
     out = image.reshape(B, ch, H * W).gather(2, flat.expand(B, ch, -1)).reshape(B, ch, C, size, size)
     return (out * inside[:, None].to(out.dtype)).transpose(1, 2)
-
-
-class WarpedTrack(NamedTuple):
-    """pixels (B, C, 2) re-acquired colour pixels; status (B, C) tracked both ways; d_tim (B, C) eq. (10), px;
-    residual (B, C) LK's mean absolute intensity difference."""
-
-    pixels: Tensor
-    status: Tensor
-    d_tim: Tensor
-    residual: Tensor
 
 
 def _pixel_index(pyr: Pyramid, level: int, image: Tensor, x: Tensor, y: Tensor) -> Tensor:
@@ -196,80 +186,6 @@ class WarpedTrack(NamedTuple):
     residual: Tensor
 
 
-def _pixel_index(pyr: Pyramid, level: int, image: Tensor, x: Tensor, y: Tensor) -> Tensor:
-    """Flat indices into ``pyr.flat`` of the integer pixels (x, y) of the images ``image`` at ``level`` (broadcast
-    shapes), clamped into each image's padded block (so that (x + 1, y + 1) stays inside it too)."""
-    h, w = pyr.size(level)
-    p = pyr.pad
-    x, y = x.clamp(-p, w + p - 2), y.clamp(-p, h + p - 2)
-    return (pyr.row_start[level].to(image.device)[image] + p + y) * pyr.stride + p + x
-
-
-def crop_pyramids(kf: Pyramid, cur: Pyramid, M: Tensor, kf_image: Tensor, cur_image: Tensor, origin: Tensor, crop: int,
-                  levels: int, window: int) -> tuple[Pyramid, Pyramid]:  # fmt: skip
-    """The LK pyramids of N square crops (side ``crop``, ``levels`` levels, padded for ``window``), taken from the
-    pyramids of whole images instead of built (no blur): level l of crop n is
-
-    - target: level l of ``cur``'s image ``cur_image[n]`` from pixel ``origin[n] / 2^l`` on (integer: ``origin`` (N, 2)
-      int64 must be a multiple of 2^(levels - 1)), padding included (image content, not a reflected border);
-    - template: level l of ``kf``'s image ``kf_image[n]`` sampled bilinearly through ``M[n]`` (N, 3, 3), which takes
-      the crop's level-0 pixels to the keyframe's: level-l pixel u of the crop is keyframe level-l pixel
-      ``D^-1 M D u`` (D = diag(2^l, 2^l, 1)). At level 0 this is :func:`sample_through` of the keyframe image; the
-      coarse levels are the warped keyframe pyramid rather than the pyramid of the warped level 0 (LK's coarse levels
-      only bring the start into the finest level's basin).
-
-    Where the keyframe's or the current image's padded border ends, its last pixels are repeated. Returns
-    (template, target) pyramids of N images each, of equal geometry (:func:`~torchtrack.image.pyramid.layout`).
-    """
-    N = origin.shape[0]
-    pad, sizes, heights, starts, row_start = layout(N, crop, crop, levels, window)
-    stride, dev = crop + 2 * pad, origin.device
-    with torch.inference_mode():  # as build_pyramid: the buffers are inference tensors
-        bufs = [kf.flat.new_zeros(1, sum(heights) * N, stride, dtype=torch.float32) for _ in range(2)]
-        for level, (hl, wl) in enumerate(sizes):
-            s = 2**level
-            v = torch.arange(-pad, hl + pad, device=dev)  # the level's padded rows and columns, crop pixels
-            u = torch.arange(-pad, wl + pad, device=dev)
-            o = torch.div(origin, s, rounding_mode="floor")
-            at = _pixel_index(cur, level, cur_image[:, None, None], (o[:, 0, None] + u)[:, None, :],
-                              (o[:, 1, None] + v)[:, :, None])  # fmt: skip  # N,R,Cc
-            target = cur.flat[at]
-            D = torch.diag(torch.tensor([s, s, 1.0], dtype=M.dtype, device=dev))
-            Ml = (torch.linalg.inv(D) @ M @ D).float()
-            uu, vv = u.float()[None, None, :], v.float()[None, :, None]
-            pt = [Ml[:, i, 0, None, None] * uu + Ml[:, i, 1, None, None] * vv + Ml[:, i, 2, None, None] for i in range(3)]
-            big = float(max(kf.size(level)) + kf.pad)  # behind the camera or non-finite: far outside, clamped
-            x = torch.nan_to_num(pt[0] / pt[2], nan=-big, posinf=big, neginf=-big).clamp(-big, big)
-            y = torch.nan_to_num(pt[1] / pt[2], nan=-big, posinf=big, neginf=-big).clamp(-big, big)
-            x0, y0 = x.floor(), y.floor()
-            i00 = _pixel_index(kf, level, kf_image[:, None, None], x0.long(), y0.long())
-            h_k, w_k = kf.size(level)
-            fx = (x - x0.clamp(-kf.pad, w_k + kf.pad - 2)).clamp(0, 1)
-            fy = (y - y0.clamp(-kf.pad, h_k + kf.pad - 2)).clamp(0, 1)
-            f = kf.flat
-            top = torch.lerp(f[i00], f[i00 + 1], fx)
-            template = torch.lerp(top, torch.lerp(f[i00 + kf.stride], f[i00 + kf.stride + 1], fx), fy)
-            for buf, img in zip(bufs, (template, target), strict=True):
-                block = buf[0, int(starts[level]) : int(starts[level]) + N * heights[level]].view(N, heights[level], stride)
-                block[..., : wl + 2 * pad] = img
-    out = []
-    for buf in bufs:
-        images = [buf[:, int(s0) : int(s0) + N * ht].view(1, N, ht, stride)[..., pad : pad + hl, pad : pad + wl].transpose(0, 1)
-                  for s0, ht, (hl, wl) in zip(starts, heights, sizes, strict=True)]  # fmt: skip
-        out.append(Pyramid(images, buf.view(-1), row_start.to(dev), stride=stride, plane=buf[0].numel(), pad=pad))
-    return out[0], out[1]
-
-
-class WarpedTrack(NamedTuple):
-    """pixels (B, C, 2) re-acquired colour pixels; status (B, C) tracked both ways; d_tim (B, C) eq. (10), px;
-    residual (B, C) LK's mean absolute intensity difference."""
-
-    pixels: Tensor
-    status: Tensor
-    d_tim: Tensor
-    residual: Tensor
-
-
 def _as_pyramid(x: Tensor | Pyramid, levels: int) -> Pyramid:
     if isinstance(x, Pyramid):
         if x.levels < levels:
@@ -293,8 +209,9 @@ def track_warped(kf_image: Tensor | Pyramid, cur_image: Tensor | Pyramid, H_cur_
             images are sequence b's): pass pyramids to reuse them.
         H_cur_kf: (B, C, 3, 3) keyframe -> current pixels (:func:`plane_homography` or :func:`translation_homography`).
         kf_pixels: (B, C, 2) the landmarks in the keyframe: the template's point is ``H kf_pixels``.
-        valid: (B, C) bool: only these are tracked (one crop each). init: (B, C, 2) or (B, C, J, 2) LK's start(s) in
-            the current image (default: the template's point); results are (B, C) or (B, C, J) accordingly.
+        valid: (B, C) bool: only these are tracked (one crop each), where the template's point is in the current image.
+            init: (B, C, 2) or (B, C, J, 2) LK's start(s) in the current image (default: the template's point);
+            results are (B, C) or (B, C, J) accordingly; pixels are the starts where not tracked.
         kf_index: (B, C) int64 the keyframe image of each landmark (default: b, I = B).
         crop: the square crop's side (px): LK's end point stays within it (about ``crop / 2`` from the template's
             point); rounded up to a multiple of 2^(levels - 1).
@@ -310,8 +227,10 @@ def track_warped(kf_image: Tensor | Pyramid, cur_image: Tensor | Pyramid, H_cur_
     starts = init.reshape(B, C, J, 2)
     rows = torch.arange(B, device=valid.device)[:, None].expand(B, C)
     kf_index = rows if kf_index is None else kf_index
-    b, c = (valid & torch.isfinite(q).all(-1)).nonzero(as_tuple=True)  # one crop per tracked landmark
-    pixels = q[:, :, None].expand(B, C, J, 2).to(starts.dtype).clone()
+    h, w = cur.size(0)
+    inside = (q >= 0).all(-1) & (q[..., 0] <= w - 1) & (q[..., 1] <= h - 1)  # False where not finite
+    b, c = (valid & inside).nonzero(as_tuple=True)  # one crop per tracked landmark
+    pixels = starts.clone()  # the start where not tracked
     status = torch.zeros(B, C, J, dtype=torch.bool, device=valid.device)
     d_tim = torch.full((B, C, J), float("inf"), device=valid.device)
     residual = torch.zeros(B, C, J, device=valid.device)
