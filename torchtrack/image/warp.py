@@ -7,11 +7,14 @@ through the landmark with the surface normal ``n`` (from the keyframe's depth) i
     H_cur_kf = K (R + t n^T / d) K^-1,    d = n^T X_kf,                            (Hartley & Zisserman, eq. 13.2)
 
 with ``(R, t) = T_cur_kf`` between the colour cameras: a pixel of the plane in the keyframe maps to ``H x`` in the
-current frame. :func:`track_warped` samples the keyframe image through ``H^-1`` on a square crop of current-frame
-pixels around the predicted position (the template), crops the current image at the same integer origin, and runs
-the same pyramidal LK with the forward-backward (TIM) check between the two; the end point, plus the crop origin, is
-the re-acquired pixel. With ``H`` the translation that takes the keyframe pixel to the prediction, the same code is the
-unwarped template (the baseline the warp is measured against: experiments/warp_reacquire.py).
+current frame. :func:`track_warped` takes a square crop of current-frame pixels around the predicted position, one per
+landmark: the template is the keyframe sampled through ``H^-1`` there, the target the current image there, and the
+same pyramidal LK with the forward-backward (TIM) check runs between the two; the end point, plus the crop origin, is
+the re-acquired pixel. The crops' pyramids are not built: :func:`crop_pyramids` gathers each level from the whole
+images' pyramids (the frames' own, built once), the target by integer crops, the template by one bilinear gather
+through the level's homography, for all landmarks of all keyframes in one call (``sample_through`` and ``crop_at`` are
+level 0's references). With ``H`` the translation that takes the keyframe pixel to the prediction, the same code is
+the unwarped template (the baseline the warp is measured against: experiments/warp_reacquire.py).
 
 References: Hartley & Zisserman, "Multiple View Geometry", §13.1; Molton, Davison & Reid, "Locally Planar Patch
 Features for Real-Time Structure from Motion", BMVC 2004 (patches warped by their normal).
@@ -118,6 +121,25 @@ def _take(flat: Tensor, index: Tensor) -> Tensor:
     return flat.index_select(0, index.reshape(-1)).view(index.shape)  # index_select: ~3x faster than flat[index]
 
 
+def _sample_level(pyr: Pyramid, level: int, image: Tensor, M: Tensor, u: Tensor, v: Tensor) -> Tensor:
+    """(N, R, Cc) level ``level`` of the images ``image`` (N,) of ``pyr`` sampled bilinearly at ``M[n] (u, v, 1)``
+    (M (N, 3, 3) float32, projective; u (Cc,), v (R,) the pixel grid); beyond the padded border its last pixels."""
+    grid = torch.stack([u.float()[None, :].expand(len(v), -1), v.float()[:, None].expand(-1, len(u)),
+                        torch.ones(len(v), len(u), device=u.device)], -1)  # fmt: skip
+    pt = (grid.view(1, -1, 3) @ M.transpose(1, 2)).view(M.shape[0], len(v), len(u), 3)
+    h, w = pyr.size(level)
+    big = float(max(h, w) + pyr.pad)  # behind the camera or not finite: far outside, clamped
+    xy = torch.nan_to_num(pt[..., :2] / pt[..., 2:], nan=-big, posinf=big, neginf=-big)
+    lo = torch.tensor([-pyr.pad, -pyr.pad], dtype=xy.dtype, device=xy.device)
+    hi = torch.tensor([w + pyr.pad - 2, h + pyr.pad - 2], dtype=xy.dtype, device=xy.device)
+    fl = torch.minimum(torch.maximum(xy.floor(), lo), hi)
+    frac = (xy - fl).clamp_(0, 1)
+    i00 = _pixel_index(pyr, level, image[:, None, None], *fl.int().unbind(-1))
+    f, fx, fy, S = pyr.flat, frac[..., 0], frac[..., 1], pyr.stride
+    top = torch.lerp(_take(f, i00), _take(f, i00 + 1), fx)
+    return torch.lerp(top, torch.lerp(_take(f, i00 + S), _take(f, i00 + (S + 1)), fx), fy)
+
+
 def crop_pyramids(kf: Pyramid, cur: Pyramid, M: Tensor, kf_image: Tensor, cur_image: Tensor, origin: Tensor, crop: int,
                   levels: int, window: int) -> tuple[Pyramid, Pyramid]:  # fmt: skip
     """The LK pyramids of N square crops (side ``crop``, ``levels`` levels, padded for ``window``), taken from the
@@ -150,21 +172,7 @@ def crop_pyramids(kf: Pyramid, cur: Pyramid, M: Tensor, kf_image: Tensor, cur_im
                               (o[:, 1, None] + v.int())[:, :, None])  # fmt: skip  # N,R,Cc
             target = _take(cur.flat, at)
             D = torch.diag(torch.tensor([s, s, 1.0], dtype=M.dtype, device=dev))
-            Ml = (torch.linalg.inv(D) @ M @ D).float()  # crop level-l pixels -> keyframe level-l pixels
-            grid = torch.stack(torch.meshgrid(v.float(), u.float(), indexing="ij")[::-1] + (torch.ones(len(v), len(u), device=dev),), -1)
-            pt = (grid.view(1, -1, 3) @ Ml.transpose(1, 2)).view(N, len(v), len(u), 3)
-            big = float(max(kf.size(level)) + kf.pad)  # behind the camera or non-finite: far outside, clamped
-            xy = torch.nan_to_num(pt[..., :2] / pt[..., 2:], nan=-big, posinf=big, neginf=-big).clamp_(-big, big)
-            h_k, w_k = kf.size(level)
-            lo = torch.tensor([-kf.pad, -kf.pad], dtype=xy.dtype, device=dev)
-            hi = torch.tensor([w_k + kf.pad - 2, h_k + kf.pad - 2], dtype=xy.dtype, device=dev)
-            fl = torch.minimum(torch.maximum(xy.floor(), lo), hi)
-            frac = (xy - fl).clamp_(0, 1)
-            fl = fl.int()
-            i00 = _pixel_index(kf, level, kf_image[:, None, None], fl[..., 0], fl[..., 1])
-            f, fx, fy = kf.flat, frac[..., 0], frac[..., 1]
-            top = torch.lerp(_take(f, i00), _take(f, i00 + 1), fx)
-            template = torch.lerp(top, torch.lerp(_take(f, i00 + kf.stride), _take(f, i00 + (kf.stride + 1)), fx), fy)
+            template = _sample_level(kf, level, kf_image, (torch.linalg.inv(D) @ M @ D).float(), u, v)
             for buf, img in zip(bufs, (template, target), strict=True):
                 block = buf[0, int(starts[level]) : int(starts[level]) + N * heights[level]].view(N, heights[level], stride)
                 block[..., : wl + 2 * pad] = img
