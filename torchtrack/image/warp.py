@@ -124,20 +124,23 @@ def _take(flat: Tensor, index: Tensor) -> Tensor:
 def _sample_level(pyr: Pyramid, level: int, image: Tensor, M: Tensor, u: Tensor, v: Tensor) -> Tensor:
     """(N, R, Cc) level ``level`` of the images ``image`` (N,) of ``pyr`` sampled bilinearly at ``M[n] (u, v, 1)``
     (M (N, 3, 3) float32, projective; u (Cc,), v (R,) the pixel grid); beyond the padded border its last pixels."""
-    grid = torch.stack([u.float()[None, :].expand(len(v), -1), v.float()[:, None].expand(-1, len(u)),
-                        torch.ones(len(v), len(u), device=u.device)], -1)  # fmt: skip
-    pt = (grid.view(1, -1, 3) @ M.transpose(1, 2)).view(M.shape[0], len(v), len(u), 3)
+    N = M.shape[0]
+    P = (M[:, :, 0, None] * u.to(M.dtype))[:, :, None, :] + (M[:, :, 1, None] * v.to(M.dtype) + M[:, :, 2, None])[..., None]
     h, w = pyr.size(level)
-    big = float(max(h, w) + pyr.pad)  # behind the camera or not finite: far outside, clamped
-    xy = torch.nan_to_num(pt[..., :2] / pt[..., 2:], nan=-big, posinf=big, neginf=-big)
-    lo = torch.tensor([-pyr.pad, -pyr.pad], dtype=xy.dtype, device=xy.device)
-    hi = torch.tensor([w + pyr.pad - 2, h + pyr.pad - 2], dtype=xy.dtype, device=xy.device)
-    fl = torch.minimum(torch.maximum(xy.floor(), lo), hi)
+    p = pyr.pad
+    big = float(max(h, w) + p)  # behind the camera or not finite: far outside, clamped
+    xy = torch.nan_to_num(P[:, :2] / P[:, 2:], nan=-big, posinf=big, neginf=-big)  # N,2,R,Cc
+    lo = torch.tensor([-p, -p], dtype=xy.dtype, device=xy.device).view(1, 2, 1, 1)
+    hi = torch.tensor([w + p - 2, h + p - 2], dtype=xy.dtype, device=xy.device).view(1, 2, 1, 1)
+    fl = torch.clamp(xy.floor(), lo, hi)
     frac = (xy - fl).clamp_(0, 1)
-    i00 = _pixel_index(pyr, level, image[:, None, None], *fl.int().unbind(-1))
-    f, fx, fy, S = pyr.flat, frac[..., 0], frac[..., 1], pyr.stride
-    top = torch.lerp(_take(f, i00), _take(f, i00 + 1), fx)
-    return torch.lerp(top, torch.lerp(_take(f, i00 + S), _take(f, i00 + (S + 1)), fx), fy)
+    fl = fl.int()
+    i00 = _pixel_index(pyr, level, image[:, None, None], fl[:, 0], fl[:, 1]).reshape(-1)
+    pairs = pyr.flat.as_strided((pyr.flat.numel() - 1, 2), (1, 1))  # (x, x + 1) in one gather
+    top, bottom = pairs.index_select(0, i00), pairs.index_select(0, i00 + pyr.stride)
+    fx, fy = frac[:, 0].reshape(-1), frac[:, 1].reshape(-1)
+    out = torch.lerp(torch.lerp(top[:, 0], top[:, 1], fx), torch.lerp(bottom[:, 0], bottom[:, 1], fx), fy)
+    return out.view(N, len(v), len(u))
 
 
 def crop_pyramids(kf: Pyramid, cur: Pyramid, M: Tensor, kf_image: Tensor, cur_image: Tensor, origin: Tensor, crop: int,
@@ -162,7 +165,7 @@ def crop_pyramids(kf: Pyramid, cur: Pyramid, M: Tensor, kf_image: Tensor, cur_im
     pad, sizes, heights, starts, row_start = layout(N, crop, crop, levels, window)
     stride = crop + 2 * pad
     with torch.inference_mode():  # as build_pyramid: the buffers are inference tensors
-        bufs = [kf.flat.new_zeros(1, sum(heights) * N, stride, dtype=torch.float32) for _ in range(2)]
+        bufs = [kf.flat.new_empty(1, sum(heights) * N, stride, dtype=torch.float32) for _ in range(2)]
         for level, (hl, wl) in enumerate(sizes):
             s = 2**level
             v = torch.arange(-pad, hl + pad, device=dev)  # the level's padded rows and columns, crop pixels
@@ -176,6 +179,7 @@ def crop_pyramids(kf: Pyramid, cur: Pyramid, M: Tensor, kf_image: Tensor, cur_im
             for buf, img in zip(bufs, (template, target), strict=True):
                 block = buf[0, int(starts[level]) : int(starts[level]) + N * heights[level]].view(N, heights[level], stride)
                 block[..., : wl + 2 * pad] = img
+                block[..., wl + 2 * pad :] = 0.0  # past a coarse level's rows (as build_pyramid)
     out = []
     for buf in bufs:
         images = [buf[:, int(s0) : int(s0) + N * ht].view(1, N, ht, stride)[..., pad : pad + hl, pad : pad + wl].transpose(0, 1)
