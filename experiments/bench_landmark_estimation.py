@@ -37,8 +37,13 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=50)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--only", nargs="+", help="run only these of the built-in configurations (default: all)")
-    ap.add_argument("--config", action="append", default=[], metavar="NAME=OVERRIDE,...",
-                    help="another configuration, e.g. warp32=landmarks.warp=true,landmarks.warp_crop=32")
+    ap.add_argument(
+        "--config",
+        action="append",
+        default=[],
+        metavar="NAME=OVERRIDE,...",
+        help="another configuration, e.g. warp32=landmarks.warp=true,landmarks.warp_crop=32",
+    )
     a = ap.parse_args()
     configs = {k: v for k, v in CONFIGS.items() if a.only is None or k in a.only or k == "default"}
     for c in a.config:

@@ -50,8 +50,14 @@ def corners(g: torch.Tensor, depth: torch.Tensor, cell: int = 20, border: int = 
     return torch.stack([x, y], -1)[keep][None].float()
 
 
-def run(gap: int, seed: int, pose_err_deg: float, pose_err_m: float, crop: int = LandmarkConfig.warp_crop,
-        levels: int | None = None) -> dict:
+def run(
+    gap: int,
+    seed: int,
+    pose_err_deg: float,
+    pose_err_m: float,
+    crop: int = LandmarkConfig.warp_crop,
+    levels: int | None = None,
+) -> dict:
     cfg = SyntheticConfig(frames=gap + 1, seed=seed, mode="scene", noise="none", trans_step_m=0.015, rot_step_deg=1.5)
     scene, poses = default_scene(cfg), sequence_poses(cfg)
     kf, cur = render_frame(scene, poses.T_world_cam[0]), render_frame(scene, poses.T_world_cam[gap])

@@ -56,7 +56,9 @@ def test_plane_homography_maps_plane_points_exactly():
     Hm = plane_homography(K1, T, X, n.expand(1, 50, 3))
     torch.testing.assert_close(_apply(Hm, project(K1, X)), project(K1, transform_points(T, X)), rtol=0, atol=1e-9)
     T2 = make_T(so3_exp(torch.tensor([-0.1, 0.1, 0.2], dtype=F64)), torch.tensor([-0.1, 0.0, 0.1], dtype=F64))[None]
-    each = torch.where(torch.arange(50)[None, :, None, None] % 2 == 0, T[:, None], T2[:, None])  # per landmark: 1,50,4,4
+    each = torch.where(
+        torch.arange(50)[None, :, None, None] % 2 == 0, T[:, None], T2[:, None]
+    )  # per landmark: 1,50,4,4
     Hm = plane_homography(K1, each, X, n.expand(1, 50, 3))
     truth = torch.where(torch.arange(50)[None, :, None] % 2 == 0, transform_points(T, X), transform_points(T2, X))
     torch.testing.assert_close(_apply(Hm, project(K1, X)), project(K1, truth), rtol=0, atol=1e-9)
@@ -174,7 +176,9 @@ def test_crop_pyramids_are_crops_of_the_whole_pyramids():
             want = _padded(cur, level, 0)[cur.pad + y - p : cur.pad + y + h + p, cur.pad + x - p : cur.pad + x + w + p]
             assert torch.equal(_padded(tgt, level, n), want)
             x, y = ((origin[n] + shift[n].long()) // s).tolist()
-            want = _padded(kf, level, int(kf_image[n]))[kf.pad + y - p : kf.pad + y + h + p, kf.pad + x - p : kf.pad + x + w + p]
+            want = _padded(kf, level, int(kf_image[n]))[
+                kf.pad + y - p : kf.pad + y + h + p, kf.pad + x - p : kf.pad + x + w + p
+            ]
             assert torch.equal(_padded(tpl, level, n), want)
     a = math.radians(15.0)
     M[:, :2, :2] = 1.1 * torch.tensor([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]], dtype=F64)
@@ -260,7 +264,9 @@ def test_warped_reacquisition_over_slots_and_sequences_is_exact():
     cur, none, no = prepared(*T_cur), torch.zeros(2, 0, 2), torch.zeros(2, 0, dtype=torch.bool)
     acq = lm.reacquire(store, CombinedTracker(), cur, K, torch.eye(4).expand(2, 4, 4), T_cur, none, no,
                        torch.ones(2, dtype=torch.bool))  # fmt: skip
-    index = lm.candidates(store, cur, K, torch.eye(4).expand(2, 4, 4), T_cur, none, no, torch.ones(2, dtype=torch.bool))[0]
+    index = lm.candidates(
+        store, cur, K, torch.eye(4).expand(2, 4, 4), T_cur, none, no, torch.ones(2, dtype=torch.bool)
+    )[0]
     truth = project(K.double(), transform_points(T_inv(T_cur), acq.points_world))
     err = (acq.pixels.double() - truth).norm(dim=-1)[acq.valid]
     slots = (index // 128)[acq.valid]

@@ -125,7 +125,9 @@ def _sample_level(pyr: Pyramid, level: int, image: Tensor, M: Tensor, u: Tensor,
     """(N, R, Cc) level ``level`` of the images ``image`` (N,) of ``pyr`` sampled bilinearly at ``M[n] (u, v, 1)``
     (M (N, 3, 3) float32, projective; u (Cc,), v (R,) the pixel grid); beyond the padded border its last pixels."""
     N = M.shape[0]
-    P = (M[:, :, 0, None] * u.to(M.dtype))[:, :, None, :] + (M[:, :, 1, None] * v.to(M.dtype) + M[:, :, 2, None])[..., None]
+    along_u = (M[:, :, 0, None] * u.to(M.dtype))[:, :, None, :]  # N,3,1,Cc
+    along_v = (M[:, :, 1, None] * v.to(M.dtype) + M[:, :, 2, None])[..., None]  # N,3,R,1
+    P = along_u + along_v  # N,3,R,Cc homogeneous keyframe pixels
     h, w = pyr.size(level)
     p = pyr.pad
     big = float(max(h, w) + p)  # behind the camera or not finite: far outside, clamped
@@ -177,7 +179,9 @@ def crop_pyramids(kf: Pyramid, cur: Pyramid, M: Tensor, kf_image: Tensor, cur_im
             D = torch.diag(torch.tensor([s, s, 1.0], dtype=M.dtype, device=dev))
             template = _sample_level(kf, level, kf_image, (torch.linalg.inv(D) @ M @ D).float(), u, v)
             for buf, img in zip(bufs, (template, target), strict=True):
-                block = buf[0, int(starts[level]) : int(starts[level]) + N * heights[level]].view(N, heights[level], stride)
+                block = buf[0, int(starts[level]) : int(starts[level]) + N * heights[level]].view(
+                    N, heights[level], stride
+                )
                 block[..., : wl + 2 * pad] = img
                 block[..., wl + 2 * pad :] = 0.0  # past a coarse level's rows (as build_pyramid)
     out = []

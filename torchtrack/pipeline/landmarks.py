@@ -284,7 +284,8 @@ class LandmarkMap:
         kf_pix = self.pixels.reshape(B, S * P, 2).gather(1, index[..., None].expand(-1, -1, 2))
         if self.warp and self.depth is not None:  # one call over all keyframe slots
             pixels, good, residual = self._verified(
-                self._warped(flow, cur, K, T_color_depth, store, T_world_depth, index, slot, kf_pix, proj, ok), ok)
+                self._warped(flow, cur, K, T_color_depth, store, T_world_depth, index, slot, kf_pix, proj, ok), ok
+            )
             pixels = torch.where(ok[..., None], pixels, proj)
             good, residual = ok & good, torch.where(ok, residual, float("inf"))
         elif self.per_slot or getattr(flow, "kwargs", {}).get("backend") != "torch":
