@@ -11,7 +11,7 @@ Three trackers, the same LK settings (the flow config's), each with the TIM chec
            keyframe's depth)
 Reports per gap: tracked (TIM-passed) count, median / mean / 90th percentile error (px), share within 0.5 px and 1 px.
 
-    python experiments/warp_reacquire.py [--gaps 5 10 20 30] [--seeds 0 1 2]
+    python experiments/warp_reacquire.py [--gaps 5 10 20 30] [--seeds 0 1 2] [--crop 48] [--levels 2]
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import math
 
 import torch
 
-from torchtrack.config import FlowConfig
+from torchtrack.config import FlowConfig, LandmarkConfig
 from torchtrack.data.synthetic import SyntheticConfig, default_scene, render_frame, sequence_poses
 from torchtrack.geometry import T_inv, backproject, project, se3_exp, transform_points
 from torchtrack.image.corners import harris
@@ -50,7 +50,14 @@ def corners(g: torch.Tensor, depth: torch.Tensor, cell: int = 20, border: int = 
     return torch.stack([x, y], -1)[keep][None].float()
 
 
-def run(gap: int, seed: int, pose_err_deg: float, pose_err_m: float, crop: int = 96) -> dict:
+def run(
+    gap: int,
+    seed: int,
+    pose_err_deg: float,
+    pose_err_m: float,
+    crop: int = LandmarkConfig.warp_crop,
+    levels: int | None = None,
+) -> dict:
     cfg = SyntheticConfig(frames=gap + 1, seed=seed, mode="scene", noise="none", trans_step_m=0.015, rot_step_deg=1.5)
     scene, poses = default_scene(cfg), sequence_poses(cfg)
     kf, cur = render_frame(scene, poses.T_world_cam[0]), render_frame(scene, poses.T_world_cam[gap])
@@ -78,7 +85,7 @@ def run(gap: int, seed: int, pose_err_deg: float, pose_err_m: float, crop: int =
     out = {}
     fl = FlowConfig()
     kw = dict(window=fl.window, levels=fl.levels, iters=fl.iters, eps=fl.eps, min_eig=fl.min_eig, ic_iters=fl.ic_iters)
-    full_kw, kw = dict(kw), dict(kw, crop=crop)
+    full_kw, kw = dict(kw), dict(kw, crop=crop, levels=levels or fl.levels)
     fr = combined_track(prepare_frame(g_kf, None, fl.levels), prepare_frame(g_cur, None, fl.levels), px, visible,
                         mode="intensity", init=pred.float(), **full_kw)  # fmt: skip
     out["full"] = (fr.points.double(), fr.valid)
@@ -114,14 +121,15 @@ def main() -> None:
     p.add_argument("--pose-err-deg", type=float, default=1.0)
     p.add_argument("--pose-err-m", type=float, default=0.01)
     p.add_argument("--json", help="write the per-gap errors here")
-    p.add_argument("--crop", type=int, default=96, help="side of the warped crops (px)")
+    p.add_argument("--crop", type=int, default=LandmarkConfig.warp_crop, help="side of the warped crops (px)")
+    p.add_argument("--levels", type=int, help="pyramid levels of the crop trackers (default: the flow config's)")
     a = p.parse_args()
     torch.set_num_threads(1)
     table = {}
     for gap in a.gaps:
         agg = {"candidates": 0, "full": [], "crop": [], "warp": []}
         for seed in a.seeds:
-            r = run(gap, seed, a.pose_err_deg, a.pose_err_m, a.crop)
+            r = run(gap, seed, a.pose_err_deg, a.pose_err_m, a.crop, a.levels)
             agg["candidates"] += r["candidates"]
             for k in ("full", "crop", "warp"):
                 agg[k] += r[k]

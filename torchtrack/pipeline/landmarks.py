@@ -285,9 +285,14 @@ class LandmarkMap:
         S, P = store.size, self.P
         slot = index // P
         kf_pix = self.pixels.reshape(B, S * P, 2).gather(1, index[..., None].expand(-1, -1, 2))
-        if self.warp or self.per_slot or getattr(flow, "kwargs", {}).get("backend") != "torch":
-            pixels, good, residual = self._track_per_slot(store, flow, cur, K, T_color_depth, T_world_depth, index,
-                                                          slot, ok, kf_pix, proj)  # fmt: skip
+        if self.warp and self.depth is not None:  # one call over all keyframe slots
+            pixels, good, residual = self._verified(
+                self._warped(flow, cur, K, T_color_depth, store, T_world_depth, index, slot, kf_pix, proj, ok), ok
+            )
+            pixels = torch.where(ok[..., None], pixels, proj)
+            good, residual = ok & good, torch.where(ok, residual, float("inf"))
+        elif self.per_slot or getattr(flow, "kwargs", {}).get("backend") != "torch":
+            pixels, good, residual = self._track_per_slot(flow, cur, slot, ok, kf_pix, proj)
         else:
             pixels, good, residual = self._track_batched(flow, cur, slot, ok, kf_pix, proj)
         X_meas, has_depth = measure_points(cur.depth, K, T_color_depth, pixels)
@@ -330,13 +335,11 @@ class LandmarkMap:
         same = torch.linalg.vector_norm(tr_points - probe_points, dim=-1) <= self.converge_px
         return tr_points, tr_valid & probe_valid & same, both.residual[:, :n]
 
-    def _track_per_slot(self, store: KeyframeStore, flow: Callable, cur: PreparedFrame, K: Tensor,
-                        T_color_depth: Tensor, T_world_depth: Tensor, index: Tensor, slot: Tensor, ok: Tensor,
-                        kf_pix: Tensor, proj: Tensor) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
+    def _track_per_slot(self, flow: Callable, cur: PreparedFrame, slot: Tensor, ok: Tensor, kf_pix: Tensor,
+                        proj: Tensor) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
         """The candidates ``ok`` (B, C) re-tracked from their keyframe slots ``slot`` (B, C) with one ``flow`` call per
         slot (batched over B): pixels (B, C, 2) (the projection ``proj`` where not tracked), good (B, C), residual
-        (B, C) (inf where not tracked). The reference of :meth:`_track_batched`; the path of ``warp`` and of the
-        OpenCV back end."""
+        (B, C) (inf where not tracked). The reference of :meth:`_track_batched`; the path of the OpenCV back end."""
         pixels, good = proj.clone(), torch.zeros_like(ok)
         residual = torch.full(ok.shape, float("inf"), device=ok.device)
         for s in slot[ok].unique().tolist():  # one LK call per keyframe slot, batched over B
@@ -344,14 +347,10 @@ class LandmarkMap:
             if s not in self.pyramids:
                 sim = None if self.sim is None else self.sim[s]
                 self.pyramids[s] = prepare_frame(self.gray[s], sim, cur.flow.pyramid.levels)
-            kf = self.pyramids[s]
             # eq. (10), from the keyframe, started at the projection and (second half) probe_px away from it: a second
             # start must converge there too. One call for both (every point's track is independent of the others).
-            if self.warp:
-                both = self._warped(s, flow, cur, K, T_color_depth, store, T_world_depth, index, kf_pix, proj, sel)
-            else:
-                both = flow(kf, cur.flow, kf_pix.repeat(1, 2, 1), sel.repeat(1, 2), with_residual=True,
-                            init=torch.cat([proj, proj + self.probe_px], 1))  # fmt: skip
+            both = flow(self.pyramids[s], cur.flow, kf_pix.repeat(1, 2, 1), sel.repeat(1, 2), with_residual=True,
+                        init=torch.cat([proj, proj + self.probe_px], 1))  # fmt: skip
             tr_points, tr_good, tr_residual = self._verified(both, sel)
             pixels = torch.where(sel[..., None], tr_points, pixels)
             good = torch.where(sel, tr_good, good)
@@ -409,19 +408,25 @@ class LandmarkMap:
                 for s, b in zip(slot.tolist(), rows.tolist(), strict=True):  # plain copies of each image
                     to[:, s, b].copy_(of[:, b])
 
-    def _warped(self, s: int, flow: Callable, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor,
-                store: KeyframeStore, T_world_depth: Tensor, index: Tensor, kf_pix: Tensor, proj: Tensor,
+    def _warped(self, flow: Callable, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor, store: KeyframeStore,
+                T_world_depth: Tensor, index: Tensor, slot: Tensor, kf_pix: Tensor, proj: Tensor,
                 sel: Tensor) -> TrackResult:  # fmt: skip
-        """Keyframe slot ``s``'s landmarks ``sel`` (B, C) re-tracked from pose-warped templates
-        (:func:`~torchtrack.image.warp.warped_landmark_tracks`, intensity), from the projection and ``probe_px`` away,
-        as the (B, 2C) :class:`TrackResult` of the combined tracker's call (both starts; the TIM check applied)."""
+        """The landmarks ``sel`` (B, C) (flattened ``index`` (B, C), keyframe slots ``slot`` (B, C)) re-tracked from
+        pose-warped templates (:func:`~torchtrack.image.warp.warped_landmark_tracks`, intensity), from the projection
+        and ``probe_px`` away, in one call over all slots: crops of the slots' stacked pyramids (:meth:`_stacked`, row
+        s * B + b) and of the current frame's. The (B, 2C) :class:`TrackResult` of the combined tracker's call (both
+        starts; the TIM check applied)."""
         B, C = sel.shape
         world = self.world.reshape(B, -1, 3).gather(1, index[..., None].expand(-1, -1, 3))
         lk = {k: v for k, v in getattr(flow, "kwargs", {}).items() if k in ("window", "levels", "iters", "eps",
                                                                                 "min_eig", "ic_iters")}  # fmt: skip
-        r = warped_landmark_tracks(self.gray[s], self.depth[s], cur.flow.images[0], K, T_color_depth,
-                                   store.T_world_kf[:, s], T_world_depth, world, kf_pix,
-                                   torch.stack([proj, proj + self.probe_px], 2), sel, crop=self.warp_crop, **lk)  # fmt: skip
+        levels = lk.setdefault("levels", cur.flow.pyramid.levels)
+        rows = torch.arange(B, device=sel.device)
+        at = slot.clamp(0, self.gray.shape[0] - 1)  # not valid rows: any slot
+        r = warped_landmark_tracks(self._stacked(cur.flow.pyramid.levels).pyramid, self.depth.flatten(0, 1),
+                                   cur.flow.pyramid, K, T_color_depth, store.T_world_kf[rows[:, None], at],
+                                   T_world_depth, world, kf_pix, torch.stack([proj, proj + self.probe_px], 2), sel,
+                                   kf_index=at * B + rows[:, None], crop=self.warp_crop, **dict(lk, levels=levels))  # fmt: skip
         tim = getattr(flow, "kwargs", {}).get("tim_threshold", 1.0)
         ok = r.status & (r.d_tim <= tim)
         cat = lambda x: torch.cat([x[:, :, 0], x[:, :, 1]], 1)  # noqa: E731
