@@ -112,19 +112,23 @@ def test_the_birth_weight_and_the_mask():
 
 @pytest.mark.equivalence
 def test_batched_equals_looped():
-    """Three scenes of different sizes padded into one batch (invalid rows never fused) vs each alone."""
+    """Three scenes of different sizes padded into one batch (invalid rows never fused), with different focal lengths
+    and points past their birth, vs each alone."""
     B, N, k = 3, 40, 4
     pts, T, g = _scene(B, N, k, seed=3)
     valid = torch.arange(N)[None] < torch.tensor([40, 25, 10])[:, None]
     noise = [0.003 * torch.randn(B, N, 3, generator=g, dtype=torch.float64) for _ in range(k)]
     var_xyz = 1e-5 * (1 + torch.rand(B, N, generator=g, dtype=torch.float64))
-    focal = torch.full((B,), F, dtype=torch.float64)
+    focal = torch.tensor([F, 580.0, 610.0], dtype=torch.float64)
+
+    weighed = torch.arange(N)[None] < torch.tensor([10, 20, 30])[:, None]  # points past their birth, per row
+    prior = torch.where(weighed[..., None, None], 1e5 * torch.eye(3, dtype=torch.float64), 0.0)
 
     def run(rows):
         stage = _stage(point_noise="ray")
         m = valid[rows]
         est = PointEstimate(transform_points(torch.linalg.inv(T[0, rows]), transform_points(T[0, rows], pts[rows])
-                                             + noise[0][rows]), torch.zeros(len(rows), N, 3, 3, dtype=torch.float64))  # fmt: skip
+                                             + noise[0][rows]), prior[rows])  # fmt: skip
         for i in range(1, k):
             X = transform_points(T[i, rows], pts[rows]) + noise[i][rows]
             est = stage.fused(est, T[i, rows], X, var_xyz[rows], var_xyz[rows] * 1e5, focal[rows], m)
@@ -143,7 +147,8 @@ def test_survivors_carry_their_estimates_into_the_new_model(synth):  # noqa: F81
     re-selection puts each survivor's estimate into the new model at the same world position with the same world
     information (rigid re-expression), and the new features start at their birth sample with zero information."""
     seq = synth(seed=5, frames=5, noise="kinect")
-    tracker = make_tracker("reselect.point_mean=reselect", "reselect.fraction=0.0", "landmarks.enabled=false")
+    tracker = make_tracker("reselect.point_mean=reselect", "reselect.point_noise=ray", "reselect.fraction=0.0",
+                           "landmarks.enabled=false")  # fmt: skip
     frames = list(iterate_batched([seq], prefetch=False))
     for frame in frames:
         tracker.step(frame)
