@@ -336,6 +336,7 @@ class ReselectConfig:
     point_mean: str = "off"  # off (paper: the selection's one sample) | reselect (survivors carry the mean) | frame
     point_noise: str = "isotropic"  # a sample's covariance: var_xyz per coordinate | ray: across it (z/f)^2 var_pix
     point_birth_weight: float = 1.0  # the selection's sample, in units of the feature's first tracked sample
+    point_gate: float | None = None  # a sample beyond this squared Mahalanobis distance is not fused (null: all are)
 
 
 @dataclass

@@ -80,20 +80,27 @@ def sample_information(points_cam: Tensor, R_cam_obj: Tensor, var_xyz: Tensor, v
     return along / var_xyz[..., None, None] + (eye - along) / var_lat.clamp_min(1e-18)[..., None, None]
 
 
-def fuse_points(est: PointEstimate, samples: Tensor, info: Tensor, valid: Tensor, birth_weight: float) -> PointEstimate:
+def fuse_points(est: PointEstimate, samples: Tensor, info: Tensor, valid: Tensor, birth_weight: float,
+                gate: float | None = None) -> PointEstimate:  # fmt: skip
     """The information-weighted mean of each model point's samples, one more sample per feature in ``valid`` (B, N):
     ``Lambda' = Lambda + S``, ``X' = X + Lambda'^-1 S (x - X)`` with samples ``x`` (B, N, 3) in the model frame and
     their information ``S`` (B, N, 3, 3). A point still at its birth sample (zero information) first gives that sample
-    ``birth_weight`` times this sample's information. Features not in ``valid`` keep their estimate."""
+    ``birth_weight`` times this sample's information (as if seen from this viewpoint: consecutive frames). With
+    ``gate``, a sample whose squared Mahalanobis distance to the estimate, under ``Lambda^-1 + S^-1``, exceeds it is
+    not fused (a depth edge, a sliding track). Features not in ``valid`` keep their estimate."""
     B, N = valid.shape
     if est.mean.shape != (B, N, 3) or est.info.shape != (B, N, 3, 3) or samples.shape != (B, N, 3):
         raise ValueError("fuse_points: mean (B, N, 3), info (B, N, 3, 3), samples (B, N, 3), valid (B, N)")
     born = (est.info == 0).flatten(2).all(-1)[..., None, None]
     prior = torch.where(born, birth_weight * info, est.info)
+    eye = torch.eye(3, dtype=prior.dtype, device=prior.device)
     total = prior + info
-    step = torch.linalg.solve(torch.where(valid[..., None, None], total, torch.eye(3, dtype=total.dtype,
-                                                                                  device=total.device)),
-                              (info @ (samples.double() - est.mean)[..., None]))[..., 0]  # fmt: skip
+    e = (samples.double() - est.mean)[..., None]
+    if gate is not None:  # S (Lambda + S)^-1 Lambda = (Lambda^-1 + S^-1)^-1
+        ok = valid[..., None, None]
+        d2 = (e.transpose(-1, -2) @ info @ torch.linalg.solve(torch.where(ok, total, eye), prior @ e))[..., 0, 0]
+        valid = valid & (d2 <= gate)
+    step = torch.linalg.solve(torch.where(valid[..., None, None], total, eye), info @ e)[..., 0]
     v = valid[..., None]
     return PointEstimate(torch.where(v, est.mean + step, est.mean), torch.where(v[..., None], total, est.info))
 
@@ -131,6 +138,8 @@ class Reselection:
             model points are the means, updated every frame.
         point_noise: each sample's covariance (:func:`sample_information`): ``isotropic`` or ``ray``.
         point_birth_weight: the selection's sample weighs this many times the feature's first tracked sample.
+        point_gate: a sample farther than this squared Mahalanobis distance from its point's estimate is not fused
+            (None: every sample is).
     """
 
     def __init__(
@@ -146,6 +155,7 @@ class Reselection:
         point_mean: str = ReselectConfig.point_mean,
         point_noise: str = ReselectConfig.point_noise,
         point_birth_weight: float = ReselectConfig.point_birth_weight,
+        point_gate: float | None = ReselectConfig.point_gate,
     ) -> None:
         if not 0.0 <= fraction < 1.0:
             raise ValueError(f"reselect.fraction must be in [0, 1), got {fraction}")
@@ -155,6 +165,7 @@ class Reselection:
         if point_mean not in ("off", "reselect", "frame"):
             raise ValueError(f"reselect.point_mean must be off, reselect or frame, got {point_mean!r}")
         self.point_mean, self.point_noise, self.point_birth_weight = point_mean, point_noise, point_birth_weight
+        self.point_gate = point_gate
 
     @property
     def estimates_points(self) -> bool:
@@ -169,7 +180,7 @@ class Reselection:
         T = T_cam_obj.double()
         samples = transform_points(T_inv(T), points_d.double())
         info = sample_information(points_d, T[:, :3, :3], var_xyz, var_pix, focal, self.point_noise)
-        return fuse_points(est, samples, info, valid, self.point_birth_weight)
+        return fuse_points(est, samples, info, valid, self.point_birth_weight, self.point_gate)
 
     def needed(self, valid: Tensor, n_model: Tensor, active: Tensor) -> Tensor:
         """(B,) bool: too few of the model's ``n_model`` (B,) features survive in ``valid`` (B, N) (a fraction of the
