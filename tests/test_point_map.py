@@ -210,3 +210,10 @@ def test_the_gate_rejects_planted_outliers():
     assert float((gated.mean - pts).norm(dim=-1).max()) < 6 * sigma
     plain = run(None, outliers=True)
     assert float((plain.mean - pts)[moved].norm(dim=-1).median()) > 0.01
+
+
+@pytest.mark.parametrize("kw", [dict(point_mean="always"), dict(point_noise="anisotropic"), dict(point_gate=0.0),
+                                dict(point_birth_weight=-1.0)])  # fmt: skip
+def test_bad_settings_raise(kw):
+    with pytest.raises(ValueError, match="reselect.point_"):
+        Reselection(region=None, select=None, **{"point_mean": "frame", **kw})

@@ -164,6 +164,10 @@ class Reselection:
         self.keep_survivors, self.min_separation_px = keep_survivors, min_separation_px
         if point_mean not in ("off", "reselect", "frame"):
             raise ValueError(f"reselect.point_mean must be off, reselect or frame, got {point_mean!r}")
+        if point_noise not in ("isotropic", "ray"):
+            raise ValueError(f"reselect.point_noise must be isotropic or ray, got {point_noise!r}")
+        if point_birth_weight < 0 or (point_gate is not None and point_gate <= 0):
+            raise ValueError("reselect.point_birth_weight must be >= 0 and reselect.point_gate > 0 (or null)")
         self.point_mean, self.point_noise, self.point_birth_weight = point_mean, point_noise, point_birth_weight
         self.point_gate = point_gate
 

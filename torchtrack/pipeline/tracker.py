@@ -29,7 +29,7 @@ from torchtrack.estimators.base import masked_mean
 from torchtrack.estimators.landmark_update import FrameFusion, joint_update, landmark_variances, mean_variances
 from torchtrack.filter.cues import stack_cues, window_cues
 from torchtrack.filter.models import measure_points
-from torchtrack.filter.weighting import WeightingInputs
+from torchtrack.filter.weighting import Variances, WeightingInputs
 from torchtrack.frontend import FrontEnd, PreparedFrame
 from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, se3_log, transform_points
 from torchtrack.image.flow import TrackResult
@@ -192,7 +192,7 @@ class Tracker:
         return torch.where(valid[..., None], cues, 0.0)
 
     def _advanced(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, pixels: Tensor, valid: Tensor,
-                  T_cam_obj: Tensor, points_d: Tensor, var) -> TrackerState:  # fmt: skip
+                  T_cam_obj: Tensor, points_d: Tensor, var: Variances) -> TrackerState:  # fmt: skip
         """The state after this frame's update: the new pose (ended sequences keep theirs) and tracks, one frame
         older; features that do not fit the pose dropped (the outlier stage); with ``reselect.point_mean`` the kept
         features' depth samples ``points_d`` (B, N, 3) with the weighting's variances ``var`` fused into their model
