@@ -331,6 +331,12 @@ class ReselectConfig:
     edge_step: float | None = 0.03  # improvement (null = paper): no features where depth jumps > 3% in 5x5 px
     keep_survivors: bool = True  # improvement (false = paper): a re-selection keeps the features still tracked
     min_separation_px: float = 8.0  # ... and adds new ones only this far from a survivor (or a re-acquired landmark)
+    # issue 24 (session 9, measured in RESULTS.md): model points as estimates, the information-weighted mean of each
+    # feature's depth samples moved into the model frame by the filter's pose (torchtrack.pipeline.reselect.fuse_points)
+    point_mean: str = "off"  # off (paper: the selection's one sample) | reselect (survivors carry the mean) | frame
+    point_noise: str = "isotropic"  # a sample's covariance: var_xyz per coordinate | ray: across it (z/f)^2 var_pix
+    point_birth_weight: float = 1.0  # the selection's sample, in units of the feature's first tracked sample
+    point_gate: float | None = None  # a sample beyond this squared Mahalanobis distance is not fused (null: all are)
 
 
 @dataclass

@@ -11,33 +11,98 @@ from torch import Tensor
 
 from torchtrack.config import ReselectConfig
 from torchtrack.frontend import smooth_depth_mask
+from torchtrack.geometry import T_inv, transform_points
 from torchtrack.pipeline.state import valid_first
 
 
 class Kept(NamedTuple):
     """Features a re-selection keeps, (B, K, ...): colour pixels, points in the current depth camera, valid, age,
-    cornerness (B, K, 2)."""
+    cornerness (B, K, 2); info (B, K, 3, 3) float64 the information of each point's estimate in the camera
+    (:func:`fuse_points`; None: the points are not estimates, zeros: not yet weighed)."""
 
     pixels: Tensor
     points: Tensor
     valid: Tensor
     age: Tensor
     cornerness: Tensor
+    info: Tensor | None = None
 
     def cat(self, other: Kept) -> Kept:
-        """These first, then ``other`` (B, K', ...), in this one's dtypes."""
-        return Kept(*(torch.cat([a, b.to(a.dtype)], 1) for a, b in zip(self, other, strict=True)))
+        """These first, then ``other`` (B, K', ...), in this one's dtypes (an info on one side only: zeros on the
+        other)."""
+        a, b = _with_info(self, other), _with_info(other, self)
+        return Kept(*(x if x is None else torch.cat([x, y.to(x.dtype)], 1) for x, y in zip(a, b, strict=True)))
+
+
+def _with_info(k: Kept, other: Kept) -> Kept:
+    """``k`` with zero information where it has none and ``other`` has some."""
+    if k.info is not None or other.info is None:
+        return k
+    return k._replace(info=other.info.new_zeros(*k.valid.shape, 3, 3))
 
 
 class NewModel(NamedTuple):
     """A new model's features in the current camera, (B, W, ...): colour pixels, points (depth camera), valid, age,
-    cornerness (B, W, 2)."""
+    cornerness (B, W, 2); info (B, W, 3, 3) the kept points' information (zeros for new ones), None as ``Kept``'s."""
 
     pixels: Tensor
     points: Tensor
     valid: Tensor
     age: Tensor
     cornerness: Tensor
+    info: Tensor | None = None
+
+
+class PointEstimate(NamedTuple):
+    """Model points as estimates (B, N, ...): mean (B, N, 3) float64 in the model frame, info (B, N, 3, 3) float64
+    its information (the sum of its samples'; zeros: only the birth sample, not yet weighed)."""
+
+    mean: Tensor
+    info: Tensor
+
+
+def sample_information(points_cam: Tensor, R_cam_obj: Tensor, var_xyz: Tensor, var_pix: Tensor, focal: Tensor,
+                       noise: str) -> Tensor:  # fmt: skip
+    """(B, N, 3, 3) float64 information of each feature's 3D sample ``X_d`` (B, N, 3, depth camera) as a sample of its
+    model point, in the model frame (rotated by ``R_cam_obj`` (B, 3, 3)). ``noise``: ``isotropic``, the weighting's
+    ``var_xyz`` (B, N) per coordinate as the filter takes it (eq. 14); ``ray``, ``var_xyz`` along the ray and the
+    pixel variance ``var_pix`` (B, N) back-projected, ``(z / f)^2 var_pix`` with ``focal`` (B,), across it."""
+    var_xyz = var_xyz.double().clamp_min(1e-18)
+    eye = torch.eye(3, dtype=torch.float64, device=points_cam.device)
+    if noise == "isotropic":
+        return eye / var_xyz[..., None, None]
+    if noise != "ray":
+        raise ValueError(f"reselect.point_noise must be isotropic or ray, got {noise!r}")
+    ray = torch.nn.functional.normalize(points_cam.double(), dim=-1)
+    ray = (R_cam_obj.double().transpose(1, 2)[:, None] @ ray[..., None])[..., 0]  # in the model frame
+    var_lat = (points_cam[..., 2].double() / focal.double()[:, None]) ** 2 * var_pix.double()
+    along = ray[..., :, None] * ray[..., None, :]
+    return along / var_xyz[..., None, None] + (eye - along) / var_lat.clamp_min(1e-18)[..., None, None]
+
+
+def fuse_points(est: PointEstimate, samples: Tensor, info: Tensor, valid: Tensor, birth_weight: float,
+                gate: float | None = None) -> PointEstimate:  # fmt: skip
+    """The information-weighted mean of each model point's samples, one more sample per feature in ``valid`` (B, N):
+    ``Lambda' = Lambda + S``, ``X' = X + Lambda'^-1 S (x - X)`` with samples ``x`` (B, N, 3) in the model frame and
+    their information ``S`` (B, N, 3, 3). A point still at its birth sample (zero information) first gives that sample
+    ``birth_weight`` times this sample's information (as if seen from this viewpoint: consecutive frames). With
+    ``gate``, a sample whose squared Mahalanobis distance to the estimate, under ``Lambda^-1 + S^-1``, exceeds it is
+    not fused (a depth edge, a sliding track). Features not in ``valid`` keep their estimate."""
+    B, N = valid.shape
+    if est.mean.shape != (B, N, 3) or est.info.shape != (B, N, 3, 3) or samples.shape != (B, N, 3):
+        raise ValueError("fuse_points: mean (B, N, 3), info (B, N, 3, 3), samples (B, N, 3), valid (B, N)")
+    born = (est.info == 0).flatten(2).all(-1)[..., None, None]
+    prior = torch.where(born, birth_weight * info, est.info)
+    eye = torch.eye(3, dtype=prior.dtype, device=prior.device)
+    total = prior + info
+    e = (samples.double() - est.mean)[..., None]
+    if gate is not None:  # S (Lambda + S)^-1 Lambda = (Lambda^-1 + S^-1)^-1
+        ok = valid[..., None, None]
+        d2 = (e.transpose(-1, -2) @ info @ torch.linalg.solve(torch.where(ok, total, eye), prior @ e))[..., 0, 0]
+        valid = valid & (d2 <= gate)
+    step = torch.linalg.solve(torch.where(valid[..., None, None], total, eye), info @ e)[..., 0]
+    v = valid[..., None]
+    return PointEstimate(torch.where(v, est.mean + step, est.mean), torch.where(v[..., None], total, est.info))
 
 
 def far_from(points: Tensor, others: Tensor, others_valid: Tensor, gap: float) -> Tensor:
@@ -66,6 +131,15 @@ class Reselection:
             selector's count. The surviving points keep anchoring the pose, so a re-selection no longer resets the
             model to one frame's estimate (less drift).
         min_separation_px: new features closer than this to a kept one are not added.
+        point_mean: improvement (``off`` = paper: a model point is the one depth sample of its selection): each model
+            point is estimated, the information-weighted mean (:func:`fuse_points`) of its feature's depth samples of
+            every frame moved into the model frame by the filter's posterior pose; ``reselect``: survivors carry the
+            mean into the new model (the filter's model stays fixed between re-selections); ``frame``: the filter's
+            model points are the means, updated every frame.
+        point_noise: each sample's covariance (:func:`sample_information`): ``isotropic`` or ``ray``.
+        point_birth_weight: the selection's sample weighs this many times the feature's first tracked sample.
+        point_gate: a sample farther than this squared Mahalanobis distance from its point's estimate is not fused
+            (None: every sample is).
     """
 
     def __init__(
@@ -78,12 +152,39 @@ class Reselection:
         edge_step: float | None = ReselectConfig.edge_step,
         keep_survivors: bool = ReselectConfig.keep_survivors,
         min_separation_px: float = ReselectConfig.min_separation_px,
+        point_mean: str = ReselectConfig.point_mean,
+        point_noise: str = ReselectConfig.point_noise,
+        point_birth_weight: float = ReselectConfig.point_birth_weight,
+        point_gate: float | None = ReselectConfig.point_gate,
     ) -> None:
         if not 0.0 <= fraction < 1.0:
             raise ValueError(f"reselect.fraction must be in [0, 1), got {fraction}")
         self.region, self.select = region, select
         self.fraction, self.min_features, self.edge_step = fraction, min_features, edge_step
         self.keep_survivors, self.min_separation_px = keep_survivors, min_separation_px
+        if point_mean not in ("off", "reselect", "frame"):
+            raise ValueError(f"reselect.point_mean must be off, reselect or frame, got {point_mean!r}")
+        if point_noise not in ("isotropic", "ray"):
+            raise ValueError(f"reselect.point_noise must be isotropic or ray, got {point_noise!r}")
+        if point_birth_weight < 0 or (point_gate is not None and point_gate <= 0):
+            raise ValueError("reselect.point_birth_weight must be >= 0 and reselect.point_gate > 0 (or null)")
+        self.point_mean, self.point_noise, self.point_birth_weight = point_mean, point_noise, point_birth_weight
+        self.point_gate = point_gate
+
+    @property
+    def estimates_points(self) -> bool:
+        """Whether the model points are estimates (``point_mean`` not ``off``)."""
+        return self.point_mean != "off"
+
+    def fused(self, est: PointEstimate, T_cam_obj: Tensor, points_d: Tensor, var_xyz: Tensor, var_pix: Tensor,
+              focal: Tensor, valid: Tensor) -> PointEstimate:  # fmt: skip
+        """``est`` with this frame's samples ``inv(T_cam_obj) X_d`` of the features in ``valid`` (B, N): T_cam_obj
+        (B, 4, 4) the filter's posterior pose, points_d (B, N, 3) X_d (eq. 6), var_xyz / var_pix (B, N) the
+        weighting's variances (eqs. 11-14), focal (B,) px."""
+        T = T_cam_obj.double()
+        samples = transform_points(T_inv(T), points_d.double())
+        info = sample_information(points_d, T[:, :3, :3], var_xyz, var_pix, focal, self.point_noise)
+        return fuse_points(est, samples, info, valid, self.point_birth_weight, self.point_gate)
 
     def needed(self, valid: Tensor, n_model: Tensor, active: Tensor) -> Tensor:
         """(B,) bool: too few of the model's ``n_model`` (B,) features survive in ``valid`` (B, N) (a fraction of the
@@ -124,8 +225,10 @@ class Reselection:
         points = torch.cat([kept.points.to(points.dtype), points], 1)[rows, order]
         age = torch.cat([kept.age, torch.zeros_like(valid, dtype=torch.long)], 1)[rows, order]
         cornerness = torch.cat([kept.cornerness.to(cornerness.dtype), cornerness], 1)[rows, order]
+        info = None if kept.info is None else torch.where(ok[..., None, None], torch.cat(
+            [kept.info, kept.info.new_zeros(*valid.shape, 3, 3)], 1)[rows, order], 0.0)  # fmt: skip
         ok3 = ok[..., None]
         return NewModel(
             torch.where(ok3, pixels, 0.0), torch.where(ok3, points, 0.0), ok, torch.where(ok, age, 0),
-            torch.where(ok3, cornerness, 0.0),
+            torch.where(ok3, cornerness, 0.0), info,
         )  # fmt: skip

@@ -70,6 +70,10 @@ class TrackerState:
         prev: the previous frame as the front end prepared it; timestamp (B,) its time stamps.
         pixels: (B, N, 2) the model's features, tracked to the previous frame (colour pixels); valid (B, N).
         points_obj: (B, N, 3) their model points X_o (object frame).
+        points_mean: (B, N, 3) float64 each model point's estimate and points_info (B, N, 3, 3) float64 its information
+            (:class:`~torchtrack.pipeline.reselect.PointEstimate`; zeros: the birth sample, not yet weighed), both in
+            the object frame; None unless ``reselect.point_mean`` (the model points are then these or, between
+            re-selections, fixed).
         age: (B, N) frames since selection; cornerness (B, N, 2) intensity and SIM cornerness of eq. (9) at selection.
         residuals: (B, N) reprojection error (eq. 16) of each feature under ``T_cam_obj``; inf where undefined.
         n_model: (B,) features of the current model when it was taken (the re-selection criterion).
@@ -91,6 +95,8 @@ class TrackerState:
     pixels: Tensor | None = None
     valid: Tensor | None = None
     points_obj: Tensor | None = None
+    points_mean: Tensor | None = None
+    points_info: Tensor | None = None
     age: Tensor | None = None
     cornerness: Tensor | None = None
     residuals: Tensor | None = None
@@ -112,7 +118,7 @@ class TrackerState:
         return self.T_world_obj @ T_inv(self.T_cam_obj)
 
 
-FEATURE_FIELDS = ("pixels", "valid", "points_obj", "age", "cornerness")  # (B, N, ...) per-feature state
+FEATURE_FIELDS = ("pixels", "valid", "points_obj", "points_mean", "points_info", "age", "cornerness")  # (B, N, ...)
 
 
 def pad_to(x: Tensor, n: int) -> Tensor:

@@ -29,7 +29,7 @@ from torchtrack.estimators.base import masked_mean
 from torchtrack.estimators.landmark_update import FrameFusion, joint_update, landmark_variances, mean_variances
 from torchtrack.filter.cues import stack_cues, window_cues
 from torchtrack.filter.models import measure_points
-from torchtrack.filter.weighting import WeightingInputs
+from torchtrack.filter.weighting import Variances, WeightingInputs
 from torchtrack.frontend import FrontEnd, PreparedFrame
 from torchtrack.geometry import T_inv, make_T, project, rigid, sample_depth, se3_exp, se3_log, transform_points
 from torchtrack.image.flow import TrackResult
@@ -38,7 +38,7 @@ from torchtrack.pipeline.landmark_window import refine_at_reselection
 from torchtrack.pipeline.landmarks import LandmarkMap
 from torchtrack.pipeline.outliers import ResidualDrop, feature_residuals
 from torchtrack.pipeline.relocalise import Relocalisation, Relocaliser
-from torchtrack.pipeline.reselect import Kept, Reselection
+from torchtrack.pipeline.reselect import Kept, PointEstimate, Reselection
 from torchtrack.pipeline.state import FEATURE_FIELDS, StepResult, TrackerState, pad_to, valid_first, where_rows
 
 
@@ -148,7 +148,7 @@ class Tracker:
         fusion = FrameFusion(before, obs, var, frame.active) if joint else None
         if self.landmarks is not None:  # this frame's noise level: the landmarks' (nothing else reads it)
             s = replace(s, mean_var=mean_variances(var, valid))
-        tracked = self._advanced(s, frame, cur, track.points, valid, est.T_cam_obj.double())  # and the outlier drop
+        tracked = self._advanced(s, frame, cur, track.points, valid, est.T_cam_obj.double(), points_d, var)
         winner, d_tim = track.winner, track.d_tim
         if self.landmarks is not None and self.landmarks.every > 0:  # every k frames: landmarks back into the model
             tracked, order = self._reanchored(tracked, frame, cur)
@@ -192,16 +192,25 @@ class Tracker:
         return torch.where(valid[..., None], cues, 0.0)
 
     def _advanced(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, pixels: Tensor, valid: Tensor,
-                  T_cam_obj: Tensor) -> TrackerState:  # fmt: skip
+                  T_cam_obj: Tensor, points_d: Tensor, var: Variances) -> TrackerState:  # fmt: skip
         """The state after this frame's update: the new pose (ended sequences keep theirs) and tracks, one frame
-        older; features that do not fit the pose dropped (the outlier stage)."""
+        older; features that do not fit the pose dropped (the outlier stage); with ``reselect.point_mean`` the kept
+        features' depth samples ``points_d`` (B, N, 3) with the weighting's variances ``var`` fused into their model
+        points' estimates (with ``frame``: the model points are now those)."""
         T_cam_obj = torch.where(frame.active[:, None, None], T_cam_obj, s.T_cam_obj)
         dt = (frame.timestamp - s.timestamp).double().clamp_min(1e-3)
         velocity = se3_log(T_cam_obj @ T_inv(s.T_cam_obj)) / dt[:, None]  # the motion of this frame, per second
         velocity = torch.where(frame.active[:, None], velocity, s.velocity)
         residuals = feature_residuals(frame.K, frame.T_color_depth, T_cam_obj, s.points_obj, pixels, valid)  # eq. (16)
-        return replace(s, prev=cur, timestamp=frame.timestamp, pixels=pixels, valid=self.outliers(residuals, valid),
-                       age=s.age + 1, residuals=residuals, T_cam_obj=T_cam_obj, velocity=velocity)  # fmt: skip
+        s = replace(s, prev=cur, timestamp=frame.timestamp, pixels=pixels, valid=self.outliers(residuals, valid),
+                    age=s.age + 1, residuals=residuals, T_cam_obj=T_cam_obj, velocity=velocity)  # fmt: skip
+        if not self.reselect.estimates_points:
+            return s
+        est = self.reselect.fused(PointEstimate(s.points_mean, s.points_info), T_cam_obj, points_d, var.var_xyz,
+                                  var.var_pix, frame.K_depth[:, 0, 0], s.valid)  # fmt: skip
+        frame_mean = self.reselect.point_mean == "frame"
+        return replace(s, points_mean=est.mean, points_info=est.info,
+                       points_obj=est.mean.to(s.points_obj.dtype) if frame_mean else s.points_obj)  # fmt: skip
 
     def _reanchored(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame) -> tuple[TrackerState, Tensor | None]:
         """``s`` where the sequences ``landmarks.every`` frames past their last model or re-acquisition re-acquired
@@ -221,6 +230,8 @@ class Tracker:
         points_obj = transform_points(T_inv(T_world_obj), acq.points_world).to(s.points_obj.dtype)
         new = dict(pixels=acq.pixels.to(s.pixels.dtype), valid=found, points_obj=points_obj,
                    age=torch.zeros_like(found, dtype=torch.long), cornerness=acq.cornerness.to(s.cornerness.dtype))  # fmt: skip
+        if s.points_mean is not None:  # model points as estimates: the landmarks' positions, not yet weighed
+            new |= dict(points_mean=points_obj.double(), points_info=s.points_info.new_zeros(*found.shape, 3, 3))
         merged = {k: torch.cat([getattr(s, k), v], 1) for k, v in new.items()}
         order = valid_first(merged["valid"], max(s.pixels.shape[1], int(merged["valid"].sum(1).max())))
         rows = torch.arange(order.shape[0], device=order.device)[:, None]
@@ -263,15 +274,19 @@ class Tracker:
         points_d, has_depth = measure_points(cur.depth, frame.K, frame.T_color_depth, pixels)
         valid = feats.valid & has_depth
         age = torch.zeros_like(valid, dtype=torch.long)
+        info = points_d.new_zeros(*valid.shape, 3, 3, dtype=torch.float64)  # new points: the birth sample alone
         if kept is not None:
-            pixels, points_d, valid, age, cornerness = self.reselect.merge(
+            pixels, points_d, valid, age, cornerness, kept_info = self.reselect.merge(
                 kept, pixels, points_d, valid, cornerness, n_found, s.pixels.shape[1]
             )
+            info = kept_info if kept_info is not None else info.new_zeros(*valid.shape, 3, 3)
         centroid = masked_mean(points_d, valid.to(points_d.dtype))
         points_obj = torch.where(valid[..., None], points_d - centroid[:, None], torch.zeros_like(points_d))
         eye = torch.eye(3, dtype=torch.float64, device=centroid.device).expand(len(mask), 3, 3)
         T_cam_obj = make_T(eye, centroid.double())
         new = dict(pixels=pixels, valid=valid, points_obj=points_obj, age=age, cornerness=cornerness)
+        if self.reselect.estimates_points:  # the model frame is the camera's, moved: the information is not rotated
+            new |= dict(points_mean=points_obj.double(), points_info=info)
         if s.pixels is not None:  # selections differ in size: pad both to the larger N; old rows outside mask
             n = max(s.pixels.shape[1], valid.shape[1])
             new = {k: where_rows(mask, pad_to(v, n), pad_to(getattr(s, k), n)) for k, v in new.items()}
@@ -302,6 +317,10 @@ class Tracker:
             return None, None, s
         keep = self.reselect.survivors(s.valid, mask)
         kept = Kept(s.pixels, transform_points(s.T_cam_obj.float(), s.points_obj.float()), keep, s.age, s.cornerness)
+        if s.points_mean is not None:  # survivors carry their estimates, in the camera
+            R = s.T_cam_obj[:, None, :3, :3]
+            kept = kept._replace(points=transform_points(s.T_cam_obj, s.points_mean).float(),
+                                 info=R @ s.points_info @ R.transpose(-1, -2))  # fmt: skip
         if self.landmarks is None:
             return kept, None, s
         fused = fusion is not None and s.mean_var is not None  # the back end fuses them; else the re-fit (correct)
