@@ -177,7 +177,7 @@ def test_paper_values_stay_reachable():
     """+experiment=paper is the one place of the paper's values: each it sets differs from the default."""
     ours, paper = config(), config("+experiment=paper")
     for group, keys in {
-        "pipeline": ("predict_init",), "reselect": ("edge_step", "keep_survivors"), "outliers": ("max_residual_px",),
+        "pipeline": ("predict_init",), "reselect": ("edge_step", "keep_survivors", "point_mean"), "outliers": ("max_residual_px",),
         "landmarks": ("enabled",),
         "flow": ("policy",), "relocalise": ("recover",), "select": ("roi_fraction",),
         "weighting": ("sigma2_xyz", "depth_var_exponent"), "tracker": ("gate", "refit"),

@@ -124,9 +124,11 @@ def test_baselines_share_the_front_end(synth, tracker):
 
 def test_keep_survivors_keeps_their_world_points_and_the_pose(synth):
     """A re-selection with keep_survivors re-expresses the tracked features in the new model frame (their world
-    points and the camera pose do not move) and adds new features only away from them, up to the model's width."""
+    points and the camera pose do not move) and adds new features only away from them, up to the model's width. With
+    frozen model points (``point_mean=off``): the default's survivors carry their means instead (their world positions
+    and information through a re-selection: tests/test_point_map.py)."""
     seq = synth(seed=5, frames=4)
-    tracker = make_tracker("reselect.keep_survivors=true", "reselect.fraction=0.0")
+    tracker = make_tracker("reselect.keep_survivors=true", "reselect.fraction=0.0", "reselect.point_mean=off")
     frames = list(iterate_batched([seq], prefetch=False))
     for frame in frames:
         tracker.step(frame)

@@ -333,7 +333,8 @@ class ReselectConfig:
     min_separation_px: float = 8.0  # ... and adds new ones only this far from a survivor (or a re-acquired landmark)
     # issue 24 (session 9, measured in RESULTS.md): model points as estimates, the information-weighted mean of each
     # feature's depth samples moved into the model frame by the filter's pose (torchtrack.pipeline.reselect.fuse_points)
-    point_mean: str = "off"  # off (paper: the selection's one sample) | reselect (survivors carry the mean) | frame
+    point_mean: str = "reselect"  # improvement (off = paper: the selection's one sample): survivors carry the mean
+    # into a new model | frame: the filter's points are the means, every frame (measured, not better)
     point_noise: str = "isotropic"  # a sample's covariance: var_xyz per coordinate | ray: across it (z/f)^2 var_pix
     point_birth_weight: float = 1.0  # the selection's sample, in units of the feature's first tracked sample
     point_gate: float | None = None  # a sample beyond this squared Mahalanobis distance is not fused (null: all are)
