@@ -65,8 +65,9 @@ def left_twist_covariance(cov_pose: Tensor, T_cam_obj: Tensor) -> Tensor:
     and the covariance is ``A P A^T``. The same twist perturbs ``T_cam_obj @ C`` for any fixed C (the world camera of a
     keyframe window)."""
     t = T_cam_obj[:, :3, 3].to(cov_pose.dtype)
-    eye, zero = torch.eye(3, dtype=t.dtype, device=t.device).expand_as(hat(t)), torch.zeros_like(hat(t))
-    A = torch.cat([torch.cat([hat(t), eye], -1), torch.cat([eye, zero], -1)], -2)
+    H = hat(t)
+    eye = torch.eye(3, dtype=t.dtype, device=t.device).expand_as(H)
+    A = torch.cat([torch.cat([H, eye], -1), torch.cat([eye, torch.zeros_like(H)], -1)], -2)
     out = A @ cov_pose @ A.transpose(-1, -2)
     return 0.5 * (out + out.transpose(-1, -2))
 

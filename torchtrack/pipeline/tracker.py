@@ -273,19 +273,19 @@ class Tracker:
         pixels, cornerness = feats.pixels, torch.stack([feats.cornerness_int, feats.cornerness_sim], -1)
         points_d, has_depth = measure_points(cur.depth, frame.K, frame.T_color_depth, pixels)
         valid = feats.valid & has_depth
-        age = torch.zeros_like(valid, dtype=torch.long)
-        info = points_d.new_zeros(*valid.shape, 3, 3, dtype=torch.float64)  # new points: the birth sample alone
+        age, info = torch.zeros_like(valid, dtype=torch.long), None
         if kept is not None:
-            pixels, points_d, valid, age, cornerness, kept_info = self.reselect.merge(
+            pixels, points_d, valid, age, cornerness, info = self.reselect.merge(
                 kept, pixels, points_d, valid, cornerness, n_found, s.pixels.shape[1]
             )
-            info = kept_info if kept_info is not None else info.new_zeros(*valid.shape, 3, 3)
         centroid = masked_mean(points_d, valid.to(points_d.dtype))
         points_obj = torch.where(valid[..., None], points_d - centroid[:, None], torch.zeros_like(points_d))
         eye = torch.eye(3, dtype=torch.float64, device=centroid.device).expand(len(mask), 3, 3)
         T_cam_obj = make_T(eye, centroid.double())
         new = dict(pixels=pixels, valid=valid, points_obj=points_obj, age=age, cornerness=cornerness)
         if self.reselect.estimates_points:  # the model frame is the camera's, moved: the information is not rotated
+            if info is None:  # new points: the birth sample alone
+                info = torch.zeros(*valid.shape, 3, 3, dtype=torch.float64, device=valid.device)
             new |= dict(points_mean=points_obj.double(), points_info=info)
         if s.pixels is not None:  # selections differ in size: pad both to the larger N; old rows outside mask
             n = max(s.pixels.shape[1], valid.shape[1])
@@ -316,11 +316,13 @@ class Tracker:
         if s.pixels is None or not (self.reselect.keep_survivors or self.landmarks is not None):
             return None, None, s
         keep = self.reselect.survivors(s.valid, mask)
-        kept = Kept(s.pixels, transform_points(s.T_cam_obj.float(), s.points_obj.float()), keep, s.age, s.cornerness)
-        if s.points_mean is not None:  # survivors carry their estimates, in the camera
+        if s.points_mean is None:
+            kept = Kept(s.pixels, transform_points(s.T_cam_obj.float(), s.points_obj.float()), keep, s.age,
+                        s.cornerness)  # fmt: skip
+        else:  # survivors carry their estimates, in the camera
             R = s.T_cam_obj[:, None, :3, :3]
-            kept = kept._replace(points=transform_points(s.T_cam_obj, s.points_mean).float(),
-                                 info=R @ s.points_info @ R.transpose(-1, -2))  # fmt: skip
+            kept = Kept(s.pixels, transform_points(s.T_cam_obj, s.points_mean).float(), keep, s.age, s.cornerness,
+                        R @ s.points_info @ R.transpose(-1, -2))  # fmt: skip
         if self.landmarks is None:
             return kept, None, s
         fused = fusion is not None and s.mean_var is not None  # the back end fuses them; else the re-fit (correct)
