@@ -420,13 +420,13 @@ class LandmarkMap:
         world = self.world.reshape(B, -1, 3).gather(1, index[..., None].expand(-1, -1, 3))
         lk = {k: v for k, v in getattr(flow, "kwargs", {}).items() if k in ("window", "levels", "iters", "eps",
                                                                                 "min_eig", "ic_iters")}  # fmt: skip
-        levels = lk.setdefault("levels", cur.flow.pyramid.levels)
+        lk.setdefault("levels", cur.flow.pyramid.levels)
         rows = torch.arange(B, device=sel.device)
         at = slot.clamp(0, self.gray.shape[0] - 1)  # not valid rows: any slot
         r = warped_landmark_tracks(self._stacked(cur.flow.pyramid.levels).pyramid, self.depth.flatten(0, 1),
                                    cur.flow.pyramid, K, T_color_depth, store.T_world_kf[rows[:, None], at],
                                    T_world_depth, world, kf_pix, torch.stack([proj, proj + self.probe_px], 2), sel,
-                                   kf_index=at * B + rows[:, None], crop=self.warp_crop, **dict(lk, levels=levels))  # fmt: skip
+                                   kf_index=at * B + rows[:, None], crop=self.warp_crop, **lk)  # fmt: skip
         tim = getattr(flow, "kwargs", {}).get("tim_threshold", 1.0)
         ok = r.status & (r.d_tim <= tim)
         cat = lambda x: torch.cat([x[:, :, 0], x[:, :, 1]], 1)  # noqa: E731
