@@ -18,8 +18,9 @@ import time
 
 import torch
 
-from torchtrack.estimators.backends import EKFBackend, Observation
 from torchtrack.filter import FusionEKF, Variances, ekf, measure_analytic, measure_single
+from torchtrack.filter.backend import EKFBackend
+from torchtrack.filter.frame import Observation
 from torchtrack.geometry import T_inv, intrinsics_matrix, make_T, project, rotation_angle, so3_exp, transform_points
 
 F64 = torch.float64
@@ -88,8 +89,8 @@ def bench_batch(B: int, N: int, reps: int) -> dict:
             steps[f"EKFBackend step (predict+update), state={state}, jacobian={jac}"] = step
     scaled = EKFBackend(FusionEKF(), gate=None, refit=None, noise_scale=True)  # the default's online noise scale
     scaled.reset(make_T(torch.eye(3, dtype=F64).expand(B, 3, 3), x[:, 3:6]), valid[:, 0])
-    steps["EKFBackend step (predict+update), state=se3, jacobian=analytic, with the online noise scale"] = (
-        lambda: scaled.step(obs, fixed_var)
+    steps["EKFBackend step (predict+update), state=se3, jacobian=analytic, with the online noise scale"] = lambda: (
+        scaled.step(obs, fixed_var)
     )
     res.update(timeit(steps, reps))
     return res

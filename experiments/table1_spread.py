@@ -6,7 +6,7 @@
 As in the paper (§III-B, on its Face sequence): the point-cloud model (PCM) of a real frame is taken (the
 object by depth: the pixels with depth in [near, far], automatic by default), a smooth artificial motion is defined, the exact
 2D pixels (eq. 7) and 3D points (eq. 6) of subsets of the PCM are generated with Gaussian noise and fed to
-the fusion EKF (:class:`torchtrack.estimators.backends.EKFBackend`, fixed variances = the noise), and the per-axis
+the fusion EKF (:class:`torchtrack.filter.backend.EKFBackend`, fixed variances = the noise), and the per-axis
 pose errors (:func:`torchtrack.metrics.per_axis_errors`, mrad and mm, frames after the first) are reported
 against the subsets' 3D spread ``|| sigma_XYZ ||`` (the norm of the per-axis standard deviations, mm).
 
@@ -28,7 +28,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchtrack.estimators.backends import EKFBackend, Observation
+from torchtrack.filter.backend import EKFBackend
+from torchtrack.filter.frame import Observation
 from torchtrack.filter.fusion import FusionEKF
 from torchtrack.filter.weighting import Variances
 from torchtrack.geometry import euler_to_matrix, make_T, project, transform_points
@@ -106,7 +107,7 @@ def measurements(T_gt: Tensor, X: Tensor, K: Tensor, sigma_pix: float, sigma_xyz
 
 def track(X: Tensor, points_d: Tensor, pixels: Tensor, K: Tensor, T0: Tensor, fps: float, sigma2_pix: float,
           sigma2_xyz: float, **ekf_kwargs) -> Tensor:  # fmt: skip
-    """The fusion EKF (:class:`~torchtrack.estimators.backends.EKFBackend`, the paper's: no gate, no refit) over the
+    """The fusion EKF (:class:`~torchtrack.filter.backend.EKFBackend`, the paper's: no gate, no refit) over the
     frames with fixed variances (the first frame initialises): returns T_cam_obj (F, B, 4, 4)."""
     F_, B, N, _ = points_d.shape
     backend = EKFBackend(

@@ -10,8 +10,9 @@ import torch
 from scipy.stats import chi2
 from test_fusion import DT, body, measurements, true_pose
 
-from torchtrack.estimators.backends import EKFBackend, Observation, ekf_frame, innovation_nll
 from torchtrack.filter import FusionEKF, PaperWeighting, Variances, WeightingInputs
+from torchtrack.filter.backend import EKFBackend
+from torchtrack.filter.frame import Observation, ekf_frame, innovation_nll
 from torchtrack.filter.models import measure_pose
 
 F64 = torch.float64

@@ -7,8 +7,10 @@ import pytest
 import torch
 from test_fusion import DT, body, measurements, true_pose
 
-from torchtrack.estimators.backends import EKFBackend, Observation, chi2_quantile
 from torchtrack.filter import FusionEKF, Variances
+from torchtrack.filter.backend import EKFBackend
+from torchtrack.filter.ekf import chi2_quantile
+from torchtrack.filter.frame import Observation
 from torchtrack.geometry import T_inv, intrinsics_matrix, make_T, project, rotation_angle, so3_exp, transform_points
 
 F64 = torch.float64
@@ -150,32 +152,3 @@ def test_the_papers_euler_state_loses_the_object_at_90_degrees_pitch(caplog):
     t_err, r_err = worst_errors("euler", 0.05)
     assert (r_err[[0, 2]] < 1.0).all() and r_err[1] > 30.0, r_err
     assert "Euler singularity" in caplog.text
-
-
-def test_pose_covariance_is_the_twist_of_the_filters_error():
-    """``pose_covariance``: the error state's pose block (dtheta, dt) as a left SE(3) twist, ``A P A^T``, where A is
-    checked column by column against ``se3_log(inject(T, e_i h) T^-1) / h`` (central differences, h = 1e-6: the
-    retraction rotates about the object's centre, the twist about the camera's origin); None with the Euler state."""
-    from torchtrack.filter.error_state import inject
-    from torchtrack.geometry import se3_exp, se3_log
-
-    g = torch.Generator().manual_seed(0)
-    T = se3_exp(torch.cat([torch.randn(2, 3, generator=g, dtype=torch.float64) + torch.tensor([0, 0, 2.0]),
-                           0.3 * torch.randn(2, 3, generator=g, dtype=torch.float64)], -1))  # fmt: skip
-    backend = EKFBackend(FusionEKF())
-    backend.reset(T, torch.ones(2, dtype=torch.bool))
-    L = torch.randn(2, 12, 12, generator=g, dtype=torch.float64)
-    cov = L @ L.transpose(-1, -2) * 1e-4
-    backend.state = backend.state._replace(cov=cov)
-    h = 1e-6
-    cols = []
-    for i in range(6):
-        dx = torch.zeros(2, 12, dtype=torch.float64)
-        dx[:, i] = h
-        cols.append((se3_log(inject(T, dx) @ T_inv(T)) - se3_log(inject(T, -dx) @ T_inv(T))) / (2 * h))
-    A = torch.stack(cols, -1)  # (v, omega) per (dtheta, dt)
-    expected = A @ cov[:, :6, :6] @ A.transpose(-1, -2)
-    torch.testing.assert_close(backend.pose_covariance(), expected, rtol=1e-7, atol=1e-12)
-    euler = EKFBackend(FusionEKF(state="euler"))
-    euler.reset(T, torch.ones(2, dtype=torch.bool))
-    assert euler.pose_covariance() is None and EKFBackend(FusionEKF()).pose_covariance() is None

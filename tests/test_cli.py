@@ -38,7 +38,6 @@ SYNTH_ATE_BOUND_M = 0.005
 BAD_VALUES = {"depth_scale": "abc", "max_frames": -1, "stride": 0, "root": "[]"}
 FRAMES_CSV_COLUMNS = ["frame", "timestamp", "features", "sim_wins", "reprojection_px", "mean_tim_px", "reselected"]
 FRAMES_CSV_COLUMNS += ["noise_scale_pix", "noise_scale_xyz"]  # the online noise scale (on by default; 1.0 when off)
-FRAMES_CSV_COLUMNS += ["process_scale_ang", "process_scale_lin"]  # the process-noise scale (1.0 when off: the default)
 FRAMES_CSV_COLUMNS += ["lost", "relocalised", "interrupted"]  # the loss check (torchtrack.pipeline.relocalise)
 # The runs a test needs where that is fewer than all of them: when only such tests are selected (``pytest -m
 # equivalence``) the module starts only their runs; any other test selected starts them all.

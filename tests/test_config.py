@@ -25,15 +25,14 @@ from torchtrack.config import (
     RegionConfig,
     RegistrationBackendConfig,
     SelectConfig,
-    WindowConfig,
     validate,
 )
 from torchtrack.data.errors import DataError
-from torchtrack.estimators.backends import EKFBackend
 from torchtrack.estimators.cpd import CPDEstimator
 from torchtrack.estimators.horn import HornEstimator
 from torchtrack.estimators.icp import ICPEstimator
-from torchtrack.factory import build_landmarks, build_mapper, build_tracker
+from torchtrack.factory import build_mapper, build_tracker
+from torchtrack.filter.backend import EKFBackend
 from torchtrack.filter.fusion import FusionEKF
 from torchtrack.filter.weighting import FixedWeighting, PaperWeighting, WeightingInputs
 from torchtrack.frontend import FrontEnd
@@ -120,13 +119,11 @@ PARTNERS = {
     PaperWeightingConfig: ("torchtrack.filter.weighting.paper_variances",),
     ICPConfig: ("torchtrack.estimators.icp.icp",),
     CPDConfig: ("torchtrack.estimators.cpd.cpd_rigid",),
-    EKFBackendConfig: ("torchtrack.estimators.backends.ekf_frame",),
+    EKFBackendConfig: ("torchtrack.filter.frame.ekf_frame",),
 }
 KNOWN: set[tuple[str, str]] = set()  # known disagreements between a signature and its schema: none
-# Not the schema's knob under the same name: ekf_frame takes the NoiseScale and ProcessScale objects themselves (None:
-# off, as false). Nor LandmarkMap's window: it takes the WindowRefiner built from landmarks.window (None: WindowConfig's
-# defaults).
-OTHER_MEANING = {("ekf_frame", "noise_scale"), ("ekf_frame", "process_scale"), ("LandmarkMap", "window")}
+# Not the schema's knob under the same name: ekf_frame takes the NoiseScale object itself (None: off, as false).
+OTHER_MEANING = {("ekf_frame", "noise_scale")}
 
 
 def differences(schema: type) -> dict[str, tuple]:
@@ -154,19 +151,6 @@ def differences(schema: type) -> dict[str, tuple]:
 def test_one_set_of_defaults(schema):
     """Every default lives in the schema: a signature default of what it configures equals the schema's."""
     assert differences(schema) == {}, f"{schema.__name__}: schema vs signature defaults"
-
-
-def test_the_window_refiners_defaults_are_its_schemas():
-    """landmarks.window (a node inside the landmarks group, not a group of its own) against WindowRefiner's and
-    refine_window's signatures, and the refiner the CLI builds equals the direct one."""
-    assert differences(WindowConfig) == {}
-    node = OmegaConf.structured(WindowConfig)
-    assert "torchtrack.estimators.window.WindowRefiner" == node._target_
-    cli = build_landmarks(config("landmarks.refine=true"))
-    assert _state(cli) == _state(LandmarkMap(refine=True))
-    other = build_landmarks(config("landmarks.refine=true", "landmarks.window.loss=cauchy", "landmarks.window.iters=3"))
-    pick = lambda r: (r.kwargs["loss"], r.kwargs["iters"])  # noqa: E731
-    assert pick(other.refiner) == ("cauchy", 3) != pick(cli.refiner)
 
 
 def test_the_front_end_levels_default_to_the_flow_levels():

@@ -6,8 +6,9 @@ import math
 import pytest
 import torch
 
-from torchtrack.estimators.backends import EKFBackend, Observation
 from torchtrack.filter import FusionEKF, Variances, fuse
+from torchtrack.filter.backend import EKFBackend
+from torchtrack.filter.frame import Observation
 from torchtrack.filter.models import pose_to_state
 from torchtrack.geometry import (
     T_inv,

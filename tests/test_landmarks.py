@@ -21,6 +21,7 @@ from torchtrack.image.select import select_features
 from torchtrack.pipeline.keyframes import KeyframeStore
 from torchtrack.pipeline.landmarks import LandmarkMap
 from torchtrack.pipeline.pose_fit import refine_pose
+from torchtrack.pipeline.state import Measure
 
 
 def random_scene(B: int, C: int, seed: int = 0):
@@ -183,7 +184,8 @@ def landmarks_of(r, lm: LandmarkMap):
 
 def reacquire(r, lm: LandmarkMap, T_world_depth):
     none = torch.zeros(1, 0, 2)
-    return lm.reacquire(r["store"], CombinedTracker(), r["cur"], r["K"], torch.eye(4)[None], T_world_depth, none,
+    measure = Measure(r["cur"].depth, r["K"], torch.eye(4)[None])
+    return lm.reacquire(r["store"], CombinedTracker(), r["cur"], measure, T_world_depth, none,
                         torch.zeros(1, 0, dtype=torch.bool), torch.ones(1, dtype=torch.bool))  # fmt: skip
 
 
@@ -286,7 +288,8 @@ def test_reacquisition_batched_over_slots_equals_slot_by_slot(rendered):
             lm.add(store, slot, kf, pix, world, torch.zeros(*pix.shape[:2], 2), valid & (z > 0))
         cur = _two_sequences(r, *T_cur)
         none = torch.zeros(2, 0, 2)
-        acq = lm.reacquire(store, CombinedTracker(), cur, r["K"].expand(2, 3, 3), torch.eye(4).expand(2, 4, 4), T_cur,
+        measure = Measure(cur.depth, r["K"].expand(2, 3, 3), torch.eye(4).expand(2, 4, 4))
+        acq = lm.reacquire(store, CombinedTracker(), cur, measure, T_cur,
                            none, torch.zeros(2, 0, dtype=torch.bool), torch.ones(2, dtype=torch.bool))  # fmt: skip
         runs.append((acq, lm))
     (ref, lm_ref), (got, lm) = runs

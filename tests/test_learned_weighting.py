@@ -237,7 +237,9 @@ def test_checkpoint_mismatches_raise(tmp_path):
         torch.save({**blob, **changes}, bad := tmp_path / "bad.pt")
         return bad
 
-    with pytest.raises(ValueError, match=r"bad\.pt: made with cue version 2 .*column 0: 'depth' there, 'd_tim_int' here\)"):
+    with pytest.raises(
+        ValueError, match=r"bad\.pt: made with cue version 2 .*column 0: 'depth' there, 'd_tim_int' here\)"
+    ):
         load_checkpoint(write(cue_names=["depth", "d_tim_int", *CUE_NAMES[2:]]))
     with pytest.raises(ValueError, match=r"bad\.pt: made with cue version 1 \(13 cues\).*column 13: 'none' there"):
         load_checkpoint(write(cue_names=list(CUE_NAMES[:13]), cue_version=1))  # a cue-version-1 model: one line

@@ -15,8 +15,9 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
 from torchtrack.config import CONF_DIR, EKFBackendConfig
-from torchtrack.estimators.backends import EKFBackend, ekf_frame
 from torchtrack.filter import FusionEKF, Variances
+from torchtrack.filter.backend import EKFBackend
+from torchtrack.filter.frame import ekf_frame
 from torchtrack.filter.noise_scale import PIX, XYZ, NoiseScale
 from torchtrack.learn.oracle import oracle_windows
 from torchtrack.learn.rollout import PER_WINDOW, pose_errors

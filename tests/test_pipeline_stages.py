@@ -12,8 +12,10 @@ from test_tracker import make_tracker, synth  # noqa: F401  (fixture)
 from tolerances import F64_UNIT
 
 from torchtrack.data import iterate_batched
-from torchtrack.estimators.backends import EKFBackend, Observation, RegistrationBackend
+from torchtrack.estimators.backends import RegistrationBackend
 from torchtrack.estimators.horn import HornEstimator
+from torchtrack.filter.backend import EKFBackend
+from torchtrack.filter.frame import Observation
 from torchtrack.filter.fusion import FusionEKF
 from torchtrack.filter.weighting import Variances
 from torchtrack.geometry import make_T, so3_exp, transform_points

@@ -239,7 +239,9 @@ def test_batched_equals_looped():
         one = shape_index(d[b : b + 1], Ks[b : b + 1])
         assert torch.equal(one.valid, batched.valid[b : b + 1])  # thresholds: no value within rounding of one here
         torch.testing.assert_close(one.si, batched.si[b : b + 1], atol=F32_UNIT, rtol=0)
-    sim = compute_sim(d, Ks, "torch")  # the reference, one image at a time (cache-sized temporaries): the batched map's values within rounding
+    sim = compute_sim(
+        d, Ks, "torch"
+    )  # the reference, one image at a time (cache-sized temporaries): the batched map's values within rounding
     lean = shape_index(d, Ks, curvedness=False)
     torch.testing.assert_close(sim.si, lean.si, atol=F32_UNIT, rtol=0)
     assert torch.equal(sim.valid, lean.valid)

@@ -17,7 +17,6 @@ from torchtrack.data.synthetic import SyntheticConfig
 from torchtrack.data.synthetic.motion import SCENE_EYE, SCENE_TARGET, look_at
 from torchtrack.data.synthetic.render import render_frame
 from torchtrack.data.synthetic.scene import default_scene
-from torchtrack.estimators.backends import EKFBackend
 from torchtrack.factory import build_tracker
 from torchtrack.geometry import T_inv, make_T, so3_exp, transform_points
 from torchtrack.pipeline.landmarks import LandmarkMap
@@ -82,8 +81,8 @@ def test_switch_on_by_default_and_off_in_paper():
     assert compose_cfg("+experiment=paper").landmarks.enabled is False
     assert build_tracker(compose_cfg(*OFF)).landmarks is None
     assert isinstance(build_tracker(compose_cfg()).landmarks, LandmarkMap)
-    with pytest.raises(InstantiationException, match="landmarks.every must be >= 0"):
-        build_tracker(compose_cfg(*ON, "landmarks.every=-1"))
+    with pytest.raises(InstantiationException, match="per_keyframe and max_candidates must be >= 1"):
+        build_tracker(compose_cfg(*ON, "landmarks.per_keyframe=0"))
 
 
 def test_returning_camera_finds_its_first_pass_accuracy(pan):
@@ -91,8 +90,8 @@ def test_returning_camera_finds_its_first_pass_accuracy(pan):
     truth as it was at the start; without them the chained models keep their drift.
 
     Measured (320 x 240, noise-free, 40 frames, 35 degrees out and back): first pass (frames 1-3) 1.3 / 1.9 / 2.0 mm
-    with landmarks; the last two frames: off 3.9 / 5.5 mm, on 1.6 / 2.2 mm, on with landmark_every=5 1.8 / 2.3 mm.
-    With the online noise scale (the default since issue 22): the last two frames off 6.2 mm, on 3.2 mm (mean).
+    with landmarks; the last two frames: off 3.9 / 5.5 mm, on 1.6 / 2.2 mm. With the online noise scale (the default):
+    the last two frames off 6.2 mm, on 3.2 mm (mean).
     """
     poses, frames = pan
     fixed = "tracker.noise_scale=false"  # the landmarks under the weighting's own R (with the scale: the docstring)
@@ -102,8 +101,6 @@ def test_returning_camera_finds_its_first_pass_accuracy(pan):
     first_pass = float(on[1:4].mean())
     assert float(on[-2:].mean()) < 1.5 * first_pass
     assert float(off[-2:].mean()) > 2.0 * float(on[-2:].mean())
-    every, _ = run(frames, poses, *ON, "landmarks.every=5", fixed)
-    assert float(every[-2:].mean()) < 1.5 * first_pass
 
 
 def test_returning_camera_with_the_default_noise_model(pan):
@@ -150,94 +147,10 @@ def test_reacquired_landmarks_keep_their_world_positions(pan, monkeypatch):
 def test_batched_equals_looped():
     a, b = out_and_back(25.0, 0.3, frames=24), out_and_back(-20.0, -0.2, frames=24)
     both = batches([a, b])
-    tracker = build_tracker(compose_cfg(*ON, "landmarks.every=4"))
+    tracker = build_tracker(compose_cfg(*ON, "reselect.fraction=0.7"))
     batched = torch.stack([tracker.step(f).T_world_depth for f in both])  # F,B,4,4
     for i, poses in enumerate((a, b)):
-        alone = build_tracker(compose_cfg(*ON, "landmarks.every=4"))
+        alone = build_tracker(compose_cfg(*ON, "reselect.fraction=0.7"))
         for f, frame in enumerate(batches([poses])):
             torch.testing.assert_close(batched[f, i], alone.step(frame).T_world_depth[0], atol=TRAJ, rtol=0)
     assert int(tracker.state.reacquired_total.min()) > 0
-
-
-def test_returning_camera_with_landmarks_estimated(pan, monkeypatch):
-    """Issue 24, all three switches: the landmarks fused by the filter (``measure``), re-tracked from warped templates
-    (``warp``), the keyframe window refined at re-selections (``refine``): back at the start view the camera is as close
-    to the truth as on the first pass (the oracle of the test above), with landmarks re-acquired. Measured: first pass
-    (frames 1-3) 0.8 / 1.5 / 2.1 mm, last two 2.3 / 1.5 mm, 106 re-acquired. The bound guards the integration; each
-    switch is seen to act (a landmark update that moved a pose, a refinement that was used, warped re-tracks), since
-    the bound alone holds with them off too. The update's oracles are in tests/test_landmark_update.py."""
-    import torchtrack.pipeline.tracker as tracker_module
-
-    acted = {"update": 0, "refine": 0, "warp": 0}
-    update, refine, warped = tracker_module.joint_update, tracker_module.refine_at_reselection, LandmarkMap._warped
-
-    def spy(name, fn, did):
-        def wrapped(*args, **kwargs):
-            out = fn(*args, **kwargs)
-            acted[name] += int(did(out))
-            return out
-
-        return wrapped
-
-    monkeypatch.setattr(tracker_module, "joint_update", spy("update", update, lambda o: o.updated.any()))
-    covs, priors = [], []
-    pose_covariance = EKFBackend.pose_covariance
-
-    def recorded(self):
-        covs.append(pose_covariance(self))
-        return covs[-1]
-
-    def refine_with_prior(*args, **kwargs):  # the window gets the filter's posterior and noise scale (window_prior)
-        priors.append(kwargs["camera_cov"] is covs[-1] and bool((kwargs["xyz_scale"] > 0).all()))
-        return refine(*args, **kwargs)
-
-    monkeypatch.setattr(EKFBackend, "pose_covariance", recorded)
-
-    monkeypatch.setattr(tracker_module, "refine_at_reselection",
-                        spy("refine", refine_with_prior, lambda o: o.used.any()))  # fmt: skip
-    monkeypatch.setattr(LandmarkMap, "_warped", spy("warp", warped, lambda o: True))
-    poses, frames = pan
-    # frozen model points: on this noise-free render the default's averaged points (reselect.point_mean) carry the
-    # filter's pose errors into the map, and with all three switches the last two frames are 8.4 / 13.9 mm off
-    # (1.7 / 2.4 mm with frozen points); the switches, not the point estimates, are this test's subject
-    err, tracker = run(frames, poses, *ON, "landmarks.measure=true", "landmarks.warp=true", "landmarks.refine=true",
-                       "reselect.point_mean=off")
-    assert int(tracker.state.reacquired_total.sum()) > 50
-    assert float(err[-2:].mean()) < 1.5 * float(err[1:4].mean()), err
-    assert min(acted.values()) > 0, acted
-    assert priors and all(priors)
-    # the window's poses re-enter the chain of model frames: they stay rotations (R^T R = I to float64 round-off; a
-    # pose composed with another's transpose-inverse once grew 7x per window, 1e-15 -> 0.1 in 20 windows on 7-Scenes)
-    for T in (tracker.state.T_world_obj, tracker.state.T_cam_obj, tracker.keyframes.T_world_kf):
-        R = T[..., :3, :3]
-        assert float((R.transpose(-1, -2) @ R - torch.eye(3, dtype=R.dtype)).abs().max()) < 1e-13
-
-
-def test_reanchored_features_keep_their_per_feature_outputs(pan):
-    """``landmarks.every``: a re-acquisition re-orders the model's features and adds landmarks; each feature's
-    ``winner`` and ``d_tim`` in the StepResult are still its own (the pixel it was tracked to is the key: the result's
-    pixels are the tracker's copies), and a landmark added this frame has none (-1, 0)."""
-    poses, frames = pan
-    tracker = build_tracker(compose_cfg(*ON, "landmarks.every=3"))
-    seen, flow = [], tracker.flow
-
-    def recording(*args, **kwargs):
-        seen.append(flow(*args, **kwargs))
-        return seen[-1]
-
-    tracker.flow, added = recording, 0
-    for frame in frames:  # re-acquisitions on the way back (frames 25-39)
-        n = len(seen)
-        res = tracker.step(frame)
-        if len(seen) == n or res.reselected[0]:  # the first frame, or a new model (the result is the frame as tracked)
-            continue
-        track = seen[n]  # the frame's own tracking call (landmark re-acquisitions come after it)
-        for i in res.valid[0].nonzero()[:, 0].tolist():
-            j = (track.points[0] == res.pixels[0, i]).all(-1).nonzero()[:, 0]
-            if len(j) == 0:  # a landmark re-acquired into the model this frame
-                added += 1
-                assert int(res.winner[0, i]) == -1 and float(res.d_tim[0, i]) == 0.0
-            else:
-                assert int(res.winner[0, i]) == int(track.winner[0, j[0]])
-                assert float(res.d_tim[0, i]) == float(track.d_tim[0, j[0]])
-    assert added > 0  # re-acquisitions happened in these frames

@@ -48,7 +48,9 @@ def test_png_decoding_gives_opencvs_pixels(tmp_path):
         assert img.dtype == ref.dtype and np.array_equal(img, ref), name
         if name in ("gray8", "gray16", "bgr8", "bgr16", "bgra8"):
             assert torch.equal(load_rgb(path), load_rgb(path, decoder="opencv")), name
-    assert torch.equal(load_depth(tmp_path / "gray16.png", 1000.0), load_depth(tmp_path / "gray16.png", 1000.0, "opencv"))
+    assert torch.equal(
+        load_depth(tmp_path / "gray16.png", 1000.0), load_depth(tmp_path / "gray16.png", 1000.0, "opencv")
+    )
     assert tum_io.imread(tmp_path / "missing.png")[0] is None
 
 

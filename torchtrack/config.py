@@ -30,7 +30,7 @@ from torchtrack.data.errors import DataError
 # inside the package as torchtrack/conf (setup.py), which a checkout never has.
 _PACKAGED_CONF = Path(__file__).resolve().parent / "conf"
 CONF_DIR = _PACKAGED_CONF if _PACKAGED_CONF.is_dir() else Path(__file__).resolve().parents[1] / "conf"
-EKF_BACKEND = "torchtrack.estimators.backends.EKFBackend"
+EKF_BACKEND = "torchtrack.filter.backend.EKFBackend"
 VIEW_SIZE = (480, 640)  # the map views' [H, W] (MappingConfig.view_size; a list there, as OmegaConf needs)
 REGISTRATION_BACKEND = "torchtrack.estimators.backends.RegistrationBackend"
 
@@ -161,7 +161,9 @@ class FlowConfig:
     min_eig: float = 1.0e-4  # minimum eigenvalue of the 2x2 gradient matrix (normalised, as OpenCV)
     ic_iters: int = 3  # inverse-compositional iterations before Newton steps
     backend: str = "torch"  # torch | opencv (cv2.calcOpticalFlowPyrLK, reference)
-    lk_backend: str = "auto"  # auto | cpp | torch: torch LK as the compiled operator (auto: where it builds) or pure torch
+    lk_backend: str = (
+        "auto"  # auto | cpp | torch: torch LK as the compiled operator (auto: where it builds) or pure torch
+    )
     policy: str = "fallback"  # improvement (paper: min_tim): the SIM tracker only where the intensity tracker failed
 
 
@@ -172,7 +174,9 @@ class FrontendConfig:
     _target_: str = "torchtrack.frontend.FrontEnd"
     use_sim: bool = True  # compute the SIM (SIM-assisted tracking, lambda < 1 selection)
     sim_kwargs: dict[str, Any] | None = None
-    sim_backend: str = "auto"  # auto | cpp | torch: the SIM as the compiled operator (auto: where it builds) or pure torch
+    sim_backend: str = (
+        "auto"  # auto | cpp | torch: the SIM as the compiled operator (auto: where it builds) or pure torch
+    )
     ahead: bool = True  # prepare the next frame (SIM, pyramids) in a thread while this one is tracked; same results
 
 
@@ -250,13 +254,6 @@ class EKFBackendConfig:
     noise_scale_min: float = 0.01  # ... bounds of the scale
     noise_scale_max: float = 100.0
     noise_clip: float | None = 0.9  # ... chi-square quantile winsorising each feature's residual (null: none)
-    # measured and left off (RESULTS "Online process-noise scale"): online process-noise scale per block (angular, linear),
-    # Q = c Q0 with c from the update's velocity corrections (torchtrack.filter.process_scale)
-    process_scale: bool = False
-    process_forgetting: float = 0.9  # ... its forgetting factor per frame (a window of ~10 frames)
-    process_scale_min: float = 0.01  # ... bounds of c (acceleration std 0.1x-10x the filter's sigma_*_acc)
-    process_scale_max: float = 100.0
-    process_clip: float | None = 0.99  # ... chi-square (3 dof) quantile winsorising each frame's correction (null: none)
 
 
 @dataclass
@@ -291,21 +288,6 @@ class RegistrationBackendConfig:
     estimator: Any = None
 
 
-@dataclass
-class WindowConfig:
-    """:class:`torchtrack.estimators.window.WindowRefiner`: robust LM over the last K keyframe poses and landmarks."""
-
-    _target_: str = "torchtrack.estimators.window.WindowRefiner"
-    iters: int = 10  # Levenberg-Marquardt iterations with the robust (IRLS) weights
-    polish_iters: int = 5  # ... then Gauss-Newton iterations on the inliers alone (unweighted by the loss)
-    loss: str = "huber"  # huber | cauchy | l2: on each block's whitened norm (3D point, pixel)
-    robust_quantile: float = 0.95  # the loss's scale: this chi-square quantile of the block's dof, in sigmas
-    inlier_quantile: float = 0.999  # a block is an inlier when its whitened squared norm is below this quantile
-    fix_first: bool = True  # gauge: the first (oldest) pose is fixed; else the poses' priors must fix it
-    damping: float = 1.0e-3  # initial LM damping (Marquardt: times the normal matrix's diagonal)
-    tol: float = 1.0e-10  # a window stops when its largest step (m, rad) is below this
-
-
 # --- the pipeline and its stages ------------------------------------------------------------------------------
 # The tracker (torchtrack.pipeline.Tracker) is composed of stage objects, each built by the factory from its own group:
 # the per-frame stages above (region, select, flow, weighting, tracker = the back end) and the policy stages below
@@ -331,13 +313,10 @@ class ReselectConfig:
     edge_step: float | None = 0.03  # improvement (null = paper): no features where depth jumps > 3% in 5x5 px
     keep_survivors: bool = True  # improvement (false = paper): a re-selection keeps the features still tracked
     min_separation_px: float = 8.0  # ... and adds new ones only this far from a survivor (or a re-acquired landmark)
-    # issue 24 (session 9, measured in RESULTS.md): model points as estimates, the information-weighted mean of each
-    # feature's depth samples moved into the model frame by the filter's pose (torchtrack.pipeline.reselect.fuse_points)
-    point_mean: str = "reselect"  # improvement (off = paper: the selection's one sample): survivors carry the mean
-    # into a new model | frame: the filter's points are the means, every frame (measured, not better)
-    point_noise: str = "isotropic"  # a sample's covariance: var_xyz per coordinate | ray: across it (z/f)^2 var_pix
-    point_birth_weight: float = 1.0  # the selection's sample, in units of the feature's first tracked sample
-    point_gate: float | None = None  # a sample beyond this squared Mahalanobis distance is not fused (null: all are)
+    # improvement (off = paper: a model point is the selection's one depth sample): each model point is the
+    # information-weighted mean of its feature's depth samples, moved into the model frame by the filter's pose;
+    # survivors carry it into the next model (torchtrack.pipeline.reselect.fuse_points)
+    point_mean: str = "reselect"
 
 
 @dataclass
@@ -382,19 +361,6 @@ class LandmarkConfig:
     max_scale: float = 1.25  # ... and whose depth changed by at most this ratio
     converge_px: float = 0.5  # a second LK started probe_px away must end within this of the first
     probe_px: float = 3.0
-    every: int = 0  # also every this many frames into the current model (0: only at re-selections)
-    # issue 24 (measured on and off in RESULTS.md): the re-acquired landmarks are measurements of the back end: the
-    # frame's update is redone with them as more of its features (torchtrack.estimators.landmark_update.joint_update)
-    # instead of ``correct``'s re-fit outside the filter (which still re-fits where no frame update is redone: a
-    # relocalisation's new model, ``every``, a back end that does not fuse)
-    # (retired, measured worse: ``position_variance``, the stored position's variance added to the landmark's)
-    measure: bool = False
-    warp: bool = False  # re-track them from pose-warped templates (plane homography, normal from the keyframe depth)
-    warp_crop: int = 48  # ... the side (px) of the warped crops (96: the same tracks and ATE at ~3x the cost; RESULTS)
-    refine: bool = False  # at a re-selection, refine the keyframe window (torchtrack.pipeline.landmark_window)
-    window_prior: bool = True  # ... the current camera's prior in it: the filter's posterior (false: no prior, the
-    # window's camera replaces the filter's; measured both ways in RESULTS: 10 rendered scenes 1.99x vs 1.09x)
-    window: WindowConfig = field(default_factory=WindowConfig)  # ... with this refiner (landmarks.window.loss=cauchy)
 
 
 @dataclass

@@ -90,13 +90,10 @@ class Recorder:
 
     @staticmethod
     def _noise_scale(b: int, res: StepResult) -> dict:
-        """frames.csv's online noise scale of the pixel and 3D blocks and process-noise scale of the angular and linear
-        blocks after this frame (1.0 where off)."""
+        """frames.csv's online noise scale of the pixel and 3D blocks after this frame (1.0 where off)."""
         scale = getattr(res.estimate, "noise_scale", None)  # (B, 2) [pix, xyz]; None when off or on the first frame
         pix, xyz = (float(scale[b, 0]), float(scale[b, 1])) if scale is not None else (1.0, 1.0)
-        proc = getattr(res.estimate, "process_scale", None)  # (B, 2) [ang, lin]: the online process-noise scale
-        ang, lin = (float(proc[b, 0]), float(proc[b, 1])) if proc is not None else (1.0, 1.0)
-        return {"noise_scale_pix": pix, "noise_scale_xyz": xyz, "process_scale_ang": ang, "process_scale_lin": lin}
+        return {"noise_scale_pix": pix, "noise_scale_xyz": xyz}
 
     def _loss(self, b: int, i: int, loss) -> dict:
         """frames.csv's loss columns for sequence b at frame i (all False without a relocaliser); a warning when lost."""

@@ -307,7 +307,7 @@ def cholesky_jittered(cov: Tensor) -> Tensor:
     """(B, S, S) Cholesky factor L of the covariances ``cov`` (B, S, S); where one is not numerically positive
     definite, of ``cov + 10^k m I`` instead (m its mean variance, k = -12, -10, ..., -2: the first that factors).
     The one fallback of the update (:func:`_information_step`) and of the innovation likelihood
-    (:func:`torchtrack.estimators.backends.innovation_nll`): both see the same ``P- = L L^T``."""
+    (:func:`torchtrack.filter.frame.innovation_nll`): both see the same ``P- = L L^T``."""
     L, info = torch.linalg.cholesky_ex(cov)
     bad = info > 0
     if not bool(bad.any()):

@@ -2,8 +2,8 @@
 
 :func:`fuse` is the pure batched update (eqs. (6)–(7), (15)); :class:`FusionEKF` holds the filter's parameters and
 its pure steps (:class:`FilterState` in, :class:`FilterState` out). The one stateful filter is the tracker's back
-end, :class:`torchtrack.estimators.backends.EKFBackend`, which runs
-:func:`~torchtrack.estimators.backends.ekf_frame` once per frame.
+end, :class:`torchtrack.filter.backend.EKFBackend`, which runs
+:func:`~torchtrack.filter.frame.ekf_frame` once per frame.
 
 Two parametrisations of the pose (``FusionEKF(state=...)``): ``"se3"`` (default), the local error state on SE(3)
 of :mod:`torchtrack.filter.error_state`, regular at every attitude; ``"euler"``, the paper's eq. (2) (Euler angles,
@@ -168,7 +168,7 @@ class FusionEKF:
 
     The methods (:meth:`initial_state`, :meth:`predicted`, :meth:`linearize_at`, :meth:`updated`, :meth:`injected`,
     :meth:`with_pose`) take and return :class:`FilterState` and never keep state: the back end
-    (:class:`~torchtrack.estimators.backends.EKFBackend`, :func:`~torchtrack.estimators.backends.ekf_frame`) is built
+    (:class:`~torchtrack.filter.backend.EKFBackend`, :func:`~torchtrack.filter.frame.ekf_frame`) is built
     from them.
 
     Args:

@@ -60,8 +60,8 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from torchtrack.estimators.backends import Observation
 from torchtrack.filter.cues import CUE_NAMES, CUE_VERSION, check_cue_names
+from torchtrack.filter.frame import Observation
 from torchtrack.filter.weighting import Variances
 from torchtrack.geometry import T_inv
 from torchtrack.geometry.rig import T_world_depth_from_color

@@ -1,7 +1,7 @@
 """Replay recorded observations through the differentiable back end, in windows of T frames.
 
 A :class:`Windows` batch holds B windows (from one or several sequences) of T frames each, padded to N features:
-everything :func:`torchtrack.estimators.backends.ekf_frame` and a weighting need, plus the ground truth. :func:`rollout`
+everything :func:`torchtrack.filter.frame.ekf_frame` and a weighting need, plus the ground truth. :func:`rollout`
 runs the weighting and the fusion EKF over them exactly as the tracker does (the same per-frame back end; a model
 re-selection resets the filter to the recorded model pose, as the tracker's ``_new_model`` does) and returns the
 poses and the innovation likelihoods, differentiable in the weighting's parameters.
@@ -22,8 +22,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.estimators.backends import Observation, ekf_frame
 from torchtrack.filter.cues import CUE_INDEX
+from torchtrack.filter.frame import Observation, ekf_frame
 from torchtrack.filter.fusion import FusionEKF
 from torchtrack.filter.models import euler_velocity
 from torchtrack.filter.weighting import Variances, WeightingInputs
@@ -138,7 +138,7 @@ def rollout(
     with_nll: bool = False,
     start_velocity: bool = False,
 ) -> Rollout:
-    """Run ``weighting`` and :func:`~torchtrack.estimators.backends.ekf_frame` over the T frames of ``win``.
+    """Run ``weighting`` and :func:`~torchtrack.filter.frame.ekf_frame` over the T frames of ``win``.
 
     Each window starts at ``win.start_T_cam_obj`` with zero velocity, or with ``start_velocity`` its ground-truth
     velocity (:func:`window_start_velocity`) where ``win.prev_dt > 0``."""

@@ -11,6 +11,9 @@ within ``max_offset_m`` of the prediction. With ``correct`` the camera pose is t
 to them together with the current model's features (the prior), and the verified ones enter the new model with their
 ORIGINAL world positions: old anchors pull the pose back instead of chaining the drift.
 
+The depth measurement of a pixel belongs to the tracker's frame (:class:`~torchtrack.pipeline.state.Measure`): the
+map gets it as an argument.
+
 Frames: ``world`` is the tracker's world (its first camera); ``cam`` the depth camera; pixels are colour pixels.
 """
 
@@ -23,10 +26,6 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.config import LandmarkConfig, PaperWeightingConfig, ReselectConfig
-from torchtrack.estimators.backends import Observation
-from torchtrack.estimators.window import WindowRefiner
-from torchtrack.filter.models import measure_points
 from torchtrack.frontend import PreparedFrame
 from torchtrack.geometry import (
     T_inv,
@@ -37,11 +36,10 @@ from torchtrack.geometry import (
     transform_points,
 )
 from torchtrack.image.flow import FlowFrame, TrackResult, prepare_frame, repeat_frame, zero_frame
-from torchtrack.image.warp import warped_landmark_tracks
 from torchtrack.pipeline.keyframes import KeyframeStore
-from torchtrack.pipeline.landmark_window import Identities
 from torchtrack.pipeline.pose_fit import refine_pose
 from torchtrack.pipeline.reselect import far_from
+from torchtrack.pipeline.state import Measure
 
 
 class Reacquired(NamedTuple):
@@ -58,17 +56,6 @@ class Reacquired(NamedTuple):
     cornerness: Tensor
     valid: Tensor
     T_world_depth: Tensor
-
-    def observation(self, T_world_obj: Tensor, dt: Tensor, K: Tensor, T_color_depth: Tensor) -> Observation:
-        """The re-acquired landmarks as measurements of the model frame ``T_world_obj`` (B, 4, 4): model points
-        (their stored world positions in the object frame), the points measured from depth and their tracked
-        pixels (eqs. 6-7), with ``dt`` (B,) s, ``K`` (B, 3, 3), ``T_color_depth`` (B, 4, 4) as in the frame's
-        :class:`~torchtrack.estimators.backends.Observation`. Not valid rows carry zeros."""
-        points_obj = transform_points(T_inv(T_world_obj.double()), self.points_world).to(self.points_cam.dtype)
-        ok = self.valid[..., None]
-        return Observation(dt.to(self.points_cam.dtype), torch.where(ok, points_obj, 0.0),
-                           torch.where(ok, self.points_cam, 0.0), torch.where(ok[..., :1], self.pixels, 0.0), self.valid,
-                           K, T_color_depth)  # fmt: skip
 
 
 class LandmarkMap:
@@ -92,49 +79,30 @@ class LandmarkMap:
         max_angle_deg: re-track only landmarks whose keyframe's rotation and ray to the point are within this angle.
         max_scale: ... and whose depth changed by at most this ratio (LK tracks a translation of the window).
         converge_px, probe_px: a second LK started ``probe_px`` away must end within ``converge_px`` of the first.
-        every: > 0: the tracker also re-acquires landmarks into the current model every that many frames (no new
-            model); 0: only at re-selections.
-        measure: the landmarks re-acquired at a re-selection are measurements of the back end: the tracker redoes
-            the frame's update with them as more of its features (:func:`~torchtrack.estimators.landmark_update.
-            joint_update`); ``correct`` then re-fits only where there is no frame update to redo (a relocalisation's
-            new model, ``every``, a back end that does not fuse).
-        warp, warp_crop: re-track from pose-warped templates (:mod:`torchtrack.image.warp`), crops of this side.
-        refine, window: at a re-selection refine the keyframe window (:mod:`torchtrack.pipeline.landmark_window`)
-            with this refiner; window_prior: the current camera enters it with the back end's posterior as its prior
-            (``pose_covariance``), so that the window adds its landmarks' information to the filter's instead of
-            replacing the filter's camera with a fit to the landmarks alone.
 
-    The map is the tracker's ``landmarks`` stage: :meth:`reacquire_into` gives the landmarks found again in the current
-    frame (:class:`Reacquired`) and :meth:`Reacquired.observation` states them as back-end measurements of the
-    current model (eqs. 6-7), so that they can join the frame's update instead of a correction outside the filter.
+    The map is the tracker's ``landmarks`` stage: at a re-selection :meth:`reacquire` gives the landmarks found again
+    in the current frame (:class:`Reacquired`), the anchors of the new model, and the camera pose they agree with.
     """
 
     def __init__(
         self,
         *,
-        per_keyframe: int = LandmarkConfig.per_keyframe,
-        max_candidates: int = LandmarkConfig.max_candidates,
-        min_separation_px: float = ReselectConfig.min_separation_px,
-        max_residual: float = LandmarkConfig.max_residual,
-        max_shift_px: float = LandmarkConfig.max_shift_px,
-        max_offset_m: float = LandmarkConfig.max_offset_m,
-        occlusion: float = LandmarkConfig.occlusion,
-        correct: bool = LandmarkConfig.correct,
-        inlier_m: float = LandmarkConfig.inlier_m,
-        min_inliers: int = LandmarkConfig.min_inliers,
-        max_correction_m: float = LandmarkConfig.max_correction_m,
-        max_correction_deg: float = LandmarkConfig.max_correction_deg,
-        max_angle_deg: float = LandmarkConfig.max_angle_deg,
-        max_scale: float = LandmarkConfig.max_scale,
-        converge_px: float = LandmarkConfig.converge_px,
-        probe_px: float = LandmarkConfig.probe_px,
-        every: int = LandmarkConfig.every,
-        measure: bool = LandmarkConfig.measure,
-        warp: bool = LandmarkConfig.warp,
-        warp_crop: int = LandmarkConfig.warp_crop,
-        refine: bool = LandmarkConfig.refine,
-        window_prior: bool = LandmarkConfig.window_prior,
-        window: WindowRefiner | None = None,
+        per_keyframe: int = 128,
+        max_candidates: int = 256,
+        min_separation_px: float = 8.0,
+        max_residual: float = 0.1,
+        max_shift_px: float = 30.0,
+        max_offset_m: float = 0.1,
+        occlusion: float = 0.05,
+        correct: bool = True,
+        inlier_m: float = 0.02,
+        min_inliers: int = 8,
+        max_correction_m: float = 0.1,
+        max_correction_deg: float = 5.0,
+        max_angle_deg: float = 15.0,
+        max_scale: float = 1.25,
+        converge_px: float = 0.5,
+        probe_px: float = 3.0,
     ) -> None:
         if per_keyframe < 1 or max_candidates < 1:
             raise ValueError(f"LandmarkMap: per_keyframe and max_candidates must be >= 1, got "
@@ -146,13 +114,6 @@ class LandmarkMap:
         self.max_correction_m, self.max_correction_rad = max_correction_m, math.radians(max_correction_deg)
         self.max_angle_deg, self.max_scale = max_angle_deg, max_scale
         self.converge_px, self.probe_px = converge_px, probe_px
-        if every < 0:
-            raise ValueError(f"landmarks.every must be >= 0, got {every}")
-        self.every = every
-        self.measure, self.warp, self.warp_crop = measure, warp, warp_crop
-        # the keyframe window (torchtrack.pipeline.landmark_window); ``window`` None: WindowConfig's refiner
-        self.refiner = (window if window is not None else WindowRefiner()) if refine else None
-        self.window_prior = window_prior
         self.per_slot = False  # True: one LK call per keyframe slot (the reference of the batched call; tests, benches)
         self.reset()
 
@@ -162,10 +123,6 @@ class LandmarkMap:
         self.pyramids: dict[int, FlowFrame] = {}  # LK pyramids of the slots, built on first use (per-slot tracking)
         self.stack: FlowFrame | None = None  # all slots' LK images as one frame of S * B sequences (s * B + b)
         self.pixels = self.world = self.cornerness = self.valid = None  # (B, S, P, ...) the keyframes' features
-        self.depth = None  # (S, B, 1, H, W) the keyframes' depth (registered to colour), with ``warp``
-        self.var_kf = None  # (B, S) m^2 the keyframes' mean 3D variance (the keyframe window's measurement variance)
-        self.ids: Identities | None = None  # with ``refine``: landmark identities across keyframes
-        self.last_ident = self.survivor_ident = None  # of the last re-acquisition's landmarks (B, C) and survivors
 
     def _allocate(self, S: int, gray: Tensor, sim: Tensor | None) -> None:
         P, B, dev = self.P, gray.shape[0], gray.device
@@ -175,16 +132,12 @@ class LandmarkMap:
         self.world = torch.zeros(B, S, P, 3, dtype=torch.float64, device=dev)
         self.cornerness = torch.zeros(B, S, P, 2, device=dev)
         self.valid = torch.zeros(B, S, P, dtype=torch.bool, device=dev)
-        self.var_kf = torch.full((B, S), PaperWeightingConfig.sigma2_xyz, dtype=torch.float64, device=dev)
-        self.ids = Identities(B, S, P, dev) if self.refiner is not None else None
 
     def add(self, store: KeyframeStore, slot: Tensor, cur: PreparedFrame, pixels: Tensor, points_world: Tensor,
-            cornerness: Tensor, valid: Tensor, var_xyz: Tensor | None = None) -> None:  # fmt: skip
+            cornerness: Tensor, valid: Tensor) -> None:  # fmt: skip
         """Attach the current frame's LK images and features to the model keyframes ``slot`` (B,) of ``store`` just
         took (-1: none; a tracked keyframe's slot is not one): pixels (B, N, 2), points_world (B, N, 3) in the
-        tracker's world, cornerness (B, N, 2), valid (B, N) (the first ``per_keyframe`` valid ones are kept); var_xyz
-        (B,) m^2: the frame's mean 3D variance, the keyframe window's measurement variance for this keyframe (default:
-        the weighting's nominal one)."""
+        tracker's world, cornerness (B, N, 2), valid (B, N) (the first ``per_keyframe`` valid ones are kept)."""
         if pixels.shape[:2] != valid.shape or points_world.shape[:2] != valid.shape or slot.shape != valid.shape[:1]:
             raise ValueError(f"LandmarkMap.add: pixels, points_world (B, N, .), valid (B, N), slot (B,); got "
                              f"{tuple(pixels.shape)}, {tuple(points_world.shape)}, {tuple(valid.shape)}, {tuple(slot.shape)}")  # fmt: skip
@@ -208,19 +161,9 @@ class LandmarkMap:
         self.world[rows, slot] = _take(points_world.double(), order, self.P)[rows]
         self.cornerness[rows, slot] = _take(cornerness.float(), order, self.P)[rows]
         self.valid[rows, slot] = _take(valid, order, self.P)[rows]
-        if var_xyz is not None:
-            self.var_kf[rows, slot] = var_xyz.double()[rows]
-        if self.ids is not None:
-            self.ids.assign(rows, slot, self.pixels[rows, slot], self.valid[rows, slot], self.world[rows, slot],
-                            store.T_world_kf[rows, slot])  # fmt: skip
-        if self.warp:  # the normals of the warped templates come from the keyframe's depth
-            if self.depth is None:
-                self.depth = torch.zeros(self.gray.shape[0], *cur.depth.shape, dtype=cur.depth.dtype,
-                                         device=cur.depth.device)  # fmt: skip
-            self.depth[slot, rows] = cur.depth[rows]
 
-    def candidates(self, store: KeyframeStore, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor, T_world_depth: Tensor,
-                   tracked: Tensor, tracked_valid: Tensor, mask: Tensor):  # fmt: skip
+    def candidates(self, store: KeyframeStore, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor,
+                   T_world_depth: Tensor, tracked: Tensor, tracked_valid: Tensor, mask: Tensor):  # fmt: skip
         """The landmarks worth re-tracking, at most ``max_candidates`` per sequence, oldest keyframe first:
         in front of the camera, inside the image (LK's border), not occluded, not near a tracked feature (B, N, 2)
         or an older landmark. Returns (index (B, C) into the flattened (S * P) landmarks, valid (B, C),
@@ -269,15 +212,15 @@ class LandmarkMap:
         parallax_ok = cos_ray >= math.cos(math.radians(self.max_angle_deg))
         return near[:, :, None].expand(B, S, P).reshape(B, S * P) & scale_ok & parallax_ok
 
-    def reacquire(self, store: KeyframeStore, flow: Callable, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor, T_world_depth: Tensor,
-                  tracked: Tensor, tracked_valid: Tensor, mask: Tensor, tracked_world: Tensor | None = None,
-                  fused: bool = False) -> Reacquired:  # fmt: skip
+    def reacquire(self, store: KeyframeStore, flow: Callable, cur: PreparedFrame, measure: Measure,
+                  T_world_depth: Tensor, tracked: Tensor, tracked_valid: Tensor, mask: Tensor,
+                  tracked_world: Tensor | None = None) -> Reacquired:  # fmt: skip
         """Re-track the visible landmarks of the sequences in ``mask`` (B,) from their keyframes into ``cur`` with
         ``flow`` (the combined LK + TIM tracker, started at the projection under ``T_world_depth`` (B, 4, 4) float64)
-        and verify them; ``tracked`` (B, N, 2) / ``tracked_valid`` (B, N): the features the model keeps, at
-        ``tracked_world`` (B, N, 3) under the current pose: with ``correct`` they take part in the pose fit, so that
-        the landmarks move the pose only as far as they outweigh the current model."""
-        B = T_world_depth.shape[0]
+        and verify them against the frame's depth (``measure``); ``tracked`` (B, N, 2) / ``tracked_valid`` (B, N): the
+        features the model keeps, at ``tracked_world`` (B, N, 3) under the current pose: with ``correct`` they take
+        part in the pose fit, so that the landmarks move the pose only as far as they outweigh the current model."""
+        B, K, T_color_depth = T_world_depth.shape[0], measure.K, measure.T_color_depth
         if self.gray is None:
             self._allocate(store.size, cur.flow.images[0], cur.flow.images[1] if cur.flow.has_sim else None)
         index, ok, proj, X_pred = self.candidates(store, cur, K, T_color_depth, T_world_depth, tracked, tracked_valid,
@@ -285,17 +228,11 @@ class LandmarkMap:
         S, P = store.size, self.P
         slot = index // P
         kf_pix = self.pixels.reshape(B, S * P, 2).gather(1, index[..., None].expand(-1, -1, 2))
-        if self.warp and self.depth is not None:  # one call over all keyframe slots
-            pixels, good, residual = self._verified(
-                self._warped(flow, cur, K, T_color_depth, store, T_world_depth, index, slot, kf_pix, proj, ok), ok
-            )
-            pixels = torch.where(ok[..., None], pixels, proj)
-            good, residual = ok & good, torch.where(ok, residual, float("inf"))
-        elif self.per_slot or getattr(flow, "kwargs", {}).get("backend") != "torch":
+        if self.per_slot or getattr(flow, "kwargs", {}).get("backend") != "torch":
             pixels, good, residual = self._track_per_slot(flow, cur, slot, ok, kf_pix, proj)
         else:
             pixels, good, residual = self._track_batched(flow, cur, slot, ok, kf_pix, proj)
-        X_meas, has_depth = measure_points(cur.depth, K, T_color_depth, pixels)
+        X_meas, has_depth = measure(pixels)
         z = X_pred[..., 2]
         offset = torch.linalg.vector_norm(X_meas.double() - X_pred, dim=-1)
         shift = torch.linalg.vector_norm(pixels - proj, dim=-1)
@@ -305,10 +242,10 @@ class LandmarkMap:
         world = self.world.reshape(B, S * P, 3).gather(1, index[..., None].expand(-1, -1, 3))
         corner = self.cornerness.reshape(B, S * P, 2).gather(1, index[..., None].expand(-1, -1, 2))
         T_world_depth = T_world_depth.double()
-        if self.correct and not fused:  # the re-fit, unless the back end fuses them (``measure``)
+        if self.correct:
             n = good.shape[1]
             if tracked_world is not None:  # the current model's features: the prior of the fit
-                X_tr, has = measure_points(cur.depth, K, T_color_depth, tracked)
+                X_tr, has = measure(tracked)
                 world = torch.cat([world, tracked_world.double()], 1)
                 pixels_fit, X_fit = torch.cat([pixels, tracked.float()], 1), torch.cat([X_meas, X_tr], 1)
                 good_fit = torch.cat([good, tracked_valid & has], 1)
@@ -316,14 +253,6 @@ class LandmarkMap:
                 pixels_fit, X_fit, good_fit = pixels, X_meas, good
             T_world_depth, inl = self._corrected(K, T_color_depth, T_world_depth, world, pixels_fit, X_fit, good_fit, n)
             world, good = world[:, :n], inl[:, :n]
-        if self.ids is not None:  # the identities the next keyframe's features carry (survivors, re-acquired)
-            self.last_ident = self.ids.ident.reshape(B, S * P).gather(1, index)
-            newest = torch.where(self.valid.any(-1), store.stamp[:, :S], -1).argmax(1)  # the current model's keyframe
-            rows = torch.arange(B, device=index.device)
-            tw = tracked_world if tracked_world is not None else torch.full((*tracked.shape[:2], 3), torch.inf)
-            self.survivor_ident = self.ids.note(tracked, tw, tracked_valid, self.world[rows, newest],
-                                                self.ids.ident[rows, newest], self.valid[rows, newest], pixels,
-                                                self.last_ident, good & mask[:, None])  # fmt: skip
         return Reacquired(pixels, world, X_meas, corner, good, T_world_depth)
 
     def _verified(self, both: TrackResult, sel: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -407,42 +336,6 @@ class LandmarkMap:
                 to, of = to.view(K, S, B, h, dst.stride), of.view(K, B, h, src.stride)
                 for s, b in zip(slot.tolist(), rows.tolist(), strict=True):  # plain copies of each image
                     to[:, s, b].copy_(of[:, b])
-
-    def _warped(self, flow: Callable, cur: PreparedFrame, K: Tensor, T_color_depth: Tensor, store: KeyframeStore,
-                T_world_depth: Tensor, index: Tensor, slot: Tensor, kf_pix: Tensor, proj: Tensor,
-                sel: Tensor) -> TrackResult:  # fmt: skip
-        """The landmarks ``sel`` (B, C) (flattened ``index`` (B, C), keyframe slots ``slot`` (B, C)) re-tracked from
-        pose-warped templates (:func:`~torchtrack.image.warp.warped_landmark_tracks`, intensity), from the projection
-        and ``probe_px`` away, in one call over all slots: crops of the slots' stacked pyramids (:meth:`_stacked`, row
-        s * B + b) and of the current frame's. The (B, 2C) :class:`TrackResult` of the combined tracker's call (both
-        starts; the TIM check applied)."""
-        B, C = sel.shape
-        world = self.world.reshape(B, -1, 3).gather(1, index[..., None].expand(-1, -1, 3))
-        lk = {k: v for k, v in getattr(flow, "kwargs", {}).items() if k in ("window", "levels", "iters", "eps",
-                                                                                "min_eig", "ic_iters")}  # fmt: skip
-        lk.setdefault("levels", cur.flow.pyramid.levels)
-        rows = torch.arange(B, device=sel.device)
-        at = slot.clamp(0, self.gray.shape[0] - 1)  # not valid rows: any slot
-        r = warped_landmark_tracks(self._stacked(cur.flow.pyramid.levels).pyramid, self.depth.flatten(0, 1),
-                                   cur.flow.pyramid, K, T_color_depth, store.T_world_kf[rows[:, None], at],
-                                   T_world_depth, world, kf_pix, torch.stack([proj, proj + self.probe_px], 2), sel,
-                                   kf_index=at * B + rows[:, None], crop=self.warp_crop, **lk)  # fmt: skip
-        tim = getattr(flow, "kwargs", {}).get("tim_threshold", 1.0)
-        ok = r.status & (r.d_tim <= tim)
-        cat = lambda x: torch.cat([x[:, :, 0], x[:, :, 1]], 1)  # noqa: E731
-        inf = torch.full((B, 2 * C), float("inf"), device=sel.device)
-        return TrackResult(cat(r.pixels).float(), cat(ok), cat(r.d_tim).float(), inf, inf,
-                           torch.zeros(B, 2 * C, dtype=torch.long, device=sel.device), cat(ok), cat(ok) & False,
-                           cat(r.residual).float())  # fmt: skip
-
-    def reacquire_into(self, store: KeyframeStore, flow: Callable, cur: PreparedFrame, K: Tensor,
-                       T_color_depth: Tensor, state, keep: Tensor, mask: Tensor, fused: bool = False) -> Reacquired:  # fmt: skip
-        """:meth:`reacquire` for the tracker's model: the landmarks of the sequences in ``mask`` (B,) around the
-        features ``keep`` (B, N) of ``state`` (a :class:`~torchtrack.pipeline.state.TrackerState`: its camera pose,
-        pixels and model points at their world positions, which take part in the re-fit)."""
-        world = transform_points(state.T_world_obj, state.points_obj.double())
-        return self.reacquire(store, flow, cur, K, T_color_depth, state.T_world_depth, state.pixels, keep, mask,
-                              tracked_world=world, fused=fused)  # fmt: skip
 
     def _corrected(self, K: Tensor, T_color_depth: Tensor, T_world_depth: Tensor, world: Tensor, pixels: Tensor,
                    X_meas: Tensor, good: Tensor, n: int) -> tuple[Tensor, Tensor]:  # fmt: skip

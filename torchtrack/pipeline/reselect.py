@@ -9,7 +9,6 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.config import ReselectConfig
 from torchtrack.frontend import smooth_depth_mask
 from torchtrack.geometry import T_inv, transform_points
 from torchtrack.pipeline.state import valid_first
@@ -61,45 +60,21 @@ class PointEstimate(NamedTuple):
     info: Tensor
 
 
-def sample_information(points_cam: Tensor, R_cam_obj: Tensor, var_xyz: Tensor, var_pix: Tensor, focal: Tensor,
-                       noise: str) -> Tensor:  # fmt: skip
-    """(B, N, 3, 3) float64 information of each feature's 3D sample ``X_d`` (B, N, 3, depth camera) as a sample of its
-    model point, in the model frame (rotated by ``R_cam_obj`` (B, 3, 3)). ``noise``: ``isotropic``, the weighting's
-    ``var_xyz`` (B, N) per coordinate as the filter takes it (eq. 14); ``ray``, ``var_xyz`` along the ray and the
-    pixel variance ``var_pix`` (B, N) back-projected, ``(z / f)^2 var_pix`` with ``focal`` (B,), across it."""
-    var_xyz = var_xyz.double().clamp_min(1e-18)
-    eye = torch.eye(3, dtype=torch.float64, device=points_cam.device)
-    if noise == "isotropic":
-        return eye / var_xyz[..., None, None]
-    if noise != "ray":
-        raise ValueError(f"reselect.point_noise must be isotropic or ray, got {noise!r}")
-    ray = torch.nn.functional.normalize(points_cam.double(), dim=-1)
-    ray = (R_cam_obj.double().transpose(1, 2)[:, None] @ ray[..., None])[..., 0]  # in the model frame
-    var_lat = (points_cam[..., 2].double() / focal.double()[:, None]) ** 2 * var_pix.double()
-    along = ray[..., :, None] * ray[..., None, :]
-    return along / var_xyz[..., None, None] + (eye - along) / var_lat.clamp_min(1e-18)[..., None, None]
-
-
-def fuse_points(est: PointEstimate, samples: Tensor, info: Tensor, valid: Tensor, birth_weight: float,
-                gate: float | None = None) -> PointEstimate:  # fmt: skip
+def fuse_points(est: PointEstimate, samples: Tensor, var_xyz: Tensor, valid: Tensor) -> PointEstimate:
     """The information-weighted mean of each model point's samples, one more sample per feature in ``valid`` (B, N):
     ``Lambda' = Lambda + S``, ``X' = X + Lambda'^-1 S (x - X)`` with samples ``x`` (B, N, 3) in the model frame and
-    their information ``S`` (B, N, 3, 3). A point still at its birth sample (zero information) first gives that sample
-    ``birth_weight`` times this sample's information (as if seen from this viewpoint: consecutive frames). With
-    ``gate``, a sample whose squared Mahalanobis distance to the estimate, under ``Lambda^-1 + S^-1``, exceeds it is
-    not fused (a depth edge, a sliding track). Features not in ``valid`` keep their estimate."""
+    their information ``S = I / var_xyz`` (``var_xyz`` (B, N) m^2, the weighting's eq. 14, per coordinate as the filter
+    takes it). A point still at its birth sample (zero information) first gives that sample this sample's information
+    (as if seen from this viewpoint: consecutive frames). Features not in ``valid`` keep their estimate."""
     B, N = valid.shape
     if est.mean.shape != (B, N, 3) or est.info.shape != (B, N, 3, 3) or samples.shape != (B, N, 3):
         raise ValueError("fuse_points: mean (B, N, 3), info (B, N, 3, 3), samples (B, N, 3), valid (B, N)")
+    eye = torch.eye(3, dtype=torch.float64, device=samples.device)
+    info = eye / var_xyz.double().clamp_min(1e-18)[..., None, None]
     born = (est.info == 0).flatten(2).all(-1)[..., None, None]
-    prior = torch.where(born, birth_weight * info, est.info)
-    eye = torch.eye(3, dtype=prior.dtype, device=prior.device)
+    prior = torch.where(born, info, est.info)
     total = prior + info
     e = (samples.double() - est.mean)[..., None]
-    if gate is not None:  # S (Lambda + S)^-1 Lambda = (Lambda^-1 + S^-1)^-1
-        ok = valid[..., None, None]
-        d2 = (e.transpose(-1, -2) @ info @ torch.linalg.solve(torch.where(ok, total, eye), prior @ e))[..., 0, 0]
-        valid = valid & (d2 <= gate)
     step = torch.linalg.solve(torch.where(valid[..., None, None], total, eye), info @ e)[..., 0]
     v = valid[..., None]
     return PointEstimate(torch.where(v, est.mean + step, est.mean), torch.where(v[..., None], total, est.info))
@@ -131,15 +106,10 @@ class Reselection:
             selector's count. The surviving points keep anchoring the pose, so a re-selection no longer resets the
             model to one frame's estimate (less drift).
         min_separation_px: new features closer than this to a kept one are not added.
-        point_mean: improvement (``off`` = paper: a model point is the one depth sample of its selection): each model
-            point is estimated, the information-weighted mean (:func:`fuse_points`) of its feature's depth samples of
-            every frame moved into the model frame by the filter's posterior pose; ``reselect``: survivors carry the
-            mean into the new model (the filter's model stays fixed between re-selections); ``frame``: the filter's
-            model points are the means, updated every frame.
-        point_noise: each sample's covariance (:func:`sample_information`): ``isotropic`` or ``ray``.
-        point_birth_weight: the selection's sample weighs this many times the feature's first tracked sample.
-        point_gate: a sample farther than this squared Mahalanobis distance from its point's estimate is not fused
-            (None: every sample is).
+        point_mean: improvement (``off`` = paper: a model point is the one depth sample of its selection);
+            ``reselect``: each model point is estimated, the information-weighted mean (:func:`fuse_points`) of its
+            feature's depth samples of every frame moved into the model frame by the filter's posterior pose, and
+            survivors carry the mean into the new model (the filter's model stays fixed between re-selections).
     """
 
     def __init__(
@@ -147,44 +117,34 @@ class Reselection:
         *,
         region: Callable,
         select: Callable,
-        fraction: float = ReselectConfig.fraction,
-        min_features: int = ReselectConfig.min_features,
-        edge_step: float | None = ReselectConfig.edge_step,
-        keep_survivors: bool = ReselectConfig.keep_survivors,
-        min_separation_px: float = ReselectConfig.min_separation_px,
-        point_mean: str = ReselectConfig.point_mean,
-        point_noise: str = ReselectConfig.point_noise,
-        point_birth_weight: float = ReselectConfig.point_birth_weight,
-        point_gate: float | None = ReselectConfig.point_gate,
+        fraction: float = 0.5,
+        min_features: int = 12,
+        edge_step: float | None = 0.03,
+        keep_survivors: bool = True,
+        min_separation_px: float = 8.0,
+        point_mean: str = "reselect",
     ) -> None:
         if not 0.0 <= fraction < 1.0:
             raise ValueError(f"reselect.fraction must be in [0, 1), got {fraction}")
         self.region, self.select = region, select
         self.fraction, self.min_features, self.edge_step = fraction, min_features, edge_step
         self.keep_survivors, self.min_separation_px = keep_survivors, min_separation_px
-        if point_mean not in ("off", "reselect", "frame"):
-            raise ValueError(f"reselect.point_mean must be off, reselect or frame, got {point_mean!r}")
-        if point_noise not in ("isotropic", "ray"):
-            raise ValueError(f"reselect.point_noise must be isotropic or ray, got {point_noise!r}")
-        if point_birth_weight < 0 or (point_gate is not None and point_gate <= 0):
-            raise ValueError("reselect.point_birth_weight must be >= 0 and reselect.point_gate > 0 (or null)")
-        self.point_mean, self.point_noise, self.point_birth_weight = point_mean, point_noise, point_birth_weight
-        self.point_gate = point_gate
+        if point_mean not in ("off", "reselect"):
+            raise ValueError(f"reselect.point_mean must be off or reselect, got {point_mean!r}")
+        self.point_mean = point_mean
 
     @property
     def estimates_points(self) -> bool:
         """Whether the model points are estimates (``point_mean`` not ``off``)."""
         return self.point_mean != "off"
 
-    def fused(self, est: PointEstimate, T_cam_obj: Tensor, points_d: Tensor, var_xyz: Tensor, var_pix: Tensor,
-              focal: Tensor, valid: Tensor) -> PointEstimate:  # fmt: skip
+    def fused(self, est: PointEstimate, T_cam_obj: Tensor, points_d: Tensor, var_xyz: Tensor,
+              valid: Tensor) -> PointEstimate:  # fmt: skip
         """``est`` with this frame's samples ``inv(T_cam_obj) X_d`` of the features in ``valid`` (B, N): T_cam_obj
-        (B, 4, 4) the filter's posterior pose, points_d (B, N, 3) X_d (eq. 6), var_xyz / var_pix (B, N) the
-        weighting's variances (eqs. 11-14), focal (B,) px."""
-        T = T_cam_obj.double()
-        samples = transform_points(T_inv(T), points_d.double())
-        info = sample_information(points_d, T[:, :3, :3], var_xyz, var_pix, focal, self.point_noise)
-        return fuse_points(est, samples, info, valid, self.point_birth_weight, self.point_gate)
+        (B, 4, 4) the filter's posterior pose, points_d (B, N, 3) X_d (eq. 6), var_xyz (B, N) the weighting's 3D
+        variances (eq. 14)."""
+        samples = transform_points(T_inv(T_cam_obj.double()), points_d.double())
+        return fuse_points(est, samples, var_xyz, valid)
 
     def needed(self, valid: Tensor, n_model: Tensor, active: Tensor) -> Tensor:
         """(B,) bool: too few of the model's ``n_model`` (B,) features survive in ``valid`` (B, N) (a fraction of the

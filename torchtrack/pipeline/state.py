@@ -4,15 +4,33 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
 
-from torchtrack.estimators.backends import BackendResult, Observation
+from torchtrack.estimators.backends import BackendResult
+from torchtrack.filter.frame import Observation
+from torchtrack.filter.models import measure_points
 from torchtrack.filter.weighting import Variances
 from torchtrack.frontend import PreparedFrame
 from torchtrack.geometry import T_inv
+
+
+class Measure(NamedTuple):
+    """The one measurement of a feature's 3D point in a frame, eq. (6): ``measure(pixels)`` reads the depth registered
+    to colour at colour pixels (B, N, 2) and back-projects it into the depth camera; returns (X_d (B, N, 3), has_depth
+    (B, N)). The tracker makes one per frame; every stage that needs a point of this frame calls it.
+
+    depth: (B, 1, H, W) registered depth, m; K: (B, 3, 3) colour intrinsics; T_color_depth: (B, 4, 4).
+    """
+
+    depth: Tensor
+    K: Tensor
+    T_color_depth: Tensor
+
+    def __call__(self, pixels: Tensor) -> tuple[Tensor, Tensor]:
+        return measure_points(self.depth, self.K, self.T_color_depth, pixels)
 
 
 @dataclass
@@ -63,8 +81,7 @@ class StepResult:
 @dataclass
 class TrackerState:
     """What the tracker carries from one frame to the next, batched over B; empty (all None) before the first frame.
-    The tracker is its only owner: it replaces it once per step (and once more where the relocaliser's decision
-    takes a new model); the stages return values and never write it.
+    The tracker is its only owner and the stages return values and never write it.
 
     Attributes:
         prev: the previous frame as the front end prepared it; timestamp (B,) its time stamps.
@@ -72,8 +89,7 @@ class TrackerState:
         points_obj: (B, N, 3) their model points X_o (object frame).
         points_mean: (B, N, 3) float64 each model point's estimate and points_info (B, N, 3, 3) float64 its information
             (:class:`~torchtrack.pipeline.reselect.PointEstimate`; zeros: the birth sample, not yet weighed), both in
-            the object frame; None unless ``reselect.point_mean`` (the model points are then these or, between
-            re-selections, fixed).
+            the object frame; None with ``reselect.point_mean=off`` (the paper: a model point is its one sample).
         age: (B, N) frames since selection; cornerness (B, N, 2) intensity and SIM cornerness of eq. (9) at selection.
         residuals: (B, N) reprojection error (eq. 16) of each feature under ``T_cam_obj``; inf where undefined.
         n_model: (B,) features of the current model when it was taken (the re-selection criterion).
@@ -82,12 +98,7 @@ class TrackerState:
         velocity: (B, 6) float64 twist per second (v, omega) of the last frame-to-frame motion of the object in the
             camera, ``se3_log(T_cam_obj(t) inv(T_cam_obj(t-1))) / dt``: independent of the model frame, so it
             survives a re-selection (the EKF's velocity restarts at zero there). Zero before the second frame.
-        since_landmarks: (B,) long, frames since the last model or landmark re-acquisition (``landmarks.every``).
         reacquired_total: (B,) long, landmarks re-acquired so far.
-        mean_var: (B, 2) the last update's mean pixel (px^2) and 3D (m^2) variance of its features
-            (:func:`~torchtrack.estimators.landmark_update.mean_variances`): the noise level that re-acquired landmarks,
-            the keyframe window and new keyframes' landmark positions take; None before the first update and
-            without landmarks.
     """
 
     prev: PreparedFrame | None = None
@@ -104,9 +115,7 @@ class TrackerState:
     T_cam_obj: Tensor | None = None
     T_world_obj: Tensor | None = None
     velocity: Tensor | None = None
-    since_landmarks: Tensor | None = None
     reacquired_total: Tensor | None = None
-    mean_var: Tensor | None = None
 
     @property
     def started(self) -> bool:

@@ -22,24 +22,21 @@ from dataclasses import replace
 import torch
 from torch import Tensor
 
-from torchtrack.config import PipelineConfig
 from torchtrack.data.frame import FrameBatch
-from torchtrack.estimators.backends import Observation, PoseBackend
+from torchtrack.estimators.backends import PoseBackend
 from torchtrack.estimators.base import masked_mean
-from torchtrack.estimators.landmark_update import FrameFusion, joint_update, landmark_variances, mean_variances
 from torchtrack.filter.cues import stack_cues, window_cues
-from torchtrack.filter.models import measure_points
+from torchtrack.filter.frame import Observation
 from torchtrack.filter.weighting import Variances, WeightingInputs
 from torchtrack.frontend import FrontEnd, PreparedFrame
-from torchtrack.geometry import T_inv, make_T, project, rigid, sample_depth, se3_exp, se3_log, transform_points
+from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, se3_log, transform_points
 from torchtrack.image.flow import TrackResult
 from torchtrack.pipeline.keyframes import KeyframeStore
-from torchtrack.pipeline.landmark_window import refine_at_reselection
 from torchtrack.pipeline.landmarks import LandmarkMap
 from torchtrack.pipeline.outliers import ResidualDrop, feature_residuals
-from torchtrack.pipeline.relocalise import Relocalisation, Relocaliser
+from torchtrack.pipeline.relocalise import Relocaliser
 from torchtrack.pipeline.reselect import Kept, PointEstimate, Reselection
-from torchtrack.pipeline.state import FEATURE_FIELDS, StepResult, TrackerState, pad_to, valid_first, where_rows
+from torchtrack.pipeline.state import FEATURE_FIELDS, Measure, StepResult, TrackerState, pad_to, where_rows
 
 
 class Tracker:
@@ -48,7 +45,7 @@ class Tracker:
     Args:
         frontend: per-frame preparation (registered depth, SIM, pyramids).
         flow: combined LK + TIM tracker (eq. 10), ``flow(prev, next, pixels, valid) -> TrackResult``.
-        weighting: per-feature noise variances (eqs. 11-14).
+        weighting: per-feature noise variances (eqs. 11-14), ``weighting(WeightingInputs) -> Variances``.
         backend: the pose estimator (fusion EKF or a registration baseline), :class:`PoseBackend`.
         reselect: the model stage (:class:`~torchtrack.pipeline.reselect.Reselection`): its region of interest and
             spatio-textural selection (eq. 9) take a model's features; when too few survive it takes a new one, and
@@ -58,14 +55,13 @@ class Tracker:
             one): a model frame, or a tracked frame every ``keyframes.every`` frames, with a trusted pose becomes a
             keyframe; the landmarks and the relocaliser attach their content to it.
         landmarks: improvement (None = paper): model points that outlive their model
-            (:class:`~torchtrack.pipeline.landmarks.LandmarkMap`), the model keyframes' features: at a re-selection (and
-            every ``landmarks.every`` frames when > 0) the visible landmarks are re-tracked from their keyframe and
-            join the model at their ORIGINAL world positions, after the survivors and before new features; with
-            ``landmarks.correct`` the camera pose is first re-fitted to them by moving the model frame in the world.
+            (:class:`~torchtrack.pipeline.landmarks.LandmarkMap`): at a re-selection the visible landmarks of the
+            keyframes are re-tracked and join the new model at their ORIGINAL world positions, after the survivors and
+            before new features; with ``landmarks.correct`` the camera the new model is anchored at is first re-fitted
+            to them.
         relocaliser: improvement (None = no loss check): after each frame, the loss check
-            (:class:`~torchtrack.pipeline.relocalise.Relocaliser`) against the keyframes' ORB descriptors; its
-            :class:`Relocalisation` decision is applied here: the relocalised sequences take a new model at the
-            found camera pose.
+            (:class:`~torchtrack.pipeline.relocalise.Relocaliser`) against the keyframes' ORB descriptors; the
+            relocalised sequences take a new model at the camera pose it found.
         predict_init: improvement (False = paper): each feature's LK starts where the model point projects under the
             constant-velocity prediction of the pose (``TrackerState.velocity``), not at its previous pixel: under
             fast motion the displacement left to LK is the prediction's error, not the whole motion.
@@ -73,9 +69,11 @@ class Tracker:
             ``StepResult.cues`` even when the weighting does not need them (for the observation cache). Poses are
             the same with and without; a weighting with ``needs_cues = True`` gets them in any case.
 
-    The tracker's model and last estimate live in one :class:`TrackerState`, ``self.state``, which only the tracker
-    writes; each stage keeps its own state (the back end its filter, the landmarks their keyframes, the relocaliser
-    its store). A back end's pose is moved through ``backend.reset`` / ``backend.set_pose`` only.
+    One owner per piece of state: the tracker's model and last estimate live in ``self.state``
+    (:class:`TrackerState`), which only :meth:`step` replaces; the back end owns the filter, the landmarks their
+    keyframes' features, the relocaliser its descriptors. The back end's pose moves by its ``step`` once per frame and
+    by ``reset`` where a new model is taken (:meth:`_new_model`, the one place that also places the model in the
+    world, ``T_world_obj``).
     """
 
     def __init__(
@@ -90,8 +88,8 @@ class Tracker:
         keyframes: KeyframeStore | None = None,
         landmarks: LandmarkMap | None = None,
         relocaliser: Relocaliser | None = None,
-        predict_init: bool = PipelineConfig.predict_init,
-        record: bool = PipelineConfig.record,
+        predict_init: bool = True,
+        record: bool = False,
     ) -> None:
         self.frontend, self.flow, self.weighting, self.backend = frontend, flow, weighting, backend
         self.reselect = reselect
@@ -112,56 +110,40 @@ class Tracker:
         return self.record or bool(getattr(self.weighting, "needs_cues", False))
 
     def step(self, frame: FrameBatch) -> StepResult:
-        """One frame of every sequence (paper §III), then the relocaliser's loss check and its decision, then the
-        keyframe the frame may become."""
-        n_prev = self.state.valid.sum(1) if self.state.valid is not None else None
-        cur = self.frontend(frame)  # depth in the colour camera, SIM (eq. 8), LK pyramids
-        res = self._track(frame, cur) if self.state.started else self._start(frame, cur)
-        trusted = frame.active
-        if self.relocaliser is not None:
-            decision = self.relocaliser.check(self.keyframes, frame, cur, res, n_prev)
-            if decision.relocalised.any():
-                res = self._relocalised(frame, cur, res, decision)
-            res, trusted = replace(res, loss=decision.loss), trusted & self.relocaliser.trusted(decision)
+        """One frame of every sequence, in the paper's order (§III)."""
+        s = self.state
+        cur = self.frontend(frame)  # prepare: depth in the colour camera, SIM (eq. 8), LK pyramids
+        measure = Measure(cur.depth, frame.K, frame.T_color_depth)  # a pixel's 3D point X_d, eq. (6)
+        if not s.started:
+            res = self._start(frame, cur, measure)
+        else:
+            track = self._tracked(s, frame, cur)  # LK on intensity and on the SIM, the TIM check, eq. (10)
+            points_d, has_depth = measure(track.points)  # eq. (6)
+            valid = track.valid & has_depth & frame.active[:, None]
+            cues = self._cues(s, cur, track, points_d, valid) if self.wants_cues else None
+            var = self.weighting(WeightingInputs(track.d_tim, points_d[..., 2], points_d, valid, frame.K_depth[:, 0, 0],
+                                                 cues=cues))  # eqs. (11)-(14)  # fmt: skip
+            obs = Observation(_dt(frame, s).to(points_d.dtype), s.points_obj, points_d, track.points, valid, frame.K,
+                              frame.T_color_depth)  # fmt: skip
+            est = self.backend.step(obs, var, active=frame.active)  # eqs. (2)-(7), (15)
+            tracked = self._advanced(s, frame, cur, track.points, valid, est.T_cam_obj.double(), points_d, var)
+            reselect = self.reselect.needed(tracked.valid, tracked.n_model, frame.active)  # too few survive
+            self.state, model = self._reselected(tracked, frame, cur, measure, reselect)  # §III-B
+            res = _result(tracked, track.winner, track.d_tim, reselect, observation=obs, variances=var, cues=cues,
+                          model_T_cam_obj=model, estimate=est)  # fmt: skip
+        res, trusted = self._loss_check(frame, cur, measure, res, s)
         self._keyframe(frame, cur, self.keyframes.due(res.reselected, frame.active) & trusted, res.reselected)
         return res
 
-    def _track(self, frame: FrameBatch, cur: PreparedFrame) -> StepResult:
-        """One frame after the first: track, weight, update, drop outliers, re-acquire landmarks, re-select."""
-        s, with_cues = self.state, self.wants_cues
-        dt = (frame.timestamp - s.timestamp).double().clamp_min(1e-3)
-        init = self._predicted_pixels(s, frame, dt) if self.predict_init else None
-        track = self.flow(s.prev.flow, cur.flow, s.pixels, s.valid, **_flow_args(with_cues, init))  # eq. (10)
-        points_d, has_depth = measure_points(cur.depth, frame.K, frame.T_color_depth, track.points)  # X_d, eq. (6)
-        valid = track.valid & has_depth & frame.active[:, None]
-        cues = self._cues(s, cur, track, points_d, valid) if with_cues else None
-        inputs = WeightingInputs(track.d_tim, points_d[..., 2], points_d, valid, frame.K_depth[:, 0, 0], cues=cues)
-        var = self.weighting(inputs)  # eqs. (11)-(14)
-        obs = Observation(
-            dt.to(points_d.dtype), s.points_obj, points_d, track.points, valid, frame.K, frame.T_color_depth
-        )
-        # with ``landmarks.measure`` a re-selection redoes this update with the re-acquired landmarks as more features
-        # of the frame (:func:`~torchtrack.estimators.landmark_update.joint_update`): keep what it started from
-        joint = self.landmarks is not None and self.landmarks.measure and self.backend.fuses
-        before = self.backend.snapshot() if joint else None
-        est = self.backend.step(obs, var, active=frame.active)  # eqs. (2)-(7), (15)
-        fusion = FrameFusion(before, obs, var, frame.active) if joint else None
-        if self.landmarks is not None:  # this frame's noise level: the landmarks' (nothing else reads it)
-            s = replace(s, mean_var=mean_variances(var, valid))
-        tracked = self._advanced(s, frame, cur, track.points, valid, est.T_cam_obj.double(), points_d, var)
-        winner, d_tim = track.winner, track.d_tim
-        if self.landmarks is not None and self.landmarks.every > 0:  # every k frames: landmarks back into the model
-            tracked, order = self._reanchored(tracked, frame, cur)
-            if order is not None:  # the features were re-ordered and joined by landmarks: so are their outputs
-                winner, d_tim = _gather_padded(winner, order, -1), _gather_padded(d_tim, order, 0.0)
-        reselect = self.reselect.needed(tracked.valid, tracked.n_model, frame.active)
-        self.state, model_T_cam_obj = tracked, None
-        if reselect.any():  # §III re-selection
-            self.state, model_T_cam_obj = self._new_model(tracked, frame, cur, reselect, fusion)
-        extra = dict(observation=obs, variances=var, cues=cues, model_T_cam_obj=model_T_cam_obj, estimate=est)
-        return _result(tracked, winner, d_tim, reselect, **extra)  # the frame as tracked
-
     # ---------------------------------------------------------------------------------------------- per frame
+    def _tracked(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame) -> TrackResult:
+        """The model's features tracked from the previous frame into ``cur`` (eq. 10), LK started at their previous
+        pixels or (``predict_init``) at the model points' projections under the predicted pose."""
+        args = dict(with_residual=True) if self.wants_cues else {}  # the LK residual is a cue
+        if self.predict_init:
+            args["init"] = self._predicted_pixels(s, frame, _dt(frame, s))
+        return self.flow(s.prev.flow, cur.flow, s.pixels, s.valid, **args)
+
     @staticmethod
     def _predicted_pixels(s: TrackerState, frame: FrameBatch, dt: Tensor) -> Tensor:
         """(B, N, 2) colour pixels of the model points under the constant-velocity pose prediction over ``dt`` (B,)
@@ -194,62 +176,55 @@ class Tracker:
     def _advanced(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, pixels: Tensor, valid: Tensor,
                   T_cam_obj: Tensor, points_d: Tensor, var: Variances) -> TrackerState:  # fmt: skip
         """The state after this frame's update: the new pose (ended sequences keep theirs) and tracks, one frame
-        older; features that do not fit the pose dropped (the outlier stage); with ``reselect.point_mean`` the kept
-        features' depth samples ``points_d`` (B, N, 3) with the weighting's variances ``var`` fused into their model
-        points' estimates (with ``frame``: the model points are now those)."""
+        older; features that do not fit the pose dropped (eq. 16, the outlier stage); with ``reselect.point_mean`` the
+        kept features' depth samples ``points_d`` (B, N, 3) fused into their model points' estimates."""
         T_cam_obj = torch.where(frame.active[:, None, None], T_cam_obj, s.T_cam_obj)
-        dt = (frame.timestamp - s.timestamp).double().clamp_min(1e-3)
-        velocity = se3_log(T_cam_obj @ T_inv(s.T_cam_obj)) / dt[:, None]  # the motion of this frame, per second
+        velocity = se3_log(T_cam_obj @ T_inv(s.T_cam_obj)) / _dt(frame, s)[:, None]  # this frame's motion, per second
         velocity = torch.where(frame.active[:, None], velocity, s.velocity)
         residuals = feature_residuals(frame.K, frame.T_color_depth, T_cam_obj, s.points_obj, pixels, valid)  # eq. (16)
         s = replace(s, prev=cur, timestamp=frame.timestamp, pixels=pixels, valid=self.outliers(residuals, valid),
                     age=s.age + 1, residuals=residuals, T_cam_obj=T_cam_obj, velocity=velocity)  # fmt: skip
         if not self.reselect.estimates_points:
             return s
-        est = self.reselect.fused(PointEstimate(s.points_mean, s.points_info), T_cam_obj, points_d, var.var_xyz,
-                                  var.var_pix, frame.K_depth[:, 0, 0], s.valid)  # fmt: skip
-        frame_mean = self.reselect.point_mean == "frame"
-        return replace(s, points_mean=est.mean, points_info=est.info,
-                       points_obj=est.mean.to(s.points_obj.dtype) if frame_mean else s.points_obj)  # fmt: skip
+        est = PointEstimate(s.points_mean, s.points_info)
+        est = self.reselect.fused(est, T_cam_obj, points_d, var.var_xyz, s.valid)
+        return replace(s, points_mean=est.mean, points_info=est.info)
 
-    def _reanchored(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame) -> tuple[TrackerState, Tensor | None]:
-        """``s`` where the sequences ``landmarks.every`` frames past their last model or re-acquisition re-acquired
-        landmarks into the current model (no new model): the camera pose is re-fitted (``landmarks.correct``) by
-        moving the model frame in the world, ``T_world_obj``, so the filter's pose of the object is untouched; the
-        verified landmarks join the model at their ORIGINAL world positions, expressed in the (moved) model frame.
-        Also returns the new feature order (B, N') as indices into [the old N features, the re-acquired ones] (None:
-        nothing re-acquired, the order unchanged)."""
-        since = s.since_landmarks + frame.active.long()
-        mask = frame.active & (since >= self.landmarks.every)
-        if not mask.any():
-            return replace(s, since_landmarks=since), None
-        acq = self.landmarks.reacquire_into(self.keyframes, self.flow, cur, frame.K, frame.T_color_depth, s, s.valid,
-                                            mask)  # fmt: skip
-        found = acq.valid & mask[:, None]
-        T_world_obj = torch.where(mask[:, None, None], acq.T_world_depth @ s.T_cam_obj, s.T_world_obj)
-        points_obj = transform_points(T_inv(T_world_obj), acq.points_world).to(s.points_obj.dtype)
-        new = dict(pixels=acq.pixels.to(s.pixels.dtype), valid=found, points_obj=points_obj,
-                   age=torch.zeros_like(found, dtype=torch.long), cornerness=acq.cornerness.to(s.cornerness.dtype))  # fmt: skip
-        if s.points_mean is not None:  # model points as estimates: the landmarks' positions, not yet weighed
-            new |= dict(points_mean=points_obj.double(), points_info=s.points_info.new_zeros(*found.shape, 3, 3))
-        merged = {k: torch.cat([getattr(s, k), v], 1) for k, v in new.items()}
-        order = valid_first(merged["valid"], max(s.pixels.shape[1], int(merged["valid"].sum(1).max())))
-        rows = torch.arange(order.shape[0], device=order.device)[:, None]
-        merged = {k: v[rows, order] for k, v in merged.items()}
-        residuals = feature_residuals(frame.K, frame.T_color_depth, s.T_cam_obj, merged["points_obj"],
-                                      merged["pixels"], merged["valid"])  # fmt: skip
-        return replace(s, **merged, residuals=residuals, T_world_obj=T_world_obj, since_landmarks=torch.where(
-            mask, 0, since), reacquired_total=s.reacquired_total + found.sum(1)), order  # fmt: skip
+    def _loss_check(self, frame: FrameBatch, cur: PreparedFrame, measure: Measure, res: StepResult,
+                    before: TrackerState) -> tuple[StepResult, Tensor]:  # fmt: skip
+        """The relocaliser's loss check of this frame (``before``: the state the frame was tracked from) and its
+        decision applied: the relocalised sequences take the current frame as a new model at the camera pose it found
+        (their features followed the wrong motion, so none carries over, and the motion estimate restarts at zero).
+        Returns ``res`` with their new pose, and which sequences' poses are trusted (B,)."""
+        if self.relocaliser is None:
+            return res, frame.active
+        n_prev = before.valid.sum(1) if before.started else None
+        dec = self.relocaliser.check(self.keyframes, frame, cur, res, n_prev)
+        lost = dec.relocalised
+        if lost.any():
+            s = self.state
+            s = replace(s, valid=s.valid & ~lost[:, None], velocity=torch.where(lost[:, None], 0.0, s.velocity))
+            self.state, T_model = self._new_model(s, frame, cur, measure, lost, dec.T_world_depth.double())
+            m3 = lost[:, None, None]
+            model = T_model if res.model_T_cam_obj is None else torch.where(m3, T_model, res.model_T_cam_obj)
+            res = replace(res, T_world_depth=torch.where(m3, self.state.T_world_depth, res.T_world_depth),
+                          reselected=res.reselected | lost, model_T_cam_obj=model)  # fmt: skip
+        return replace(res, loss=dec.loss), frame.active & self.relocaliser.trusted(dec)
 
     # ---------------------------------------------------------------------------------------------- the model
-    def _start(self, frame: FrameBatch, cur: PreparedFrame) -> StepResult:
+    def _reselected(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, measure: Measure,
+                    mask: Tensor) -> tuple[TrackerState, Tensor | None]:  # fmt: skip
+        """``s`` after the sequences in ``mask`` (B,) took a new model (:meth:`_new_model`), and the pose the back end
+        was reset to; ``s`` and None where none did."""
+        return self._new_model(s, frame, cur, measure, mask) if mask.any() else (s, None)
+
+    def _start(self, frame: FrameBatch, cur: PreparedFrame, measure: Measure) -> StepResult:
         """First frame: every sequence takes it as its model; the world is the first camera."""
         B, dev = frame.rgb.shape[0], frame.rgb.device
         eye = torch.eye(4, dtype=torch.float64, device=dev).expand(B, 4, 4).clone()
         zero = torch.zeros(B, 6, dtype=torch.float64, device=dev)
-        count = torch.zeros(B, dtype=torch.long, device=dev)
         s = TrackerState(timestamp=frame.timestamp, T_cam_obj=eye, T_world_obj=eye.clone(), velocity=zero,
-                         since_landmarks=count, reacquired_total=count.clone())  # fmt: skip
+                         reacquired_total=torch.zeros(B, dtype=torch.long, device=dev))  # fmt: skip
         self.keyframes.reset(B, dev)
         self.backend.start()  # a tracker can run again: nothing of the last run carries over
         if self.landmarks is not None:
@@ -257,21 +232,21 @@ class Tracker:
         if self.relocaliser is not None:
             self.relocaliser.reset(B, self.keyframes.slots)
         everyone = torch.ones(B, dtype=torch.bool, device=dev)
-        self.state, model_T_cam_obj = self._new_model(s, frame, cur, everyone)
+        self.state, model_T_cam_obj = self._new_model(s, frame, cur, measure, everyone)
         return _result(self.state, None, None, everyone, model_T_cam_obj=model_T_cam_obj)
 
-    def _new_model(
-        self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, mask: Tensor, fusion: FrameFusion | None = None
-    ):
-        """The state ``s`` after the sequences in ``mask`` (B,) took the current frame as their model: the features
-        kept (survivors, re-acquired landmarks), then new PCM features (eq. 9), pose and chain; the back end starts
-        over there. Returns (the new state, the pose (B, 4, 4) the
-        back end was reset to, meaningful where ``mask``)."""
-        kept, n_found, s = self._kept(s, frame, cur, mask, fusion)  # may correct T_world_obj (the landmarks' re-fit)
-        roi = self.reselect.roi(cur.depth)
-        feats = self.reselect.select(cur.gray, cur.depth, frame.K, roi=roi, sim=cur.sim)  # eq. (9)
+    def _new_model(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, measure: Measure, mask: Tensor,
+                   T_world_depth: Tensor | None = None) -> tuple[TrackerState, Tensor]:  # fmt: skip
+        """§III re-selection: the state ``s`` after the sequences in ``mask`` (B,) took the current frame as their
+        model, anchored at the camera ``T_world_depth`` (B, 4, 4; default: the state's): the features it keeps
+        (survivors, re-acquired landmarks, which may correct that camera), then new features (eq. 9) away from them.
+        The model frame is the camera moved to the features' centroid; the back end starts over there. Returns (the
+        new state, the pose (B, 4, 4) the back end was reset to, meaningful where ``mask``)."""
+        T_world_depth = s.T_world_depth if T_world_depth is None else T_world_depth
+        kept, n_found, T_world_depth = self._anchors(s, cur, measure, mask, T_world_depth)
+        feats = self.reselect.select(cur.gray, cur.depth, frame.K, roi=self.reselect.roi(cur.depth), sim=cur.sim)
         pixels, cornerness = feats.pixels, torch.stack([feats.cornerness_int, feats.cornerness_sim], -1)
-        points_d, has_depth = measure_points(cur.depth, frame.K, frame.T_color_depth, pixels)
+        points_d, has_depth = measure(pixels)  # eq. (6)
         valid = feats.valid & has_depth
         age, info = torch.zeros_like(valid, dtype=torch.long), None
         if kept is not None:
@@ -281,7 +256,6 @@ class Tracker:
         centroid = masked_mean(points_d, valid.to(points_d.dtype))
         points_obj = torch.where(valid[..., None], points_d - centroid[:, None], torch.zeros_like(points_d))
         eye = torch.eye(3, dtype=torch.float64, device=centroid.device).expand(len(mask), 3, 3)
-        T_cam_obj = make_T(eye, centroid.double())
         new = dict(pixels=pixels, valid=valid, points_obj=points_obj, age=age, cornerness=cornerness)
         if self.reselect.estimates_points:  # the model frame is the camera's, moved: the information is not rotated
             if info is None:  # new points: the birth sample alone
@@ -290,31 +264,29 @@ class Tracker:
         if s.pixels is not None:  # selections differ in size: pad both to the larger N; old rows outside mask
             n = max(s.pixels.shape[1], valid.shape[1])
             new = {k: where_rows(mask, pad_to(v, n), pad_to(getattr(s, k), n)) for k, v in new.items()}
-        m3 = mask[:, None, None]
-        n_model = new["valid"].sum(1)
-        T_cam_obj = torch.where(m3, T_cam_obj, s.T_cam_obj)
-        state = replace(
+        m3, n_model = mask[:, None, None], new["valid"].sum(1)
+        T_cam_obj = torch.where(m3, make_T(eye, centroid.double()), s.T_cam_obj)
+        s = replace(
             s, prev=cur, **new, T_cam_obj=T_cam_obj,
-            T_world_obj=torch.where(m3, s.T_world_depth @ T_cam_obj, s.T_world_obj),
+            T_world_obj=torch.where(m3, T_world_depth @ T_cam_obj, s.T_world_obj),
             n_model=n_model if s.n_model is None else torch.where(mask, n_model, s.n_model),
+            reacquired_total=s.reacquired_total + (0 if n_found is None else n_found),
         )  # fmt: skip
-        residuals = feature_residuals(frame.K, frame.T_color_depth, T_cam_obj, state.points_obj, state.pixels,
-                                      state.valid)  # fmt: skip  # in the new layout: the next frame's prev_reproj cue
-        state = replace(state, residuals=residuals)
+        residuals = feature_residuals(frame.K, frame.T_color_depth, T_cam_obj, s.points_obj, s.pixels,
+                                      s.valid)  # fmt: skip  # in the new layout: the next frame's prev_reproj cue
         self.backend.reset(T_cam_obj, mask)
-        return replace(state, since_landmarks=torch.where(mask, 0, state.since_landmarks)), T_cam_obj
+        return replace(s, residuals=residuals), T_cam_obj
 
-    def _kept(
-        self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, mask: Tensor, fusion: FrameFusion | None = None
-    ):
-        """What a re-selection of the sequences in ``mask`` (B,) keeps before it selects new features, in the current
-        camera: the survivors (``reselect.keep_survivors``; their model points moved into the camera by the current
-        pose, so that the new model frame sees them where the old one did) and then the re-acquired landmarks (their
-        stored world positions moved into the camera by the camera pose, corrected first where the landmarks re-fit
-        it). Returns (the kept features or None on the first frame or with neither, the re-acquired count (B,) or None
-        without landmarks, ``s`` with the landmarks' correction of ``T_world_obj`` and count)."""
+    def _anchors(self, s: TrackerState, cur: PreparedFrame, measure: Measure, mask: Tensor,
+                 T_world_depth: Tensor) -> tuple[Kept | None, Tensor | None, Tensor]:  # fmt: skip
+        """What a new model of the sequences in ``mask`` (B,) keeps before it selects new features, in the current
+        camera ``T_world_depth`` (B, 4, 4): the survivors (``reselect.keep_survivors``; their model points moved into
+        the camera by the current pose, so that the new model frame sees them where the old one did) and then the
+        re-acquired landmarks (their stored world positions moved into the camera). Returns (the kept features, None
+        on the first frame or with neither; the re-acquired count (B,), None without landmarks; the camera, re-fitted
+        to the landmarks where ``landmarks.correct`` applies)."""
         if s.pixels is None or not (self.reselect.keep_survivors or self.landmarks is not None):
-            return None, None, s
+            return None, None, T_world_depth
         keep = self.reselect.survivors(s.valid, mask)
         if s.points_mean is None:
             kept = Kept(s.pixels, transform_points(s.T_cam_obj.float(), s.points_obj.float()), keep, s.age,
@@ -324,96 +296,36 @@ class Tracker:
             kept = Kept(s.pixels, transform_points(s.T_cam_obj, s.points_mean).float(), keep, s.age, s.cornerness,
                         R @ s.points_info @ R.transpose(-1, -2))  # fmt: skip
         if self.landmarks is None:
-            return kept, None, s
-        fused = fusion is not None and s.mean_var is not None  # the back end fuses them; else the re-fit (correct)
-        acq = self.landmarks.reacquire_into(self.keyframes, self.flow, cur, frame.K, frame.T_color_depth, s, keep, mask,
-                                            fused=fused)  # fmt: skip
-        if fused:  # the frame's update redone with the landmarks as more of its features (without a frame update to
-            # redo, a relocalisation's new model, or a back end that does not fuse: the re-fit above, ``correct``)
-            found = acq.valid & mask[:, None]
-            lm_var = landmark_variances(acq.points_cam, s.mean_var)
-            lm_obs = acq._replace(valid=found).observation(s.T_world_obj, fusion.obs.dt, frame.K, frame.T_color_depth)
-            upd = joint_update(self.backend, fusion, lm_obs, lm_var)
-            s = replace(s, T_cam_obj=torch.where(mask[:, None, None], upd.T_cam_obj.to(s.T_cam_obj.dtype), s.T_cam_obj))
-            acq = acq._replace(valid=acq.valid & (upd.used | ~upd.updated[:, None]), T_world_depth=s.T_world_depth)
-        if self.landmarks.refiner is not None and s.mean_var is not None:  # the keyframe window
-            s, acq = self._refined(s, acq, frame, cur, keep, mask)
-        T_world_depth = torch.where(mask[:, None, None], acq.T_world_depth, s.T_world_depth)
+            return kept, None, T_world_depth
+        world = transform_points(s.T_world_obj, s.points_obj.double())  # the kept features' prior in the re-fit
+        acq = self.landmarks.reacquire(self.keyframes, self.flow, cur, measure, T_world_depth, s.pixels, keep, mask,
+                                       tracked_world=world)  # fmt: skip
+        T_world_depth = torch.where(mask[:, None, None], acq.T_world_depth, T_world_depth)
         found = acq.valid & mask[:, None]
-        n_found = found.sum(1)
-        s = replace(s, T_world_obj=T_world_depth @ s.T_cam_obj, reacquired_total=s.reacquired_total + n_found)
         points = transform_points(T_inv(T_world_depth), acq.points_world).float()  # the ORIGINAL world positions
-        return kept.cat(Kept(acq.pixels, points, found, torch.zeros_like(found, dtype=torch.long), acq.cornerness)), \
-            n_found, s  # fmt: skip
-
-    def _refined(self, s: TrackerState, acq, frame: FrameBatch, cur: PreparedFrame, keep: Tensor, mask: Tensor):
-        """``s`` and ``acq`` after the keyframe window's refinement (:mod:`torchtrack.pipeline.landmark_window`): the
-        refined camera becomes the back end's pose (``set_pose``), the re-acquired landmarks take their refined
-        positions and inliers."""
-        v_pix, v_xyz = s.mean_var.unbind(1)
-        X_tr, has = measure_points(cur.depth, frame.K, frame.T_color_depth, s.pixels)
-        world = transform_points(s.T_world_obj, s.points_obj.double())
-        cov = self.backend.pose_covariance() if self.landmarks.window_prior else None
-        k = self.backend.measurement_scale()  # the window weighs the measurements by the filter's R: k R0
-        if k is not None:
-            v_pix, v_xyz = v_pix * k[:, 0].to(v_pix.dtype), v_xyz * k[:, 1].to(v_xyz.dtype)
-        ref = refine_at_reselection(self.landmarks, self.keyframes, self.landmarks.refiner, acq, s.pixels, keep & has,
-                                    X_tr, world, self.landmarks.survivor_ident, s.T_world_depth, v_pix, v_xyz, frame.K,
-                                    frame.T_color_depth, mask, self.landmarks.max_correction_m,
-                                    self.landmarks.max_correction_rad, camera_cov=cov,
-                                    xyz_scale=None if k is None else k[:, 1])  # fmt: skip
-        # projected onto SE(3): a product with T_world_obj's round-off, fed back through T_inv at every window, grew
-        # 7x per re-selection (a 0.4 m jump after ~20 windows on 7-Scenes)
-        T_cam_obj = torch.where(ref.used[:, None, None], rigid(T_inv(ref.T_world_depth) @ s.T_world_obj), s.T_cam_obj)
-        self.backend.set_pose(T_cam_obj, ref.used)
-        s = replace(s, T_cam_obj=T_cam_obj)
-        return s, acq._replace(points_world=ref.points_world, valid=ref.valid, T_world_depth=s.T_world_depth)
-
-    def _relocalised(self, frame: FrameBatch, cur: PreparedFrame, res: StepResult, dec: Relocalisation) -> StepResult:
-        """Apply the relocaliser's decision: the sequences it relocalised take the current frame as a new model at the
-        camera pose it found (its features are dropped first: they followed the wrong motion, so no survivor carries
-        over; the motion estimate restarts at zero, so the next frame's LK is not started along it). Returns ``res``
-        with their new pose."""
-        s, mask = self.state, dec.relocalised
-        m3 = mask[:, None, None]
-        T_world_obj = torch.where(m3, dec.T_world_depth.double() @ s.T_cam_obj, s.T_world_obj)
-        velocity = torch.where(mask[:, None], 0.0, s.velocity)  # the lost frame's motion was the wrong one
-        s = replace(s, valid=s.valid & ~mask[:, None], T_world_obj=T_world_obj, velocity=velocity)
-        self.backend.reset(s.T_cam_obj, mask)  # the lost filter's posterior is no prior of the new model (its window)
-        self.state, T_model = self._new_model(s, frame, cur, mask)
-        model = T_model if res.model_T_cam_obj is None else torch.where(m3, T_model, res.model_T_cam_obj)
-        return replace(
-            res, T_world_depth=torch.where(m3, self.state.T_world_depth, res.T_world_depth),
-            reselected=res.reselected | mask, model_T_cam_obj=model,
-        )  # fmt: skip
+        landmarks = Kept(acq.pixels, points, found, torch.zeros_like(found, dtype=torch.long), acq.cornerness)
+        return kept.cat(landmarks), found.sum(1), T_world_depth
 
     def _keyframe(self, frame: FrameBatch, cur: PreparedFrame, due: Tensor, reselected: Tensor) -> None:
         """The current frame of the sequences in ``due`` (B,) becomes a keyframe at the camera pose of the state (where
-        ``reselected`` (B,) a model keyframe, with the new model's features; the landmarks' re-fit included); the
-        landmarks (model keyframes) and the relocaliser (every keyframe) attach their content to it."""
+        ``reselected`` (B,) a model keyframe, with the new model's features); the landmarks (model keyframes) and the
+        relocaliser (every keyframe) attach their content to it."""
         if not due.any():
             return
         s = self.state
         slot = self.keyframes.add(frame.timestamp, s.T_world_depth, due, reselected)
         if self.landmarks is not None:  # a model keyframe's features are landmarks at their world positions
             world = transform_points(s.T_world_obj, s.points_obj.double())
-            model_slot = torch.where(reselected, slot, -1)
-            var_xyz = None if s.mean_var is None else s.mean_var[:, 1]  # the keyframe's (its window's) 3D variance
-            self.landmarks.add(self.keyframes, model_slot, cur, s.pixels, world, s.cornerness, s.valid, var_xyz)
+            self.landmarks.add(self.keyframes, torch.where(reselected, slot, -1), cur, s.pixels, world, s.cornerness,
+                               s.valid)  # fmt: skip
         if self.relocaliser is not None:
             self.relocaliser.add(slot, frame, cur, s.T_world_depth)
 
 
 # ---------------------------------------------------------------------------------------------- helpers
-def _flow_args(with_cues: bool, init: Tensor | None) -> dict:
-    args = dict(with_residual=True) if with_cues else {}  # the LK residual is a cue
-    return args if init is None else {**args, "init": init}
-
-
-def _gather_padded(x: Tensor, order: Tensor, fill: float) -> Tensor:
-    """(B, N') ``x`` (B, N) taken in ``order`` (B, N') of indices into x's features followed by new ones (``fill``)."""
-    extra = max(int(order.max()) + 1 - x.shape[1], 0) if order.numel() else 0
-    return torch.cat([x, x.new_full((x.shape[0], extra), fill)], 1).gather(1, order)
+def _dt(frame: FrameBatch, s: TrackerState) -> Tensor:
+    """(B,) float64 seconds since the previous frame (at least 1 ms: repeated time stamps)."""
+    return (frame.timestamp - s.timestamp).double().clamp_min(1e-3)
 
 
 def _result(s: TrackerState, winner: Tensor | None, d_tim: Tensor | None, reselected: Tensor, **extra) -> StepResult:
