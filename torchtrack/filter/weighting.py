@@ -84,9 +84,9 @@ def paper_variances(
         d_tim_floor: each d_TIM is floored at this many pixels; a perfectly re-matched feature
             (d_TIM = 0) would otherwise get zero variance, i.e. infinite weight (and all-zero d_TIM 0/0).
         dist_floor: floor (m) on ``||X_d,i - centroid||`` in eq. (13) for a feature at the centroid.
-        depth_var_exponent: 0 (default) is the paper. ``e > 0`` multiplies var_xyz by ``(z / depth_ref)^e``
+        depth_var_exponent: ``e > 0`` (default 4, an improvement) multiplies var_xyz by ``(z / depth_ref)^e``
             after eq. (14) — structured-light depth noise grows with depth (std ~ z^2 for the Kinect, i.e.
-            ``e = 4``); the mean is then no longer preserved.
+            ``e = 4``); the mean is then not preserved. 0 is the paper.
         depth_ref: reference depth (m) at which the nominal sigma2_xyz holds for that option.
 
     Returns:
