@@ -2,8 +2,11 @@
 
 The kernels (geometry, image, filter, estimators and the front end) are plain batched torch: importing them loads
 neither Hydra, OmegaConf, the config schemas nor the data readers (DESIGN.md, Architecture), so a researcher can use
-one on its own. The device audit is static (a CI machine has no second device): a tensor factory called without a
-``device`` puts its tensor on the CPU whatever the inputs' device, which breaks a run with the frames on a GPU.
+one on its own. Device: a tensor factory called without a ``device`` puts its tensor on the default device whatever
+the inputs' device, which breaks a run with the frames on a GPU. A CI machine has no second device, so it is checked
+twice: statically (the factories in the source) and at run time, with the default device set to ``meta`` while the
+stages run on CPU inputs: a tensor made without the inputs' device lands on ``meta`` and fails the first operation
+that mixes it with the inputs, or comes out on ``meta``.
 """
 
 from __future__ import annotations
@@ -15,6 +18,9 @@ import subprocess
 import sys
 from collections import Counter
 from pathlib import Path
+
+import pytest
+import torch
 
 import torchtrack
 
@@ -175,3 +181,79 @@ def test_tensors_are_created_on_the_inputs_device():
     assert new == {}, f"bare tensor factories (name the device): {new}"
     stale = {h: n for h, n in DEVICE_KNOWN.items() if found.get(h, 0) < n}
     assert stale == {}, f"fixed: lower or remove these rows of DEVICE_KNOWN: {stale}"
+
+
+def _frame(seed: int, H: int = 96, W: int = 128):
+    """A frame batch (B=2, duck-typed as the front end reads it): random colour, a bowl of depth (a defined SIM)."""
+    from types import SimpleNamespace
+
+    g = torch.Generator().manual_seed(seed)
+    yy, xx = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    depth = (1.0 + 1e-4 * ((xx - W / 2) ** 2 + (yy - H / 2) ** 2) + 0.01 * seed).expand(2, 1, H, W).clone()
+    K = torch.tensor([[100.0, 0, W / 2], [0, 100.0, H / 2], [0, 0, 1]]).expand(2, 3, 3)
+    rgb = torch.rand(2, 3, H, W, generator=g)
+    return SimpleNamespace(rgb=rgb, depth=depth, K=K, K_depth=K, T_color_depth=torch.eye(4).expand(2, 4, 4),
+                           gray=rgb.mean(1, keepdim=True))  # fmt: skip
+
+
+def _on_cpu(*results) -> None:
+    for r in results:
+        for x in r if isinstance(r, tuple) else (r,):
+            assert not isinstance(x, torch.Tensor) or x.device.type == "cpu", x.device
+
+
+@pytest.mark.parametrize("lk_backend", ["torch", "auto"])
+def test_front_end_makes_no_tensor_off_the_inputs_device(lk_backend):
+    """Preparation (registered and warped depth, SIM, pyramids), the object region, the selection and the combined
+    tracker with both LK implementations, run with stray factories sent to ``meta`` (module docstring)."""
+    from torchtrack.frontend import FrontEnd
+    from torchtrack.image.flow import combined_track
+    from torchtrack.image.object_model import object_mask
+    from torchtrack.image.select import select_features
+
+    f0, f1 = _frame(0), _frame(1)
+    f1.T_color_depth = f1.T_color_depth.clone()
+    f1.T_color_depth[:, 0, 3] = 0.01  # not registered: the depth is warped into the colour camera
+    front = FrontEnd(levels=2, sim_backend="torch" if lk_backend == "torch" else "auto")
+    with torch.device("meta"):
+        p0, p1 = front.prepare(f0), front.prepare(f1)
+        feats = select_features(p0.gray, p0.depth, f0.K, roi=object_mask(p0.depth), sim=p0.sim)
+        track = combined_track(p0.flow, p1.flow, feats.pixels, feats.valid, levels=2, lk_backend=lk_backend,
+                               with_residual=True)  # fmt: skip
+    _on_cpu(p1.gray, p1.depth, p1.sim, feats, track)
+    assert int(track.valid.sum()) > 0
+
+
+def test_filter_and_estimators_make_no_tensor_off_the_inputs_device():
+    """One fusion EKF frame (both state parametrisations), the paper's weighting and the three baselines, with stray
+    factories sent to ``meta`` (module docstring)."""
+    from torchtrack.estimators import CPDEstimator, HornEstimator, ICPEstimator
+    from torchtrack.filter import FusionEKF, PaperWeighting, WeightingInputs
+    from torchtrack.geometry import intrinsics_matrix, make_T, project, se3_exp, se3_log, so3_exp, transform_points
+
+    g = torch.Generator().manual_seed(0)
+    X = 0.1 * torch.randn(2, 30, 3, generator=g, dtype=torch.float64)
+    K = intrinsics_matrix(525.0, 525.0, 319.5, 239.5, dtype=torch.float64).expand(2, 3, 3)
+    T_cd = torch.eye(4, dtype=torch.float64).expand(2, 4, 4)
+    T = make_T(so3_exp(torch.tensor([[0.1, 0.2, -0.1], [0.0, -0.3, 0.2]], dtype=torch.float64)),
+               torch.tensor([[0.05, -0.02, 1.2], [-0.1, 0.05, 1.8]], dtype=torch.float64))  # fmt: skip
+    valid = torch.ones(2, 30, dtype=torch.bool)
+    dt = torch.full((2,), 1 / 30, dtype=torch.float64)
+    with torch.device("meta"):
+        points_d = transform_points(T, X)
+        pixels = project(K, points_d)
+        inputs = WeightingInputs(torch.rand(2, 30, generator=g, device="cpu"), points_d[..., 2], points_d, valid,
+                                 K[:, 0, 0])  # fmt: skip
+        var = PaperWeighting()(inputs)
+        out = []
+        for state in ("se3", "euler"):
+            ekf = FusionEKF(state=state)
+            prior = ekf.predicted(ekf.initial_state(T), dt)
+            update = ekf.updated(prior, X, points_d, pixels, valid, valid, var.var_xyz, var.var_pix, K, T_cd)
+            out.append(ekf.injected(prior, update))
+        fits = [
+            est(X, points_d, valid, T)
+            for est in (HornEstimator(), ICPEstimator(max_iters=3), CPDEstimator(max_iters=3))
+        ]
+        xi = se3_log(se3_exp(torch.zeros(2, 6, dtype=torch.float64, device="cpu")))
+    _on_cpu(var, *out, *fits, xi)
