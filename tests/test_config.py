@@ -24,7 +24,6 @@ from torchtrack.config import (
     PaperWeightingConfig,
     RegionConfig,
     RegistrationBackendConfig,
-    SelectConfig,
     validate,
 )
 from torchtrack.data.errors import DataError
@@ -38,7 +37,7 @@ from torchtrack.filter.weighting import FixedWeighting, PaperWeighting, Weightin
 from torchtrack.frontend import FrontEnd
 from torchtrack.image.flow import CombinedTracker, combined_track
 from torchtrack.image.object_model import ObjectRegion, object_mask
-from torchtrack.image.select import FeatureSelector, select_features
+from torchtrack.image.select import select_features
 from torchtrack.learn.checkpoint import save_checkpoint
 from torchtrack.learn.model import LearnedWeighting
 from torchtrack.mapping import PanoramaMapper
@@ -113,7 +112,6 @@ def test_paper_experiment_sets_the_paper_values():
 # The functions and classes each schema configures besides its ``_target_`` (the pure function behind a thin class, or
 # the reverse): their signatures read the schema's defaults too.
 PARTNERS = {
-    SelectConfig: ("torchtrack.image.select.FeatureSelector",),
     FlowConfig: ("torchtrack.image.flow.combined_track",),
     RegionConfig: ("torchtrack.image.object_model.object_mask",),
     PaperWeightingConfig: ("torchtrack.filter.weighting.paper_variances",),
@@ -251,7 +249,6 @@ def test_select_direct_equals_cli(cli):
     roi[..., 30:70, 40:100] = True  # a small region: roi_fraction (an improvement) shrinks the patches
     ours = cli.reselect.select(gray, depth, K, roi=roi)
     assert _same(ours, select_features(gray, depth, K, roi=roi))
-    assert _same(ours, FeatureSelector()(gray, depth, K, roi=roi))
     assert not _same(ours, select_features(gray, depth, K, roi=roi, roi_fraction=None))  # the paper's differs
 
 

@@ -105,6 +105,19 @@ def test_quaternion_round_trip_and_sign_invariance():
         quat_xyzw_to_matrix(torch.zeros(3))
 
 
+def test_quaternion_of_half_turns_and_unbatched_input():
+    """Trace -1 (half turns: every branch of Shepperd's method) gives the axis itself as quaternion (w = 0, up to
+    the sign), and a single (3, 3) matrix converts without a batch dimension, in float32 too."""
+    axes = torch.tensor([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [0, -1, 1]], dtype=torch.float64)
+    axes = axes / axes.norm(dim=-1, keepdim=True)
+    q = matrix_to_quat_xyzw(so3_exp(math.pi * axes))
+    torch.testing.assert_close(q[:, 3], torch.zeros(5, dtype=torch.float64), atol=1e-12, rtol=0)
+    torch.testing.assert_close((q[:, :3] * axes).sum(-1).abs(), torch.ones(5, dtype=torch.float64))
+    R = so3_exp(torch.tensor([0.3, -0.2, 0.1]))
+    torch.testing.assert_close(quat_xyzw_to_matrix(matrix_to_quat_xyzw(R)), R)
+    assert matrix_to_quat_xyzw(R).shape == (4,)
+
+
 def test_rotation_angle_matches_axis_angle_norm():
     w = random_axis_angle(50)
     torch.testing.assert_close(rotation_angle(so3_exp(w)), w.norm(dim=-1), atol=1e-9, rtol=0)

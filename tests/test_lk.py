@@ -223,11 +223,11 @@ def test_batched_equals_looped_and_pyramids_equal_tensors():
 
 def test_float64_index_arithmetic_for_large_buffers(monkeypatch):
     """Buffers of 2^24 elements and more index in float64 (float32 is exact below): same tracks."""
-    import torchtrack.image.lk as lk
+    import torchtrack.image.lk_window as lk_window
 
     i0, i1, pts, _ = warped_pair(np.eye(2), np.array([0.8, -1.9]), n=40)
     ref = pyramidal_lk(i0, i1, pts, backend="torch")  # the reference's sampler (the operator indexes in int64)
-    monkeypatch.setattr(lk, "_EXACT_F32", 16)
+    monkeypatch.setattr(lk_window, "_EXACT_F32", 16)
     out = pyramidal_lk(i0, i1, pts, backend="torch")
     torch.testing.assert_close(out.points, ref.points, atol=1e-5, rtol=0)
     assert (out.status == ref.status).all()

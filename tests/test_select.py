@@ -15,7 +15,6 @@ from torchtrack.geometry import backproject
 from torchtrack.image.corners import harris
 from torchtrack.image.select import (
     Features,
-    FeatureSelector,
     cornerness_maps,
     patch_shape,
     roi_patch_size,
@@ -247,10 +246,14 @@ def test_batched_equals_looped_no_spread():
     assert_batched_equals_looped(gray, depth, K, lam=0.7, spread=False, max_features=60)
 
 
-def test_module_equals_function():
+def test_list_arguments_equal_tuples():
+    """The pipeline binds select_features with Hydra's ``_partial_``, which passes patch_size and grid as lists."""
     gray, depth, K = synthetic_frame(9)
-    out = FeatureSelector(lam=0.3, patch_size=[20, 24], border=5, roi_fraction=None)(gray, depth, K)
+    out = select_features(gray, depth, K, lam=0.3, patch_size=[20, 24], border=5, roi_fraction=None)
     ref = select_features(gray, depth, K, lam=0.3, patch_size=(20, 24), border=5, roi_fraction=None)
+    assert all(torch.equal(a, b) for a, b in zip(out, ref, strict=True))
+    out = select_features(gray, depth, K, grid=[6, 8], border=5, roi_fraction=None)
+    ref = select_features(gray, depth, K, grid=(6, 8), border=5, roi_fraction=None)
     assert all(torch.equal(a, b) for a, b in zip(out, ref, strict=True))
 
 

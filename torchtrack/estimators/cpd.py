@@ -19,7 +19,6 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.config import CPDConfig
 from torchtrack.estimators.base import (
     augment_targets,
     check_mask,
@@ -131,10 +130,10 @@ def cpd_rigid(
     valid_dst: Tensor,
     T_init: Tensor,
     *,
-    w: float = CPDConfig.w,
-    max_iters: int = CPDConfig.max_iters,
-    tol: float = CPDConfig.tol,
-    scale: bool = CPDConfig.scale,
+    w: float = 0.0,
+    max_iters: int = 100,
+    tol: float = 1.0e-5,
+    scale: bool = False,
 ) -> CPDResult:
     """Rigid CPD of ``src`` (B, N, 3) onto ``dst`` (B, M, 3) starting at ``T_init`` (B, 4, 4): ``dst ≈ s R src + t``.
 
@@ -202,10 +201,10 @@ class CPDEstimator:
 
     def __init__(
         self,
-        w: float = CPDConfig.w,
-        max_iters: int = CPDConfig.max_iters,
-        tol: float = CPDConfig.tol,
-        scale: bool = CPDConfig.scale,
+        w: float = 0.0,
+        max_iters: int = 100,
+        tol: float = 1.0e-5,
+        scale: bool = False,
     ) -> None:
         self.w, self.max_iters, self.tol, self.scale = w, max_iters, tol, scale
 

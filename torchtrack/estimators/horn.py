@@ -13,7 +13,6 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchtrack.config import HornConfig
 from torchtrack.estimators.base import (
     RigidFit,
     check_mask,
@@ -105,7 +104,7 @@ class HornEstimator:
     (or collinear) valid points. With ``use_weights`` the per-feature weights are used when given.
     """
 
-    def __init__(self, use_weights: bool = HornConfig.use_weights) -> None:
+    def __init__(self, use_weights: bool = True) -> None:
         self.use_weights = use_weights
 
     def __call__(

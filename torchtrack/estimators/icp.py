@@ -16,7 +16,6 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.config import ICPConfig
 from torchtrack.estimators.base import (
     augment_targets,
     check_mask,
@@ -72,9 +71,9 @@ def icp(
     valid_dst: Tensor,
     T_init: Tensor,
     *,
-    max_iters: int = ICPConfig.max_iters,
-    tol: float = ICPConfig.tol,
-    max_corr_dist: float | None = ICPConfig.max_corr_dist,
+    max_iters: int = 50,
+    tol: float = 1.0e-6,
+    max_corr_dist: float | None = None,
 ) -> ICPResult:
     """Align ``src`` (B, N, 3) onto ``dst`` (B, M, 3), unknown correspondences, starting at ``T_init`` (B, 4, 4).
 
@@ -143,9 +142,9 @@ class ICPEstimator:
 
     def __init__(
         self,
-        max_iters: int = ICPConfig.max_iters,
-        tol: float = ICPConfig.tol,
-        max_corr_dist: float | None = ICPConfig.max_corr_dist,
+        max_iters: int = 50,
+        tol: float = 1.0e-6,
+        max_corr_dist: float | None = None,
     ) -> None:
         self.max_iters, self.tol, self.max_corr_dist = max_iters, tol, max_corr_dist
 

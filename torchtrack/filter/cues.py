@@ -69,7 +69,9 @@ def check_cue_names(names, version: int, where: str) -> None:
 
 DEPTH_WINDOW = 5  # px, side of the window of depth_step and depth_holes
 LK_WINDOW = 21  # px, the window of lk_min_eig: the default LK window (FlowConfig.window), fixed as part of the cue
-_SCHARR = torch.tensor([[-3.0, 0.0, 3.0], [-10.0, 0.0, 10.0], [-3.0, 0.0, 3.0]]) / 32.0  # d/dx per pixel
+_SCHARR = (
+    torch.tensor([[-3.0, 0.0, 3.0], [-10.0, 0.0, 10.0], [-3.0, 0.0, 3.0]], device="cpu") / 32.0
+)  # d/dx per px; .to(win) at use
 
 
 class WindowCues(NamedTuple):

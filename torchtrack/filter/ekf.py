@@ -80,13 +80,13 @@ def chi2_quantile(p: float, k: int) -> float:
         raise ValueError(f"chi2_quantile: need 0 < p < 1 and k >= 1, got p={p}, k={k}")
     if k == 2:
         return -2.0 * math.log1p(-p)
-    a = torch.tensor(k / 2.0, dtype=torch.float64)
+    a = torch.tensor(k / 2.0, dtype=torch.float64, device="cpu")  # host arithmetic for a Python float
     lo, hi = 0.0, float(k)
-    while float(torch.special.gammainc(a, torch.tensor(hi / 2.0, dtype=torch.float64))) < p:
+    while float(torch.special.gammainc(a, torch.tensor(hi / 2.0, dtype=torch.float64, device="cpu"))) < p:
         hi *= 2.0
     for _ in range(200):
         mid = 0.5 * (lo + hi)
-        if float(torch.special.gammainc(a, torch.tensor(mid / 2.0, dtype=torch.float64))) < p:
+        if float(torch.special.gammainc(a, torch.tensor(mid / 2.0, dtype=torch.float64, device="cpu"))) < p:
             lo = mid
         else:
             hi = mid

@@ -22,7 +22,6 @@ from typing import Literal, NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.config import FilterConfig
 from torchtrack.filter import ekf, error_state
 from torchtrack.filter.models import (
     STATE_SIZE,
@@ -190,16 +189,16 @@ class FusionEKF:
 
     def __init__(
         self,
-        sigma_ang_acc: float = FilterConfig.sigma_ang_acc,
-        sigma_lin_acc: float = FilterConfig.sigma_lin_acc,
-        init_sigma_angle: float = FilterConfig.init_sigma_angle,
-        init_sigma_trans: float = FilterConfig.init_sigma_trans,
-        init_sigma_ang_vel: float = FilterConfig.init_sigma_ang_vel,
-        init_sigma_lin_vel: float = FilterConfig.init_sigma_lin_vel,
-        iterations: int = FilterConfig.iterations,
-        form: Literal["information", "gain"] = FilterConfig.form,
-        jacobian: JacobianMode = FilterConfig.jacobian,
-        state: StateMode = FilterConfig.state,
+        sigma_ang_acc: float = 3.0,
+        sigma_lin_acc: float = 2.0,
+        init_sigma_angle: float = 0.001,
+        init_sigma_trans: float = 0.001,
+        init_sigma_ang_vel: float = 1.0,
+        init_sigma_lin_vel: float = 0.5,
+        iterations: int = 1,
+        form: Literal["information", "gain"] = "information",
+        jacobian: JacobianMode = "analytic",
+        state: StateMode = "se3",
         dtype: torch.dtype = torch.float64,
     ) -> None:
         if form not in ("information", "gain") or jacobian not in ("forward", "reverse", "analytic"):
@@ -210,7 +209,7 @@ class FusionEKF:
             raise ValueError("FusionEKF: iterations must be >= 1")
         self.sigma_ang_acc, self.sigma_lin_acc = sigma_ang_acc, sigma_lin_acc
         init_std = [init_sigma_angle] * 3 + [init_sigma_trans] * 3 + [init_sigma_ang_vel] * 3 + [init_sigma_lin_vel] * 3
-        self.init_var = torch.tensor(init_std, dtype=dtype) ** 2
+        self.init_var = torch.tensor(init_std, dtype=dtype, device="cpu") ** 2  # moved to each pose's device
         self.iterations, self.form, self.jacobian, self.state, self.dtype = iterations, form, jacobian, state, dtype
 
     @property
@@ -233,20 +232,18 @@ class FusionEKF:
         P0 = torch.diag_embed(self.init_var.to(T.device).expand(B, STATE_SIZE))
         return FilterState(x0, P0, T)
 
-    def predicted(self, state: FilterState, dt: Tensor, process_scale: Tensor | None = None) -> FilterState:
-        """Constant-velocity prediction, eqs. (3)-(4), over ``dt`` (B,) seconds. ``process_scale`` (B, 2) [angular,
-        linear] (optional, :mod:`~torchtrack.filter.process_scale`): Q's angular and linear blocks times these
-        factors, i.e. accelerations of std ``sqrt(c) sigma``."""
+    def predicted(self, state: FilterState, dt: Tensor) -> FilterState:
+        """Constant-velocity prediction, eqs. (3)-(4), over ``dt`` (B,) seconds."""
         if dt.shape != (state.mean.shape[0],):
             raise ValueError(f"predict: dt must be ({state.mean.shape[0]},), got {tuple(dt.shape)}")
         dt = dt.to(self.dtype)
         if self.euler:
             F, Q = constant_velocity(dt, self.sigma_ang_acc, self.sigma_lin_acc)
-            mean, cov = ekf.predict(state.mean, state.cov, F, _scaled_q(Q, process_scale))
+            mean, cov = ekf.predict(state.mean, state.cov, F, Q)
             return FilterState(mean, cov, state_to_pose(mean))
         F, Q = error_state.transition(dt, state.mean[:, 6:9], self.sigma_ang_acc, self.sigma_lin_acc)
         # the error's mean stays [0, v]: the nominal moves
-        _, cov = ekf.predict(state.mean, state.cov, F, _scaled_q(Q, process_scale))
+        _, cov = ekf.predict(state.mean, state.cov, F, Q)
         return FilterState(
             state.mean, cov, error_state.predict_nominal(state.T_cam_obj, state.mean[:, 6:], dt, F[:, :3, :3])
         )
@@ -300,15 +297,3 @@ class FusionEKF:
 
     def _nominal(self, state: FilterState) -> Tensor | None:
         return None if self.euler else state.T_cam_obj
-
-
-_BLOCK_OF_ROW = (0, 0, 0, 1, 1, 1, 0, 0, 0, 1, 1, 1)  # angular (0) or linear (1) block of each of the 12 state rows
-
-
-def _scaled_q(Q: Tensor, process_scale: Tensor | None) -> Tensor:
-    """``Q`` (B, 12, 12) with its angular and linear blocks times ``process_scale`` (B, 2) (detached): Q couples only
-    rows of one block (an axis' pose with its velocity), so scaling the rows scales each block."""
-    if process_scale is None:
-        return Q
-    rows = process_scale.detach().to(Q.dtype)[:, list(_BLOCK_OF_ROW)]  # B,12
-    return Q * rows[:, :, None]

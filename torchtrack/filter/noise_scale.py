@@ -150,11 +150,8 @@ def winsorised_chi2_mean(dof: int, c: float) -> float:
     """``E[min(X, c)]`` for X ~ chi-square(dof): ``dof F_{dof+2}(c) + c (1 - F_dof(c))`` (F the chi-square CDF)."""
 
     def cdf(k: int) -> float:
-        return float(
-            torch.special.gammainc(
-                torch.tensor(k / 2.0, dtype=torch.float64), torch.tensor(c / 2.0, dtype=torch.float64)
-            )
-        )
+        a, x = (torch.tensor(v / 2.0, dtype=torch.float64, device="cpu") for v in (k, c))  # host: a Python float
+        return float(torch.special.gammainc(a, x))
 
     return dof * cdf(dof + 2) + c * (1.0 - cdf(dof))
 

@@ -16,8 +16,6 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.config import FixedWeightingConfig, PaperWeightingConfig
-
 
 class WeightingInputs(NamedTuple):
     """Per-feature quality cues of one frame.
@@ -73,10 +71,10 @@ def paper_variances(
     inp: WeightingInputs,
     sigma2_pix: float,
     sigma2_xyz: float,
-    d_tim_floor: float = PaperWeightingConfig.d_tim_floor,
-    dist_floor: float = PaperWeightingConfig.dist_floor,
-    depth_var_exponent: float = PaperWeightingConfig.depth_var_exponent,
-    depth_ref: float = PaperWeightingConfig.depth_ref,
+    d_tim_floor: float = 0.01,
+    dist_floor: float = 0.001,
+    depth_var_exponent: float = 4.0,
+    depth_ref: float = 1.0,
 ) -> Variances:
     """Eqs. (11)–(14), batched over B sequences with masks.
 
@@ -86,9 +84,9 @@ def paper_variances(
         d_tim_floor: each d_TIM is floored at this many pixels; a perfectly re-matched feature
             (d_TIM = 0) would otherwise get zero variance, i.e. infinite weight (and all-zero d_TIM 0/0).
         dist_floor: floor (m) on ``||X_d,i - centroid||`` in eq. (13) for a feature at the centroid.
-        depth_var_exponent: 0 (default) is the paper. ``e > 0`` multiplies var_xyz by ``(z / depth_ref)^e``
+        depth_var_exponent: ``e > 0`` (default 4, an improvement) multiplies var_xyz by ``(z / depth_ref)^e``
             after eq. (14) — structured-light depth noise grows with depth (std ~ z^2 for the Kinect, i.e.
-            ``e = 4``); the mean is then no longer preserved.
+            ``e = 4``); the mean is then not preserved. 0 is the paper.
         depth_ref: reference depth (m) at which the nominal sigma2_xyz holds for that option.
 
     Returns:
@@ -123,12 +121,12 @@ class PaperWeighting:
 
     def __init__(
         self,
-        sigma2_pix: float = PaperWeightingConfig.sigma2_pix,
-        sigma2_xyz: float = PaperWeightingConfig.sigma2_xyz,
-        d_tim_floor: float = PaperWeightingConfig.d_tim_floor,
-        dist_floor: float = PaperWeightingConfig.dist_floor,
-        depth_var_exponent: float = PaperWeightingConfig.depth_var_exponent,
-        depth_ref: float = PaperWeightingConfig.depth_ref,
+        sigma2_pix: float = 1.0,
+        sigma2_xyz: float = 4.0e-6,
+        d_tim_floor: float = 0.01,
+        dist_floor: float = 0.001,
+        depth_var_exponent: float = 4.0,
+        depth_ref: float = 1.0,
     ) -> None:
         if sigma2_pix <= 0 or sigma2_xyz <= 0 or d_tim_floor <= 0 or dist_floor <= 0 or depth_ref <= 0:
             raise ValueError("PaperWeighting: variances, floors and depth_ref must be > 0")
@@ -151,9 +149,7 @@ class PaperWeighting:
 class FixedWeighting:
     """Constant variances for every feature: the paper's EKF-3 ablation (no weighting)."""
 
-    def __init__(
-        self, sigma2_pix: float = FixedWeightingConfig.sigma2_pix, sigma2_xyz: float = FixedWeightingConfig.sigma2_xyz
-    ) -> None:
+    def __init__(self, sigma2_pix: float = 1.0, sigma2_xyz: float = 1.0e-4) -> None:
         if sigma2_pix <= 0 or sigma2_xyz <= 0:
             raise ValueError("FixedWeighting: variances must be > 0")
         self.sigma2_pix, self.sigma2_xyz = sigma2_pix, sigma2_xyz

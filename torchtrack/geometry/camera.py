@@ -10,9 +10,16 @@ import torch
 from torch import Tensor
 
 
-def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float, dtype=torch.float32) -> Tensor:
+def intrinsics_matrix(
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str | None = None,
+) -> Tensor:
     """(3, 3) pinhole matrix."""
-    return torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=dtype)
+    return torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=dtype, device=device)
 
 
 def project(K: Tensor, points: Tensor) -> Tensor:

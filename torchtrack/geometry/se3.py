@@ -53,6 +53,10 @@ def transform_points(T: Tensor, points: Tensor) -> Tensor:
 
 _V_matrix = so3_left_jacobian  # SE(3)'s V is SO(3)'s left Jacobian
 
+# se3_exp and se3_log are hand-written, not kornia.geometry.liegroup.Se3's exp/log (same values to 1e-16 in float64):
+# Se3 wraps a quaternion and an object per call and measures 2-3x slower on 4x4 matrices, on the tracker's per-frame
+# prediction and velocity.
+
 
 def se3_exp(xi: Tensor) -> Tensor:
     """Twist (..., 6) = (v, omega) -> transform (..., 4, 4)."""

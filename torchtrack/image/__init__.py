@@ -21,7 +21,6 @@ from torchtrack.image.pyramid import Pyramid, build_pyramid
 from torchtrack.image.select import (
     CornernessMaps,
     Features,
-    FeatureSelector,
     cornerness_maps,
     patch_shape,
     select_features,
@@ -29,7 +28,7 @@ from torchtrack.image.select import (
 from torchtrack.image.shape_index import SIM, ShapeIndex, ShapeIndexMap, compute_sim, shape_index, sim_image
 
 __all__ = [
-    "PCM", "SIM", "CombinedTracker", "CornerDetector", "CornernessMaps", "FeatureSelector", "Features",
+    "PCM", "SIM", "CombinedTracker", "CornerDetector", "CornernessMaps", "Features",
     "FlowFrame", "LKResult", "ObjectRegion", "Pyramid", "ShapeIndex", "ShapeIndexMap", "TrackResult",
     "build_pyramid", "combined_track", "compute_sim", "cornerness_maps", "depth_range", "feature_spread",
     "forward_backward", "harris", "keep_largest_component", "object_mask", "patch_shape", "point_cloud_model",

@@ -11,7 +11,8 @@ the two forward passes run as one batched LK call, and so do the two backward pa
 pyramid is the next call's template. ``backend="opencv"`` runs ``cv2.calcOpticalFlowPyrLK`` with the
 same parameters on the 8-bit images instead (a reference for comparisons).
 
-Defaults: every keyword's default is :class:`torchtrack.config.FlowConfig`'s (the CLI's), read from it by reference.
+Defaults are torchtrack's (the improvements on); the application's schema repeats them (``FlowConfig``), and
+tests/test_defaults.py holds the two equal.
 """
 
 from __future__ import annotations
@@ -24,7 +25,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchtrack.config import FlowConfig
 from torchtrack.image.lk import lk_track_flat, tim_error
 from torchtrack.image.pyramid import Pyramid, build_pyramid, layout
 
@@ -58,13 +58,11 @@ class FlowFrame:
         """Channel k of sequence b as an (H, W) uint8 image (for the OpenCV backend), cached."""
         if (k, b) not in self._u8:
             img = (self.images[k][b, 0] * 255.0).round().clamp(0, 255)
-            self._u8[(k, b)] = img.to(torch.uint8).numpy()
+            self._u8[(k, b)] = img.to(torch.uint8).cpu().numpy()
         return self._u8[(k, b)]
 
 
-def prepare_frame(
-    gray: Tensor, sim: Tensor | None = None, levels: int = FlowConfig.levels, *, max_window: int = 31
-) -> FlowFrame:
+def prepare_frame(gray: Tensor, sim: Tensor | None = None, levels: int = 3, *, max_window: int = 31) -> FlowFrame:
     """Prepare a frame for the combined tracker: build the intensity and SIM pyramids once.
 
     Args:
@@ -81,13 +79,13 @@ def prepare_frame(
     return FlowFrame(images, build_pyramid(images, levels, window=max_window))
 
 
-def zero_frame(images: tuple[Tensor, ...], levels: int = FlowConfig.levels, *, max_window: int = 31) -> FlowFrame:
+def zero_frame(images: tuple[Tensor, ...], levels: int = 3, *, max_window: int = 31) -> FlowFrame:
     """:func:`prepare_frame` of K (B, 1, H, W) images that are all zeros, without building: the pyramid of zero images
     is zeros, laid out as :func:`~torchtrack.image.pyramid.build_pyramid` lays out K * B images (the frame's
     ``images`` are ``images`` themselves). A buffer to copy other frames' pyramids into, image by image."""
     b, c, h, w = images[0].shape
     b *= len(images)
-    pad, sizes, heights, starts, row_start = layout(b, h, w, levels, max_window)
+    pad, sizes, heights, starts, row_start = layout(b, h, w, levels, max_window, images[0].device)
     with torch.inference_mode():
         buf = images[0].new_zeros(c, sum(heights) * b, w + 2 * pad, dtype=torch.float32)
         views = [buf[:, int(s0) : int(s0) + b * ht].view(c, b, ht, -1)[..., pad : pad + hl, pad : pad + wl].transpose(0, 1)
@@ -145,17 +143,17 @@ def _track_torch(
     (K, B, N[, 2]). The forward pass starts at ``init`` (B, N, 2) (default: points), the backward pass at its result
     minus the same prior displacement."""
     b, n = points.shape[:2]
-    k = len(channels)
-    image = torch.tensor(channels)[:, None, None] * b + torch.arange(b)[None, :, None]  # K,B,1
+    k, dev = len(channels), points.device
+    image = torch.tensor(channels, device=dev)[:, None, None] * b + torch.arange(b, device=dev)[None, :, None]  # K,B,1
     image = image.expand(k, b, n).reshape(-1)
     pts = points.float().expand(k, b, n, 2).reshape(-1, 2)
     sel = valid.expand(k, b, n).reshape(-1).nonzero().squeeze(1)
-    fwd_pts, status = pts.clone(), torch.zeros(pts.shape[0], dtype=torch.bool)
+    fwd_pts, status = pts.clone(), torch.zeros(pts.shape[0], dtype=torch.bool, device=dev)
     x0, img = pts[sel], image[sel]
     guess = x0 if init is None else init.float().expand(k, b, n, 2).reshape(-1, 2)[sel]
     x1, ok, res = lk_track_flat(prev.pyramid, next.pyramid, x0, img, guess, with_residual=with_residual, **lk_kwargs)
     fwd_pts[sel] = x1
-    residual = torch.zeros(pts.shape[0])
+    residual = pts.new_zeros(pts.shape[0])
     if with_residual:
         residual[sel] = res
     good = ok.nonzero().squeeze(1)
@@ -163,7 +161,7 @@ def _track_torch(
     back, ok_back, _ = lk_track_flat(  # template inverse matching: from the result back to prev
         next.pyramid, prev.pyramid, x1[good], img[good], back_guess, with_residual=False, **lk_kwargs
     )
-    d_tim = torch.full((pts.shape[0],), float("inf"))
+    d_tim = pts.new_full((pts.shape[0],), float("inf"))
     rows = sel[good]
     d_tim[rows], status[rows] = tim_error(x0[good], back, ok[good], ok_back)  # eq. (10)
     return fwd_pts.view(k, b, n, 2), status.view(k, b, n), d_tim.view(k, b, n), residual.view(k, b, n)
@@ -174,9 +172,12 @@ def _track_opencv(
 ):
     """The same with cv2.calcOpticalFlowPyrLK on uint8 images, looped over channels and sequences. The residual is
     OpenCV's ``err`` of the forward pass (mean absolute difference over the window, 0..255 units) divided by 255, the
-    torch back end's image units; ``with_residual`` does not change the work (OpenCV always computes it)."""
+    torch back end's image units; ``with_residual`` does not change the work (OpenCV always computes it). OpenCV
+    runs on the host: the results are moved to the points' device."""
     import cv2
 
+    dev, points, valid = points.device, points.cpu(), valid.cpu()
+    init = None if init is None else init.cpu()
     b, n = points.shape[:2]
     h, w = prev.images[0].shape[-2:]
     win = lk_kwargs["window"]
@@ -187,9 +188,9 @@ def _track_opencv(
         minEigThreshold=lk_kwargs["min_eig"],
     )
     fwd_pts = points.float().expand(len(channels), b, n, 2).clone()
-    status = torch.zeros(len(channels), b, n, dtype=torch.bool)
-    d_tim = torch.full((len(channels), b, n), float("inf"))
-    residual = torch.zeros(len(channels), b, n)
+    status = torch.zeros(len(channels), b, n, dtype=torch.bool, device="cpu")
+    d_tim = torch.full((len(channels), b, n), float("inf"), device="cpu")
+    residual = torch.zeros(len(channels), b, n, device="cpu")
     for i, k in enumerate(channels):
         for s in range(b):
             sel = valid[s].nonzero().squeeze(1)
@@ -211,7 +212,7 @@ def _track_opencv(
             fwd_pts[i, s, sel], status[i, s, sel], d_tim[i, s, sel] = x1t, ok, d
             if with_residual:
                 residual[i, s, sel] = torch.where(ok, torch.from_numpy(err.reshape(-1)) / 255.0, 0.0)
-    return fwd_pts, status, d_tim, residual
+    return fwd_pts.to(dev), status.to(dev), d_tim.to(dev), residual.to(dev)
 
 
 def combined_track(
@@ -220,19 +221,19 @@ def combined_track(
     points: Tensor,
     valid: Tensor | None = None,
     *,
-    mode: Mode = FlowConfig.mode,
-    tim_threshold: float = FlowConfig.tim_threshold,
-    window: int = FlowConfig.window,
-    levels: int = FlowConfig.levels,
-    iters: int = FlowConfig.iters,
-    eps: float = FlowConfig.eps,
-    min_eig: float = FlowConfig.min_eig,
-    ic_iters: int = FlowConfig.ic_iters,
-    backend: Literal["torch", "opencv"] = FlowConfig.backend,
-    policy: Literal["min_tim", "fallback"] = FlowConfig.policy,
+    mode: Mode = "combined",
+    tim_threshold: float = 1.0,
+    window: int = 21,
+    levels: int = 3,
+    iters: int = 30,
+    eps: float = 0.01,
+    min_eig: float = 1.0e-4,
+    ic_iters: int = 3,
+    backend: Literal["torch", "opencv"] = "torch",
+    policy: Literal["min_tim", "fallback"] = "fallback",
     with_residual: bool = False,
     init: Tensor | None = None,
-    lk_backend: Literal["auto", "cpp", "torch"] = FlowConfig.lk_backend,
+    lk_backend: Literal["auto", "cpp", "torch"] = "auto",
 ) -> TrackResult:
     """Track features from prev to next with the combined intensity + SIM tracker (§III-C, eq. (10)).
 
@@ -268,7 +269,8 @@ def combined_track(
         raise ValueError(f"combined_track: frames support window <= {prev.pyramid.max_window}, levels <= "
                          f"{prev.pyramid.levels}; got {window}, {levels}")  # fmt: skip
     b, n = points.shape[:2]
-    valid = torch.ones(b, n, dtype=torch.bool) if valid is None else valid.bool()
+    dev = points.device
+    valid = torch.ones(b, n, dtype=torch.bool, device=dev) if valid is None else valid.bool()
     if valid.shape != (b, n):
         raise ValueError(f"combined_track: valid must be {(b, n)}, got {tuple(valid.shape)}")
     if init is not None and init.shape != points.shape:
@@ -295,12 +297,12 @@ def combined_track(
     pick = (d_tim[-1] < d_tim[0]).long()  # step III: the tracker with the smaller d_TIM (ties: intensity)
     best = d_tim.gather(0, pick[None])[0]
     chosen = fwd.gather(0, pick[None, ..., None].expand(1, b, n, 2))[0]
-    winner = torch.tensor(channels)[pick]
+    winner = torch.tensor(channels, device=dev)[pick]
     residual = residual.gather(0, pick[None])[0]
     h, w = prev.images[0].shape[-2:]
     keep = valid & torch.isfinite(best) & (best <= tim_threshold) & _inside(chosen, h, w)  # step IV
     full = {c: (d_tim[i], status[i]) for i, c in enumerate(channels)}
-    none = (torch.full((b, n), float("inf")), torch.zeros(b, n, dtype=torch.bool))
+    none = (torch.full((b, n), float("inf"), device=dev), torch.zeros(b, n, dtype=torch.bool, device=dev))
     (d_int, st_int), (d_sim, st_sim) = full.get(0, none), full.get(1, none)
     points_out = torch.where(keep[..., None], chosen, points.float()).to(points.dtype)
     return TrackResult(points_out, keep, best, d_int, d_sim, winner, st_int, st_sim, residual)
@@ -312,17 +314,17 @@ class CombinedTracker:
 
     def __init__(
         self,
-        mode: Mode = FlowConfig.mode,
-        tim_threshold: float = FlowConfig.tim_threshold,
-        window: int = FlowConfig.window,
-        levels: int = FlowConfig.levels,
-        iters: int = FlowConfig.iters,
-        eps: float = FlowConfig.eps,
-        min_eig: float = FlowConfig.min_eig,
-        ic_iters: int = FlowConfig.ic_iters,
-        backend: Literal["torch", "opencv"] = FlowConfig.backend,
-        policy: Literal["min_tim", "fallback"] = FlowConfig.policy,
-        lk_backend: Literal["auto", "cpp", "torch"] = FlowConfig.lk_backend,
+        mode: Mode = "combined",
+        tim_threshold: float = 1.0,
+        window: int = 21,
+        levels: int = 3,
+        iters: int = 30,
+        eps: float = 0.01,
+        min_eig: float = 1.0e-4,
+        ic_iters: int = 3,
+        backend: Literal["torch", "opencv"] = "torch",
+        policy: Literal["min_tim", "fallback"] = "fallback",
+        lk_backend: Literal["auto", "cpp", "torch"] = "auto",
     ) -> None:
         if mode not in _CHANNELS or backend not in ("torch", "opencv"):
             raise ValueError(f"CombinedTracker: bad mode {mode!r} or backend {backend!r}")

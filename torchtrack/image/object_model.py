@@ -24,7 +24,6 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torchtrack.config import RegionConfig
 from torchtrack.geometry import backproject_depth, project
 
 
@@ -72,8 +71,9 @@ def depth_range(
     lo = torch.where(in_layer, bins, torch.full_like(bins, n_bins)).amin(1)
     hi = torch.where(in_layer, bins, torch.full_like(bins, -1)).amax(1)
     found = hi >= 0
-    near = torch.where(found, lo.to(depth.dtype) * bin_size, torch.zeros(B, dtype=depth.dtype))
-    far = torch.where(found, (hi + 1).to(depth.dtype) * bin_size, torch.zeros(B, dtype=depth.dtype))
+    zero = depth.new_zeros(B)
+    near = torch.where(found, lo.to(depth.dtype) * bin_size, zero)
+    far = torch.where(found, (hi + 1).to(depth.dtype) * bin_size, zero)
     return near, far
 
 
@@ -94,11 +94,11 @@ def keep_largest_component(mask: Tensor) -> Tensor:
 def object_mask(
     depth: Tensor,
     *,
-    near: float | Tensor | None = RegionConfig.near,
-    far: float | Tensor | None = RegionConfig.far,
-    largest_component: bool = RegionConfig.largest_component,
-    whole_frame: bool = RegionConfig.whole_frame,
-    erode_px: int = RegionConfig.erode_px,
+    near: float | Tensor | None = None,
+    far: float | Tensor | None = None,
+    largest_component: bool = False,
+    whole_frame: bool = False,
+    erode_px: int = 0,
     **range_kwargs,
 ) -> Tensor:
     """The object's pixels by depth thresholding: (B, 1, H, W) bool.
@@ -141,11 +141,11 @@ class ObjectRegion:
 
     def __init__(
         self,
-        near: float | None = RegionConfig.near,
-        far: float | None = RegionConfig.far,
-        largest_component: bool = RegionConfig.largest_component,
-        whole_frame: bool = RegionConfig.whole_frame,
-        erode_px: int = RegionConfig.erode_px,
+        near: float | None = None,
+        far: float | None = None,
+        largest_component: bool = False,
+        whole_frame: bool = False,
+        erode_px: int = 0,
         **range_kwargs,
     ) -> None:
         if erode_px < 0:

@@ -115,16 +115,17 @@ def _fill_border(block: Tensor, pad: int, h: int, w: int) -> None:
     block[..., wp:] = 0.0
 
 
-def layout(b: int, h: int, w: int, levels: int, window: int):
+def layout(b: int, h: int, w: int, levels: int, window: int, device: torch.device | str | None = None):
     """The buffer layout of the pyramid of b (h, w) images: (pad, level sizes [(H_l, W_l)], rows per image of each
-    level, first buffer row of each level (L,), row_start (L, b)); see :class:`Pyramid`."""
+    level, first buffer row of each level (L ints), row_start (L, b) int64 on ``device``); see :class:`Pyramid`."""
     pad = window // 2 + 3  # window + 1 px for bilinear weights + 1 px for gradients + 1 px slack
     sizes = [(h, w)]
     for _ in range(levels - 1):
         sizes.append(((sizes[-1][0] + 1) // 2, (sizes[-1][1] + 1) // 2))
     heights = [hl + 2 * pad for hl, _ in sizes]
-    starts = torch.tensor([0] + heights[:-1]).cumsum(0) * b  # first buffer row of each level
-    return pad, sizes, heights, starts, starts[:, None] + torch.arange(b)[None, :] * torch.tensor(heights)[:, None]
+    starts = [b * sum(heights[:level]) for level in range(levels)]  # first buffer row of each level
+    rows = [[s0 + i * ht for i in range(b)] for s0, ht in zip(starts, heights, strict=True)]
+    return pad, sizes, heights, starts, torch.tensor(rows, dtype=torch.int64, device=device)
 
 
 def build_pyramid(image: Tensor | Sequence[Tensor], levels: int, *, window: int = 21) -> Pyramid:
@@ -145,7 +146,7 @@ def build_pyramid(image: Tensor | Sequence[Tensor], levels: int, *, window: int 
     if levels < 1 or window < 3 or window % 2 == 0:
         raise ValueError(f"build_pyramid: need levels >= 1 and an odd window >= 3, got {levels}, {window}")
     b, (c, h, w) = sum(x.shape[0] for x in parts), parts[0].shape[1:]
-    pad, sizes, heights, starts, row_start = layout(b, h, w, levels, window)
+    pad, sizes, heights, starts, row_start = layout(b, h, w, levels, window, parts[0].device)
     with torch.inference_mode():
         buf = parts[0].new_empty(c, sum(heights) * b, w + 2 * pad)  # channel-major: (C, B, rows, S) per level
         images, prev = [], None

@@ -27,7 +27,8 @@ Only pixels with C > ``min_cornerness`` (default 0.05: a corner of about 5% of t
 frame's strong corners) are selected: a textureless patch gives no feature rather than an
 untrackable one.
 
-Defaults: every keyword's default is :class:`torchtrack.config.SelectConfig`'s (the CLI's), read from it by reference.
+Defaults are torchtrack's (the improvements on); the application's schema repeats them (``SelectConfig``), and
+tests/test_defaults.py holds the two equal.
 """
 
 from __future__ import annotations
@@ -39,7 +40,6 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from torchtrack.config import SelectConfig
 from torchtrack.geometry import backproject, sample_depth
 from torchtrack.image.corners import harris
 from torchtrack.image.shape_index import SIM, ShapeIndex, compute_sim, sim_image
@@ -81,9 +81,7 @@ class CornernessMaps(NamedTuple):
     eligible: Tensor
 
 
-def patch_shape(
-    H: int, W: int, patch_size: int | tuple[int, int] = SelectConfig.patch_size, grid: tuple[int, int] | None = None
-):
+def patch_shape(H: int, W: int, patch_size: int | tuple[int, int] = 32, grid: tuple[int, int] | None = None):
     """(ph, pw, gh, gw): patch rows/cols in pixels and the grid's rows/cols covering (H, W)."""
     if grid is not None:
         gh, gw = grid
@@ -96,7 +94,7 @@ def patch_shape(
 
 
 def roi_patch_size(
-    eligible: Tensor, patch_size: int, roi_fraction: float, min_patch: int = SelectConfig.min_patch, border: int = 0
+    eligible: Tensor, patch_size: int, roi_fraction: float, min_patch: int = 8, border: int = 0
 ) -> list[int]:
     """Per frame the square patch size (pixels) for the bounding box of the eligible pixels of ``eligible``
     (B, 1, H, W) bool: ``floor(patch_size * sqrt(box area / (roi_fraction * A)))`` clamped to
@@ -199,7 +197,7 @@ def cornerness_maps(
     lam: float,
     patches: tuple[int, int, int, int],
     border: int,
-    require_sim: bool = SelectConfig.require_sim,
+    require_sim: bool = False,
     corner_kwargs: dict | None = None,
     sim_kwargs: dict | None = None,
 ) -> CornernessMaps:
@@ -231,20 +229,20 @@ def select_features(
     *,
     roi: Tensor | None = None,
     sim: SIM | ShapeIndex | None = None,
-    lam: float = SelectConfig.lam,
-    patch_size: int | tuple[int, int] = SelectConfig.patch_size,
-    grid: tuple[int, int] | None = SelectConfig.grid,
-    spread: bool = SelectConfig.spread,
-    max_features: int | None = SelectConfig.max_features,
-    border: int = SelectConfig.border,
-    nms_radius: int = SelectConfig.nms_radius,
-    min_cornerness: float = SelectConfig.min_cornerness,
-    require_sim: bool = SelectConfig.require_sim,
+    lam: float = 0.5,
+    patch_size: int | tuple[int, int] = 32,
+    grid: tuple[int, int] | None = None,
+    spread: bool = True,
+    max_features: int | None = None,
+    border: int = 12,
+    nms_radius: int = 2,
+    min_cornerness: float = 0.05,
+    require_sim: bool = False,
     corner_kwargs: dict | None = None,
     sim_kwargs: dict | None = None,
     cpu_chunk: int | None = 1,
-    roi_fraction: float | None = SelectConfig.roi_fraction,
-    min_patch: int = SelectConfig.min_patch,
+    roi_fraction: float | None = 0.5,
+    min_patch: int = 8,
 ) -> Features:
     """Spatio-textural feature selection (eq. 9); method and normalisation in the module docstring.
 
@@ -371,47 +369,3 @@ def _finish(
         cornerness_sim=c_sim.gather(1, order) * vf,
         valid=valid,
     )
-
-
-class FeatureSelector:
-    """Holds the selection parameters; ``__call__(gray, depth, K, roi=None, sim=None)`` delegates to
-    :func:`select_features` (the ``select`` stage of :class:`torchtrack.pipeline.Tracker`)."""
-
-    def __init__(
-        self,
-        lam: float = SelectConfig.lam,
-        patch_size: int | tuple[int, int] = SelectConfig.patch_size,
-        grid: tuple[int, int] | None = SelectConfig.grid,
-        spread: bool = SelectConfig.spread,
-        max_features: int | None = SelectConfig.max_features,
-        border: int = SelectConfig.border,
-        nms_radius: int = SelectConfig.nms_radius,
-        min_cornerness: float = SelectConfig.min_cornerness,
-        require_sim: bool = SelectConfig.require_sim,
-        corner_kwargs: dict | None = None,
-        sim_kwargs: dict | None = None,
-        cpu_chunk: int | None = 1,
-        roi_fraction: float | None = SelectConfig.roi_fraction,
-        min_patch: int = SelectConfig.min_patch,
-    ) -> None:
-        if not 0.0 <= lam <= 1.0:
-            raise ValueError(f"FeatureSelector: lam must be in [0, 1], got {lam}")
-        self.kwargs = dict(
-            lam=lam,
-            patch_size=tuple(patch_size) if isinstance(patch_size, list) else patch_size,
-            grid=tuple(grid) if grid is not None else None,
-            spread=spread,
-            max_features=max_features,
-            border=border,
-            nms_radius=nms_radius,
-            min_cornerness=min_cornerness,
-            require_sim=require_sim,
-            corner_kwargs=dict(corner_kwargs or {}),
-            sim_kwargs=dict(sim_kwargs or {}),
-            cpu_chunk=cpu_chunk,
-            roi_fraction=roi_fraction,
-            min_patch=min_patch,
-        )
-
-    def __call__(self, gray: Tensor, depth: Tensor, K: Tensor, *, roi: Tensor | None = None, sim=None) -> Features:
-        return select_features(gray, depth, K, roi=roi, sim=sim, **self.kwargs)
