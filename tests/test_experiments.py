@@ -1,4 +1,4 @@
-"""experiments/: the resumable sweep (skip-finished logic, real Hydra multirun with the joblib launcher on a
+"""experiments/eval/ and experiments/paper/: the resumable sweep (skip-finished logic, real Hydra multirun with the joblib launcher on a
 stand-in app) and the report's tables on fake run folders with known numbers (the oracle), eq. (17) use."""
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from tolerances import TIM_PX
 from torchtrack.data.tum_io import write_tum_trajectory
 from torchtrack.geometry import T_inv, euler_to_matrix, make_T
 
-EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
+EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments" / "eval"  # sweep.py and report.py (test_sweep_launchers too)
 
 
 # ----------------------------------------------------------------------------------------------- fixtures
@@ -217,7 +217,7 @@ def test_report_tables_match_known_numbers(tmp_path):
     assert "| s1 | 1.75 | 3.50 | 7.00 | 2.19 |" in md  # Table III row
     assert "| ICP | 62.5 | 62.5 | 62.5 | 62.5 | 62.5 | 62.5 | 2 |" in md  # Table VI row
     assert "| s1 | Proposed | 5 | 1.00 | 0.20 | 0.100 | 1.75 | 10.0 | 1 |" in md  # every-run row
-    assert "Not computed: run `python experiments/table1_spread.py" in md
+    assert "Not computed: run `python experiments/paper/table1_spread.py" in md
 
 
 def test_report_improvement_is_undefined_where_the_baseline_is_exact():

@@ -1,7 +1,7 @@
 """Paper Table II: mean TIM error (px) of the intensity, SIM and combined trackers, per sequence.
 
-    python experiments/table2_tim.py --out runs/paper/table2                 # every sequence, 20 frame pairs each
-    python experiments/table2_tim.py --sequences sun3d_fragment1 --pairs 5 --out /tmp/t2
+    python experiments/paper/table2_tim.py --out runs/paper/table2                 # every sequence, 20 frame pairs each
+    python experiments/paper/table2_tim.py --sequences sun3d_fragment1 --pairs 5 --out /tmp/t2
 
 The flow stage alone (paper §III-C): for consecutive frames (t-1, t), features are selected on frame t-1
 (:func:`torchtrack.image.select.select_features`, spatio-textural, eq. 9) and tracked to t by
@@ -34,7 +34,7 @@ from torchtrack.image.flow import FlowFrame, combined_track, prepare_frame
 from torchtrack.image.select import select_features
 from torchtrack.image.shape_index import compute_sim
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 MODES = ("intensity", "sim", "combined")
 
 

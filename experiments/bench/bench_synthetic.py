@@ -1,6 +1,6 @@
 """Benchmark of the synthetic RGB-D renderer: time to render one 640x480 frame (target <= 50 ms).
 
-    python experiments/bench_synthetic.py [--frames 20] [--threads 1] [--preview /tmp/synth_preview.png]
+    python experiments/bench/bench_synthetic.py [--frames 20] [--threads 1] [--preview /tmp/synth_preview.png]
 
 Times ``render_frame`` (ray casting + texturing, noise-free) on the default scene and object sequences,
 after a warm-up frame that bakes the planes' texture atlases (reported separately, once per scene).

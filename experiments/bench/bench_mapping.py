@@ -10,9 +10,9 @@ The peer does the same with Open3D's legacy point cloud: per key frame ``create_
 stride, depth range), transform, append to the map and ``voxel_down_sample`` the whole map (mean position and
 colour per voxel: the same map, rebuilt each time because Open3D keeps no per-voxel sums).
 
-    python experiments/bench_mapping.py                                   # 7-Scenes kitchen, 1000 frames
-    python experiments/bench_mapping.py --frames-csv runs/kitchen/7scenes_redkitchen/frames.csv
-    python experiments/bench_mapping.py --root ../shared/data/sun3d_fragment1 --key-every 5 --no-peer
+    python experiments/bench/bench_mapping.py                                   # 7-Scenes kitchen, 1000 frames
+    python experiments/bench/bench_mapping.py --frames-csv runs/kitchen/7scenes_redkitchen/frames.csv
+    python experiments/bench/bench_mapping.py --root ../shared/data/sun3d_fragment1 --key-every 5 --no-peer
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from torchtrack.data.tum import TumSequence
 from torchtrack.geometry import T_inv
 from torchtrack.mapping import PanoramaMapper
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 
 
 class StepStub:

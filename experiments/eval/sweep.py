@@ -1,11 +1,11 @@
 """The paper's sweep: sequences x methods (trackers, ablations, a peer), one folder per job, finished jobs skipped.
 
-    python experiments/sweep.py --data ../shared/data --out runs/paper                      # all, joblib x2
-    python experiments/sweep.py --data ../shared/data --out runs/smoke -- data.max_frames=5 plots=false
-    python experiments/sweep.py --out runs/paper --methods fusion_ekf,horn --sequences sun3d_fragment1
-    python experiments/sweep.py --out runs/paper --launcher submitit_slurm -- hydra.launcher.partition=cpu
-    python experiments/sweep.py --out runs/paper --launcher ray -- hydra.launcher.ray.init.address=HEAD:6379
-    python experiments/sweep.py --out runs/paper --dry-run                                   # print the plan
+    python experiments/eval/sweep.py --data ../shared/data --out runs/paper                      # all, joblib x2
+    python experiments/eval/sweep.py --data ../shared/data --out runs/smoke -- data.max_frames=5 plots=false
+    python experiments/eval/sweep.py --out runs/paper --methods fusion_ekf,horn --sequences sun3d_fragment1
+    python experiments/eval/sweep.py --out runs/paper --launcher submitit_slurm -- hydra.launcher.partition=cpu
+    python experiments/eval/sweep.py --out runs/paper --launcher ray -- hydra.launcher.ray.init.address=HEAD:6379
+    python experiments/eval/sweep.py --out runs/paper --dry-run                                   # print the plan
 
 Layout of ``OUT``::
 
@@ -45,7 +45,7 @@ from torchtrack.io import write_json
 
 log = logging.getLogger("sweep")
 
-DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+DEFAULT_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,7 @@ sequence and variant; the variants come from :func:`torchtrack.data.perturb.make
 frame, ``jitterS`` the ``jitter`` kind with seed S (half a grey level of noise: the run-to-run spread of a chaotic
 sequence), and the other kinds by name (seed 0). A finished run (its ``metrics.json``) is not run again.
 
-    python experiments/landmarks_ablation.py --roots /work/shared/data/7scenes_redkitchen \\
+    python experiments/eval/landmarks_ablation.py --roots /work/shared/data/7scenes_redkitchen \\
         --variants real,jitter1,jitter2,jitter3,skip2,skip3,skip4 --variant-frames 1000 \\
         --configs off= landmarks=landmarks.enabled=true --out /tmp/abl
 

@@ -8,10 +8,10 @@ label=overrides; the default compares the scene region, i.e. the plain default, 
 runs for an object) and the peers of :mod:`peers` on each, and prints one table of ATE / RPE (evo's, as
 :mod:`evaluate`), the best peer and ours against it, plus our mean feature count and re-selections.
 
-    python experiments/object_case.py                                   # every case, the default configurations
-    python experiments/object_case.py --cases slow,fast --peers o3d_color,cv2_rgbd
-    python experiments/object_case.py --ours default= object=region=object "noedge=region=object reselect.edge_step=null"
-    python experiments/object_case.py --roots ../shared/data/visp_castle_simu       # any TUM folder too
+    python experiments/eval/object_case.py                                   # every case, the default configurations
+    python experiments/eval/object_case.py --cases slow,fast --peers o3d_color,cv2_rgbd
+    python experiments/eval/object_case.py --ours default= object=region=object "noedge=region=object reselect.edge_step=null"
+    python experiments/eval/object_case.py --roots ../shared/data/visp_castle_simu       # any TUM folder too
 
 Sequences are cached under ``--cache`` (default ``$TORCHTRACK_CACHE/object_case``, else
 ``~/.cache/torchtrack/object_case``), one folder per case, re-rendered when its configuration changes. Runs go to
@@ -39,7 +39,7 @@ from torchtrack.io import write_json, write_text
 
 log = logging.getLogger("object_case")
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 FRAMES = 60
 # The cases: a small object (object="small") on an empty background unless said otherwise; Kinect-like noise
 # (depth noise, quantisation, holes at the silhouette, colour noise) unless "clean".
@@ -178,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(run_row(root.resolve(), args.ours, args.peers, args.out))
         print(table(rows[-1:], list(args.ours), args.peers).splitlines()[-1], flush=True)
     body = (
-        f"`python experiments/object_case.py {' '.join(argv)}`  \ncommit {git_describe()}, "
+        f"`python experiments/eval/object_case.py {' '.join(argv)}`  \ncommit {git_describe()}, "
         f"{time.perf_counter() - start:.0f} s\n\n{table(rows, list(args.ours), args.peers)}\n\n"
         "Cells: ATE mm / RPE mm (evo's, as evaluate.py); depth px: mean fraction of the image with depth; "
         "feat.: mean tracked features per frame; re-sel.: model re-selections.\n"

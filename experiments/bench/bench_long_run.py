@@ -9,8 +9,8 @@ can be run from a few hundred rendered frames. The tracker is
 built and fed as the CLI does it (default config, the CLI's thread count and allocator settings, frames prepared a
 step ahead in the front end's thread when ``frontend.ahead``).
 
-    python experiments/bench_long_run.py                          # 10,000 frames of 160x120, 1 thread
-    python experiments/bench_long_run.py --frames 2000 --size 320 240 relocalise.recover=false
+    python experiments/bench/bench_long_run.py                          # 10,000 frames of 160x120, 1 thread
+    python experiments/bench/bench_long_run.py --frames 2000 --size 320 240 relocalise.recover=false
 
 Prints, every ``--every`` frames: fps, resident memory (MiB) then and its maximum since the previous checkpoint (it
 is read every frame), the largest covariance asymmetry ``max |P - P^T| / max |P|`` and the smallest eigenvalue of P

@@ -5,8 +5,8 @@ Runs ours (batched over B) next to Open3D's point-to-point ``registration_icp`` 
 (= per sequence per frame: batch time / B) and ratios. A second table measures accuracy under noise
 and outliers (mean rotation error in degrees, translation error in mm, over the B sequences).
 
-    python experiments/bench_estimators.py            # B=8, N=300, float64 and float32, 1 thread
-    python experiments/bench_estimators.py --threads 2 --repeats 50 > bench.md
+    python experiments/bench/bench_estimators.py            # B=8, N=300, float64 and float32, 1 thread
+    python experiments/bench/bench_estimators.py --threads 2 --repeats 50 > bench.md
 """
 
 from __future__ import annotations

@@ -4,8 +4,8 @@ Each configuration tracks the same frames (decoded once, kept in memory), runs i
 median ms per frame (wall clock and process CPU time) and its difference and ratio to the default's, and the torch
 thread count.
 
-    python experiments/bench_landmark_estimation.py --root ../shared/data/sun3d_fragment1 --frames 50 --repeats 3
-    python experiments/bench_landmark_estimation.py --root ../shared/data/sun3d_fragment1 --only default warp \
+    python experiments/bench/bench_landmark_estimation.py --root ../shared/data/sun3d_fragment1 --frames 50 --repeats 3
+    python experiments/bench/bench_landmark_estimation.py --root ../shared/data/sun3d_fragment1 --only default warp \
         --config warp32=landmarks.warp=true,landmarks.warp_crop=32
 """
 

@@ -1,6 +1,6 @@
 """Benchmark of the filter stage (torchtrack.filter): Jacobians, update forms, per-frame step, iterated EKF.
 
-Run: ``python experiments/bench_ekf.py [--n 300] [--reps 40] [--json out.json]``
+Run: ``python experiments/bench/bench_ekf.py [--n 300] [--reps 40] [--json out.json]``
 
 Timings use one thread (``torch.set_num_threads(1)``), run every variant interleaved in one process and
 report the minimum and the median wall time per call (the machine may be shared: compare ratios).

@@ -1,21 +1,21 @@
 """Turn a sweep folder into the paper's tables (markdown) and plots (PNG).
 
-    python experiments/report.py runs/paper                 # writes runs/paper/report/{REPORT.md,report.json,*.png}
-    python experiments/report.py runs/paper --data ../shared/data --out somewhere
+    python experiments/eval/report.py runs/paper                 # writes runs/paper/report/{REPORT.md,report.json,*.png}
+    python experiments/eval/report.py runs/paper --data ../shared/data --out somewhere
 
-Reads every run ``SWEEP/<method>/<job>/<seq>/metrics.json`` (the layout of experiments/sweep.py; a plain
+Reads every run ``SWEEP/<method>/<job>/<seq>/metrics.json`` (the layout of experiments/eval/sweep.py; a plain
 ``torchtrack`` output folder moved under ``SWEEP/<method>/`` reads the same), its ``frames.csv`` and
 ``trajectory.txt``, and the sequence's ``groundtruth.txt`` (found through the job's ``.hydra/config.yaml``
 ``data.root``, the peer's ``job.json``, or ``--data``). Writes:
 
 * Table II  — mean TIM error of the intensity, SIM and combined trackers: ``SWEEP/table2/table2_tim.md`` from
-  experiments/table2_tim.py when present, plus the mean d_TIM the tracker runs logged (combined vs EKF-2).
+  experiments/paper/table2_tim.py when present, plus the mean d_TIM the tracker runs logged (combined vs EKF-2).
 * Table III — mean reprojection error (16) per sequence: proposed vs ICP, CPD, quaternion.
 * Table V   — the same for the ablations of Table IV (EKF-1, EKF-2, EKF-3).
 * Table VI  — mean percentage improvement (17) of the proposed tracker over each baseline, per axis, over
   the sequences with ground truth, and the per-axis errors behind it.
 * ATE / RPE / fps of every run, the Open3D RGB-D odometry peer included.
-* Table I   — ``SWEEP/table1/table1_spread.md`` from experiments/table1_spread.py when present.
+* Table I   — ``SWEEP/table1/table1_spread.md`` from experiments/paper/table1_spread.py when present.
 
 Per-axis errors (Table VI) compare object poses as the paper's state does: the scene seen from the first
 frame is the object, ``T_cam_obj(t) = inv(T_world_cam(t)) @ T_world_cam(0)``, for the estimate and the
@@ -87,7 +87,7 @@ def load_runs(sweep: Path) -> list[Run]:
     if not runs:
         raise FileNotFoundError(
             f"no run under {sweep}: expected {sweep}/<method>/<job>/<seq>/metrics.json, as written by "
-            f"experiments/sweep.py --out {sweep}"
+            f"experiments/eval/sweep.py --out {sweep}"
         )
     return sorted(runs, key=lambda r: (r.sequence, _order(r.method)))
 
@@ -259,9 +259,9 @@ def build_report(sweep: Path, data: Path | None = None) -> Report:
                "per_axis": {s: {m: None if v is None else v.tolist() for m, v in e.items()} for s, e in errors.items()}}  # fmt: skip
     md = [f"# torchtrack: the paper's tables\n\nSweep: `{sweep}` ({len(runs)} runs).\n"]
     md += _included(
-        sweep / "table1" / "table1_spread.md", "Table I: 3D spread of features vs pose error", "table1_spread.py"
+        sweep / "table1" / "table1_spread.md", "Table I: 3D spread of features vs pose error", "paper/table1_spread.py"
     )
-    md += _included(sweep / "table2" / "table2_tim.md", "Table II: mean TIM error (px)", "table2_tim.py")
+    md += _included(sweep / "table2" / "table2_tim.md", "Table II: mean TIM error (px)", "paper/table2_tim.py")
     md += ["## Mean d_TIM logged by the tracker runs (px)\n\nCombined tracker (Proposed) vs intensity only (EKF-2).\n",
            pivot_table(tim, (PROPOSED, "ekf2"), 3)]  # fmt: skip
     md += ["## Table III: mean reprojection error (px), eq. (16)\n", pivot_table(t3, TABLE3)]
@@ -297,7 +297,7 @@ def _jsonable(x):
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s][report] %(message)s")
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("sweep", type=Path, help="folder written by experiments/sweep.py")
+    p.add_argument("sweep", type=Path, help="folder written by experiments/eval/sweep.py")
     p.add_argument("--data", type=Path, default=None, help="sequences folder, when the runs do not say where")
     p.add_argument("--out", type=Path, default=None, help="output folder (default SWEEP/report)")
     p.add_argument("--no-plots", action="store_true")

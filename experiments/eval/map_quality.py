@@ -2,8 +2,8 @@
 peer's poses against the map from ground-truth poses, on every sequence.
 
 Per sequence: torchtrack's default tracker runs with ``mapping=panorama`` exactly as the CLI composes it (its run
-folder, with ``map.ply`` and ``map.png``, goes to ``OUT/ours/<sequence>/``); the peer (experiments/peers.py) runs or
-comes from its cache (``OUT/peer/<sequence>/``, the cache of experiments/evaluate.py). The frames of the panorama —
+folder, with ``map.ply`` and ``map.png``, goes to ``OUT/ours/<sequence>/``); the peer (experiments/eval/peers.py) runs or
+comes from its cache (``OUT/peer/<sequence>/``, the cache of experiments/eval/evaluate.py). The frames of the panorama —
 the first and every model frame of our run, those with ground truth — are then fused three times with the mapping
 config (B = 3 in one batched map): with the ground-truth poses (the reference), with ours (``trajectory.txt``, the
 same world: anchored on the first ground-truth pose) and with the peer's (also started at the first ground-truth
@@ -15,9 +15,9 @@ estimated map (what is missing or moved away); mean and 90th percentile, mm. The
 is 0 by construction; the voxel size (1 cm) and depth noise bound what a perfect trajectory could show only through
 voxelisation differences (about half a voxel).
 
-    python experiments/map_quality.py                                  # every folder of ../shared/data
-    python experiments/map_quality.py --roots ../shared/data/sun3d_fragment1 --no-results
-    python experiments/map_quality.py mapping.voxel_size=0.02          # Hydra overrides pass through
+    python experiments/eval/map_quality.py                                  # every folder of ../shared/data
+    python experiments/eval/map_quality.py --roots ../shared/data/sun3d_fragment1 --no-results
+    python experiments/eval/map_quality.py mapping.voxel_size=0.02          # Hydra overrides pass through
 
 Writes ``OUT/map_quality.md`` and ``.json``, the pictures ``experiments/figures/map_<sequence>.png`` (our map.png at
 half size) and the section "## Panoramic maps (issue 14)" of experiments/RESULTS.md (``--results``; atomically).
@@ -48,7 +48,7 @@ from torchtrack.run import run_tracker
 
 log = logging.getLogger("map_quality")
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DATA = REPO.parent / "shared" / "data"
 HEADING = "## Panoramic maps (issue 14)"
 POSES = ("gt", "ours", "peer")
@@ -210,7 +210,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out = args.out.resolve()
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
     torch.set_num_threads(args.threads)
-    command = "python experiments/map_quality.py " + " ".join(argv)
+    command = "python experiments/eval/map_quality.py " + " ".join(argv)
     if args.report_only:
         saved = json.loads((args.out / "map_quality.json").read_text())
         rows, command, commit = saved["rows"], saved["command"], saved["commit"]

@@ -14,9 +14,9 @@ steady-state cost per frame (``prepare_frame`` of the new frame + tracker), whic
 OpenCV (it builds its pyramids inside each call). Then the batched throughput for B = 1, 4, 8. Issue 15's
 target: torch per frame within 1.5x OpenCV at B=1 (printed as met / NOT met).
 
-    python experiments/bench_lk.py                     # 1 thread, 300 features, 40 repeats
-    python experiments/bench_lk.py --threads 2 --repeats 100
-    python experiments/bench_lk.py --one-pass          # the one-pass table only
+    python experiments/bench/bench_lk.py                     # 1 thread, 300 features, 40 repeats
+    python experiments/bench/bench_lk.py --threads 2 --repeats 100
+    python experiments/bench/bench_lk.py --one-pass          # the one-pass table only
 
 Results and the machine's load: experiments/RESULTS.md, "Speed (issue 15)".
 """
@@ -43,7 +43,7 @@ from torchtrack.image.lk import lk_track_flat  # noqa: E402
 from torchtrack.image.pyramid import build_pyramid  # noqa: E402
 
 TARGET_RATIO = 1.5  # issues 15 and 25
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 
 
 def load_pairs(seq: str, count: int, n_features: int):

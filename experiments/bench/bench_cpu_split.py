@@ -2,11 +2,11 @@
 process and of the main (tracking) thread; the rest ran in the loader and front-end threads. Median of ``--runs``.
 
 Load-robust where wall clock is not: on a shared machine compare the CPU columns; run two checkouts alternately
-(``PYTHONPATH=<checkout> python experiments/bench_cpu_split.py``) for a before/after. Hydra overrides pass through:
+(``PYTHONPATH=<checkout> python experiments/bench/bench_cpu_split.py``) for a before/after. Hydra overrides pass through:
 
-    python experiments/bench_cpu_split.py --batch 1 --runs 3                     # the default (frontend.ahead=true)
-    python experiments/bench_cpu_split.py --batch 1 --runs 3 frontend.ahead=false
-    python experiments/bench_cpu_split.py --batch 8 --frames 20 --runs 1
+    python experiments/bench/bench_cpu_split.py --batch 1 --runs 3                     # the default (frontend.ahead=true)
+    python experiments/bench/bench_cpu_split.py --batch 1 --runs 3 frontend.ahead=false
+    python experiments/bench/bench_cpu_split.py --batch 8 --frames 20 --runs 1
 """
 
 from __future__ import annotations

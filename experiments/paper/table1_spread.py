@@ -1,7 +1,7 @@
 """Paper Table I: 3D spread of the tracked points vs pose error, on an artificial motion of a real model.
 
-    python experiments/table1_spread.py --out runs/paper/table1          # visp_castle_simu frame 0, 20 trials
-    python experiments/table1_spread.py --sequence sun3d_fragment1 --features 100 --out /tmp/t1
+    python experiments/paper/table1_spread.py --out runs/paper/table1          # visp_castle_simu frame 0, 20 trials
+    python experiments/paper/table1_spread.py --sequence sun3d_fragment1 --features 100 --out /tmp/t1
 
 As in the paper (§III-B, on its Face sequence): the point-cloud model (PCM) of a real frame is taken (the
 object by depth: the pixels with depth in [near, far], automatic by default), a smooth artificial motion is defined, the exact
@@ -35,7 +35,7 @@ from torchtrack.geometry import euler_to_matrix, make_T, project, transform_poin
 from torchtrack.image.object_model import feature_spread, object_mask, point_cloud_model
 from torchtrack.metrics import per_axis_errors
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 AXES = ("Rot-x", "Rot-y", "Rot-z", "Tr-x", "Tr-y", "Tr-z")
 
 
