@@ -37,6 +37,9 @@ import numpy as np
 from sweep import METHODS
 
 from torchtrack.io import write_text
+from torchtrack.report import NoRunsError, ReportError, RunRecord, markdown_table, tabulate
+from torchtrack.report import load_runs as load_records
+from torchtrack.report import markdown as settings_markdown
 
 log = logging.getLogger("report")
 
@@ -56,6 +59,7 @@ class Run:
     dir: Path
     metrics: dict
     frames: list[dict] = field(default_factory=list)
+    record: RunRecord | None = None  # as torchtrack-report reads it: the job's overrides
 
     @property
     def job_dir(self) -> Path:
@@ -77,18 +81,20 @@ def read_frames_csv(path: Path) -> list[dict]:
 
 
 def load_runs(sweep: Path) -> list[Run]:
-    """Every ``SWEEP/<method>/<job>/<seq>/metrics.json``, sorted by sequence, then method (table order)."""
-    runs = []
-    for path in sorted(Path(sweep).glob("*/*/*/metrics.json")):
-        method = path.relative_to(sweep).parts[0]
-        metrics = json.loads(path.read_text())
-        seq = metrics.get("sequence", path.parent.name)
-        runs.append(Run(method, seq, path.parent, metrics, read_frames_csv(path.parent / "frames.csv")))
-    if not runs:
+    """Every ``SWEEP/<method>/<job>/<seq>/metrics.json``, sorted by sequence, then method (table order).
+
+    The files are found and read by :func:`torchtrack.report.load_runs` (``torchtrack-report``'s reader)."""
+    try:
+        records = [r for r in load_records(sweep) if len(r.path.relative_to(sweep).parts) == 4]
+    except NoRunsError:
+        records = []
+    if not records:
         raise FileNotFoundError(
             f"no run under {sweep}: expected {sweep}/<method>/<job>/<seq>/metrics.json, as written by "
             f"experiments/eval/sweep.py --out {sweep}"
         )
+    runs = [Run(r.path.relative_to(sweep).parts[0], r.sequence, r.path.parent, r.metrics,
+                read_frames_csv(r.path.parent / "frames.csv"), r) for r in records]  # fmt: skip
     return sorted(runs, key=lambda r: (r.sequence, _order(r.method)))
 
 
@@ -167,11 +173,6 @@ def fmt(x, digits: int = 2) -> str:
     if x is None or (isinstance(x, float) and not math.isfinite(x)):
         return "–"
     return f"{x:.{digits}f}"
-
-
-def markdown_table(header: list[str], rows: list[list[str]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
-    return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows]) + "\n"
 
 
 def pivot(runs: list[Run], methods, value) -> dict[str, dict[str, float | None]]:
@@ -272,6 +273,8 @@ def build_report(sweep: Path, data: Path | None = None) -> Report:
     md += ["## ATE RMSE (cm)\n", pivot_table({s: {m: None if v is None else 100 * v for m, v in row.items()}
                                               for s, row in ate.items()}, list(next(iter(ate.values()))))]  # fmt: skip
     md += ["## Every run\n", trajectory_table(runs)]
+    md += ["## Settings x sequence (as `torchtrack-report` tabulates the sweep)\n",
+           settings_markdown(tabulate([r.record for r in runs if r.record is not None]), sweep)]  # fmt: skip
     return Report("\n".join(md), numbers)
 
 
@@ -306,7 +309,7 @@ def main(argv: list[str] | None = None) -> int:
         if not args.sweep.is_dir():
             raise FileNotFoundError(f"{args.sweep} is not a folder")
         report = build_report(args.sweep, args.data)
-    except FileNotFoundError as e:
+    except (FileNotFoundError, ReportError) as e:
         print(f"report.py: error: {e}", file=sys.stderr)
         return 2
     out = args.out or args.sweep / "report"
