@@ -332,3 +332,17 @@ def test_table2_combined_tracker_takes_the_smaller_tim_per_feature():
     assert table2._stats(np.array([1.0, 3.0, np.inf, np.inf])) == {
         "mean_px": 2.0, "median_px": 2.0, "lost_fraction": 0.5, "features": 4
     }  # fmt: skip
+
+
+def test_table2_markdown_has_the_papers_column_and_one_row_per_tracker():
+    stats = {"intensity": (1.0, 0.5, 0.25), "sim": (30.0, 2.0, 0.5), "combined": (0.5, 0.25, 0.0)}
+    seq = {m: {"mean_px": a, "median_px": b, "lost_fraction": c, "features": 40} for m, (a, b, c) in stats.items()}
+    md = table2.markdown({"settings": {"pairs": 3, "levels": 3, "window": 21}, "sequences": {"s1": seq}})
+    rows = [ln for ln in md.splitlines() if ln.startswith("| ")]
+    assert rows == [
+        "| tracker | paper | s1 |",
+        f"| Intensity tracker | {table2.PAPER_TABLE2['intensity']:.2f} | 1.00 (0.50), 25% lost |",
+        f"| SIM tracker | {table2.PAPER_TABLE2['sim']:.2f} | 30.00 (2.00), 50% lost |",
+        f"| Combined tracker | {table2.PAPER_TABLE2['combined']:.2f} | 0.50 (0.25), 0% lost |",
+        "| features | – | 40 |",
+    ]
