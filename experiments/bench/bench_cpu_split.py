@@ -29,12 +29,16 @@ from torchtrack.factory import build_sequences, build_tracker  # noqa: E402
 from torchtrack.runtime import configure  # noqa: E402
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """--help: the module docstring as written, and every option's default."""
+
+
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--root", type=Path, default=bp.DEFAULT_ROOT)
-    ap.add_argument("--batch", type=int, default=1)
-    ap.add_argument("--frames", type=int, default=50)
-    ap.add_argument("--runs", type=int, default=3)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    ap.add_argument("--root", type=Path, default=bp.DEFAULT_ROOT, help="sequence folder")
+    ap.add_argument("--batch", type=int, default=1, help="B copies of the sequence in lockstep")
+    ap.add_argument("--frames", type=int, default=50, help="frames per copy")
+    ap.add_argument("--runs", type=int, default=3, help="runs; the median is reported")
     args, overrides = ap.parse_known_args()
     configure(1)
     cfg = bp.compose_config(args.root, args.frames, overrides)

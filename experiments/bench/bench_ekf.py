@@ -88,8 +88,8 @@ def bench_batch(B: int, N: int, reps: int) -> dict:
             steps[f"EKFBackend step (predict+update), state={state}, jacobian={jac}"] = step
     scaled = EKFBackend(FusionEKF(), gate=None, refit=None, noise_scale=True)  # the default's online noise scale
     scaled.reset(make_T(torch.eye(3, dtype=F64).expand(B, 3, 3), x[:, 3:6]), valid[:, 0])
-    steps["EKFBackend step (predict+update), state=se3, jacobian=analytic, with the online noise scale"] = (
-        lambda: scaled.step(obs, fixed_var)
+    steps["EKFBackend step (predict+update), state=se3, jacobian=analytic, with the online noise scale"] = lambda: (
+        scaled.step(obs, fixed_var)
     )
     res.update(timeit(steps, reps))
     return res
@@ -149,10 +149,14 @@ def bench_iterations(B: int = 4, N: int = 300, frames: int = 30) -> dict:
     return out
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """--help: the module docstring as written, and every option's default."""
+
+
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--n", type=int, default=300, help="features per sequence")
-    ap.add_argument("--reps", type=int, default=40)
+    ap.add_argument("--reps", type=int, default=40, help="timed calls per variant")
     ap.add_argument("--json", default=None, help="also write the results here")
     args = ap.parse_args()
     torch.set_num_threads(1)

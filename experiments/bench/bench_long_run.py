@@ -67,12 +67,14 @@ def rss_mib() -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--frames", type=int, default=10_000)
-    ap.add_argument("--size", type=int, nargs=2, default=(160, 120), metavar=("W", "H"))
+    ap = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    ap.add_argument("--frames", type=int, default=10_000, help="frames tracked")
+    ap.add_argument("--size", type=int, nargs=2, default=(160, 120), metavar=("W", "H"), help="image size")
     ap.add_argument("--rendered", type=int, default=200, help="frames rendered (played forwards and backwards)")
     ap.add_argument("--every", type=int, default=1000, help="checkpoint interval (frames)")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=1, help="torch threads")
     ap.add_argument("--warmup", type=int, default=1000, help="frames before the memory growth is measured")
     ap.add_argument("--bound", type=float, default=50.0, help="MiB: the largest growth after warm-up accepted")
     ap.add_argument("overrides", nargs="*", help="Hydra overrides of the tracker's config")

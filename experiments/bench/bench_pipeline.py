@@ -523,10 +523,14 @@ def startup_seconds(repeats: int = 3) -> tuple[float, list[float]]:
     return statistics.median(times), times
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """--help: the module docstring as written, and every option's default."""
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     overrides = [a for a in argv if "=" in a and not a.startswith("-")]
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--root", type=Path, default=DEFAULT_ROOT, help="a 640x480 sequence (synthetic when absent)")
     ap.add_argument("--frames", type=int, default=50, help="frames per sequence")
     ap.add_argument("--batch", type=int, default=8, help="B of the lockstep run (the same sequence B times)")

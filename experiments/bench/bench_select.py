@@ -179,10 +179,12 @@ def _maxima_agreement(ours, ref):
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
     p.add_argument("--seq", default="7scenes_redkitchen", help="sequence folder in ../shared/data")
-    p.add_argument("--repeats", type=int, default=30)
-    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1: reproducible)")
+    p.add_argument("--repeats", type=int, default=30, help="timed calls per row")
+    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads (1: reproducible)")
     p.add_argument("--accuracy", action="store_true", help="also print SIM errors and Harris agreement")
     p.add_argument("--tune-malloc", action="store_true", help="glibc: no mmap for big tensors, no heap trimming")
     args = p.parse_args()

@@ -33,10 +33,12 @@ def inputs(B: int, N: int, seed: int = 0) -> WeightingInputs:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--b", type=int, default=1)
-    ap.add_argument("--n", type=int, default=300)
-    ap.add_argument("--reps", type=int, default=2000)
+    ap = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    ap.add_argument("--b", type=int, default=1, help="sequences per batch")
+    ap.add_argument("--n", type=int, default=300, help="features per sequence")
+    ap.add_argument("--reps", type=int, default=2000, help="timed calls per variant")
     ap.add_argument("--json", default=None, help="also write the results here")
     args = ap.parse_args()
     torch.set_num_threads(1)

@@ -328,11 +328,15 @@ def default_cache() -> Path:
     return (Path(root) if root else Path.home() / ".cache" / "torchtrack") / "variants"
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """--help: the module docstring as written, and every option's default."""
+
+
 def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     from peers import PEERS
 
     opts, overrides = split_argv(argv)
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--roots", type=Path, nargs="+", default=[DATA], help="sequence folders or folders of them")
     ap.add_argument("--max-frames", type=int, default=None, help="first N frames of every real sequence")
     ap.add_argument("--out", type=Path, default=REPO / "outputs" / "evaluation", help="output folder")
@@ -361,8 +365,8 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
         help="run nothing: the tables of these evaluation.json files, one after the other",
     )
     ap.add_argument("--no-plots", action="store_true", help="no trajectory/feature pictures per run")
-    ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: the config's)")
-    ap.add_argument("-v", "--verbose", action="store_true")
+    ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (None: the config's)")
+    ap.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
     args = ap.parse_args(opts)
     args.peers = [] if args.no_peer else [p for p in args.peers.split(",") if p]
     args.variants = [v for v in args.variants.split(",") if v and v != "none"]

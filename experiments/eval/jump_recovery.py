@@ -55,9 +55,11 @@ def run(root: Path, out: Path, *overrides: str) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
     ap.add_argument("--case", action="append", help="NAME:FIRST:END, frames FIRST..END-1 removed (repeatable)")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=1, help="torch threads")
     args = ap.parse_args(argv)
     configure(args.threads)
     logging.getLogger("torchtrack").setLevel(logging.ERROR)

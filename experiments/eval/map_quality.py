@@ -194,17 +194,26 @@ def report(rows: list[dict], command: str, commit: str) -> str:
     return "\n".join(body) + "\n"
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """--help: the module docstring as written, and every option's default."""
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     opts, overrides = split_argv(argv)
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--roots", type=Path, nargs="+", default=[DATA])
-    ap.add_argument("--max-frames", type=int, default=None)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    ap.add_argument("--roots", type=Path, nargs="+", default=[DATA], help="sequence folders or folders of them")
+    ap.add_argument("--max-frames", type=int, default=None, help="first N frames (None: all)")
     ap.add_argument("--out", type=Path, default=REPO / "outputs" / "evaluation", help="runs (peer cache shared)")
-    ap.add_argument("--figures", type=Path, default=REPO / "experiments" / "figures")
-    ap.add_argument("--results", type=Path, default=REPO / "experiments" / "RESULTS.md")
+    ap.add_argument("--figures", type=Path, default=REPO / "experiments" / "figures", help="where the map pictures go")
+    ap.add_argument(
+        "--results",
+        type=Path,
+        default=REPO / "experiments" / "RESULTS.md",
+        help="markdown file whose section is replaced",
+    )
     ap.add_argument("--no-results", action="store_true", help="do not touch RESULTS.md")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=1, help="torch threads")
     ap.add_argument("--report-only", action="store_true", help="rewrite the report from OUT/map_quality.json")
     args = ap.parse_args(opts)
     args.out = args.out.resolve()

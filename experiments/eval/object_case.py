@@ -140,14 +140,18 @@ def default_cache() -> Path:
     return (Path(root) if root else Path.home() / ".cache" / "torchtrack") / "object_case"
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """--help: the module docstring as written, and every option's default."""
+
+
 def parse_args(argv: list[str]) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--cases", default=",".join(CASES), help=f"comma-separated, of {', '.join(CASES)} ('' none)")
     ap.add_argument("--roots", type=Path, nargs="*", default=[], help="TUM folders evaluated besides the cases")
     ap.add_argument("--frames", type=int, default=FRAMES, help="frames per synthetic case")
     ap.add_argument("--seed", type=int, default=0, help="seed of the synthetic cases (scene, motion, noise)")
     ap.add_argument("--ours", nargs="+", default=None, metavar="LABEL=OVERRIDES",
-                    help="our configurations, each 'label=space-separated Hydra overrides' (default: "
+                    help="our configurations, each 'label=space-separated Hydra overrides' (None: "
                     + ", ".join(f"'{k}={v}'" for k, v in OURS.items()) + ")")  # fmt: skip
     ap.add_argument("--peers", default=PEERS_DEFAULT, help="comma-separated peers of peers.py ('' none)")
     ap.add_argument("--cache", type=Path, default=default_cache(), help="folder of the built sequences")

@@ -299,11 +299,13 @@ def _jsonable(x):
 
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s][report] %(message)s")
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
     p.add_argument("sweep", type=Path, help="folder written by experiments/eval/sweep.py")
     p.add_argument("--data", type=Path, default=None, help="sequences folder, when the runs do not say where")
-    p.add_argument("--out", type=Path, default=None, help="output folder (default SWEEP/report)")
-    p.add_argument("--no-plots", action="store_true")
+    p.add_argument("--out", type=Path, default=None, help="output folder (None: SWEEP/report)")
+    p.add_argument("--no-plots", action="store_true", help="tables only, no PNG")
     args = p.parse_args(argv)
     try:  # no sweep there (or a sequence's ground truth missing): one line, no traceback
         if not args.sweep.is_dir():

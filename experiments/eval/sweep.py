@@ -292,17 +292,21 @@ def write_summary(out: Path, args: argparse.Namespace, extra: list[str], command
     write_json(out / "sweep.json", summary)
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawTextHelpFormatter):
+    """--help: help texts as written, and every option's default."""
+
+
 def _parse(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     if "--" in argv:
         i = argv.index("--")
         argv, extra = argv[:i], argv[i + 1 :]
     else:
         extra = []
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter)
     p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder of TUM-layout sequences")
     p.add_argument("--out", type=Path, required=True, help="sweep folder (re-run it to resume)")
     p.add_argument("--methods", default=",".join(METHODS), help=f"comma list from {','.join(METHODS)}")
-    p.add_argument("--sequences", default=None, help="comma list of folder names under --data (default: all)")
+    p.add_argument("--sequences", default=None, help="comma list of folder names under --data (None: all)")
     p.add_argument(
         "--launcher",
         default="joblib",
