@@ -1,4 +1,4 @@
-"""experiments/evaluate.py and experiments/peers.py: the peers against exact synthetic ground truth, the table's
+"""experiments/eval/evaluate.py and experiments/eval/peers.py: the peers against exact synthetic ground truth, the table's
 numbers against the run folders, the cache, the variants and the results section."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from torchtrack.data.tum_io import read_tum_trajectory
 from torchtrack.metrics import shared_error, trajectory_metrics
 
 pytest.importorskip("open3d")
-import evaluate  # noqa: E402  (experiments/, on pytest's pythonpath)
+import evaluate  # noqa: E402  (experiments/eval/, on pytest's pythonpath)
 import peers  # noqa: E402
 
 FAST = "o3d_t_p2plane,cv2_rgbd"

@@ -3,8 +3,9 @@
 A static check over ``ast``: every ``import`` and ``from ... import`` in a module (at module level or inside a
 function, where a cycle is only deferred; ``if TYPE_CHECKING:`` blocks excepted) is an edge to the module it names
 (``from pkg import name`` names ``pkg.name`` when that is a module, else ``pkg``); a strongly connected component of
-more than one module is a cycle. The experiment scripts are top-level modules (``experiments/`` is on the path when
-one runs); they share helpers through ``experiments/common.py``, never through one another.
+more than one module is a cycle. The experiment scripts are top-level modules (a script's own folder,
+``experiments/<paper|eval|bench>/``, is on the path when it runs); the evaluation scripts share helpers through
+``experiments/eval/common.py``, never through one another.
 """
 
 from __future__ import annotations
@@ -25,7 +26,8 @@ def modules() -> dict[str, Path]:
     for path in sorted((ROOT / "torchtrack").rglob("*.py")):
         parts = path.relative_to(ROOT).with_suffix("").parts
         out[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
-    for path in sorted((ROOT / "experiments").glob("*.py")):
+    for path in sorted((ROOT / "experiments").rglob("*.py")):
+        assert path.stem not in out, f"two experiment scripts named {path.stem}: {out[path.stem]} and {path}"
         out[path.stem] = path
     return out
 
@@ -135,3 +137,19 @@ def test_no_script_imports_the_evaluation_scripts():
     g = graph()
     users = {name for name, deps in g.items() if deps & {"evaluate", "eval_weighting"}}
     assert not users, f"import a script: {sorted(users)}"
+
+
+def test_experiment_scripts_import_only_from_their_own_folder():
+    """``python experiments/<sub>/<script>.py`` puts only ``experiments/<sub>/`` on the path: an import of a script
+    in another folder works under pytest (all three are on its pythonpath) and fails when the script is run."""
+    mods = modules()
+    scripts = {name: path for name, path in mods.items() if not name.startswith("torchtrack")}
+    assert {p.parent.name for p in scripts.values()} == {"paper", "eval", "bench"}
+    g = graph()
+    crossing = {
+        (name, dep)
+        for name, path in scripts.items()
+        for dep in g[name]
+        if dep in scripts and scripts[dep].parent != path.parent
+    }
+    assert not crossing, f"imports across experiments/ folders: {sorted(crossing)}"

@@ -1,5 +1,5 @@
 """The object case (issue 12): the small-object synthetic preset, tracking it against its exact ground truth, and
-experiments/object_case.py's table against its run folders."""
+experiments/eval/object_case.py's table against its run folders."""
 
 from __future__ import annotations
 
@@ -96,10 +96,10 @@ def test_object_tracking_follows_the_exact_truth(clean_object, tmp_path):
 
 # ---------------------------------------------------------------------------------------------- the script
 def test_object_case_script_table_matches_its_runs(tmp_path):
-    """experiments/object_case.py on a 4-frame case: the table's numbers are those of the run folders, and the
+    """experiments/eval/object_case.py on a 4-frame case: the table's numbers are those of the run folders, and the
     exact dense peer (OpenCV RGB-D odometry) is within a millimetre of the truth on clean data."""
     pytest.importorskip("cv2")
-    import object_case as oc  # experiments/, on pytest's pythonpath
+    import object_case as oc  # experiments/eval/, on pytest's pythonpath
 
     args = ["--cases", "clean", "--frames", "4", "--peers", "cv2_rgbd", "--ours", "object=region=object"]
     assert oc.main([*args, "--cache", str(tmp_path / "cache"), "--out", str(tmp_path / "out")]) == 0
@@ -115,8 +115,8 @@ def test_object_case_script_table_matches_its_runs(tmp_path):
 
 
 def test_data_preset_is_the_slow_case():
-    """data=synthetic_object is experiments/object_case.py's "slow" case (same digest: same rendered folder)."""
-    import object_case as oc  # experiments/, on pytest's pythonpath
+    """data=synthetic_object is experiments/eval/object_case.py's "slow" case (same digest: same rendered folder)."""
+    import object_case as oc  # experiments/eval/, on pytest's pythonpath
 
     with initialize_config_dir(version_base="1.3", config_dir=str(CONF_DIR)):
         cfg = compose("config", overrides=["data=synthetic_object", "region=object"])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import cv2
 import numpy as np
@@ -125,6 +126,15 @@ def test_plot_errors_and_per_axis_draw_the_data(tmp_path, captured):
     rot_ax, trans_ax = captured[1].axes
     np.testing.assert_allclose(rot_ax.lines[2].get_ydata(), errs.rot_deg[:, 2].numpy())
     np.testing.assert_allclose(trans_ax.lines[0].get_ydata(), 1000 * errs.trans_m[:, 0].numpy())
+
+
+def test_plot_errors_legend_means_skip_gaps_and_an_empty_series_says_so(tmp_path, captured):
+    a = np.array([1.0, np.nan, 3.0, np.inf, 8.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # numpy's "Mean of empty slice" on an all-NaN series
+        plot_errors(tmp_path / "e.png", {"a": a, "b": np.full(5, np.nan)})
+    labels = [t.get_text() for t in captured[0].axes[0].get_legend().get_texts()]
+    assert labels == [f"a (mean {np.mean([1.0, 3.0, 8.0]):.3g})", "b (no value)"]
 
 
 def test_bad_input_raises(tmp_path):

@@ -153,7 +153,8 @@ def plot_errors(
     fig = Figure(figsize=(10, 4), layout="constrained")
     ax = fig.add_subplot()
     for name, y in ys.items():
-        ax.plot(x, y, lw=1, label=f"{name} (mean {np.nanmean(y):.3g})")
+        finite = y[np.isfinite(y)]  # an all-NaN series (no frame has a value) has no mean: say so, not NaN
+        ax.plot(x, y, lw=1, label=f"{name} (mean {finite.mean():.3g})" if finite.size else f"{name} (no value)")
     ax.set(xlabel=xlabel, ylabel=ylabel, title=title)
     ax.grid(alpha=0.3)
     ax.legend(loc="best", fontsize=8)

@@ -1,8 +1,8 @@
 """Benchmark of the selection stage (issue 3): SIM + two Harris maps + patch selection on 640x480 frames.
 
-    python experiments/bench_select.py                 # B=1 and B=8 timings, their ratio, a stage breakdown
-    python experiments/bench_select.py --accuracy      # also: SIM errors on analytic surfaces, Harris vs cv2
-    python experiments/bench_select.py --tune-malloc   # glibc malloc tuned (see tune_malloc)
+    python experiments/bench/bench_select.py                 # B=1 and B=8 timings, their ratio, a stage breakdown
+    python experiments/bench/bench_select.py --accuracy      # also: SIM errors on analytic surfaces, Harris vs cv2
+    python experiments/bench/bench_select.py --tune-malloc   # glibc malloc tuned (see tune_malloc)
 
 Targets: B=1 <= 15 ms per frame; B=8 <= 8x the B=1 time. Frames come from ../shared/data (8 different
 frames of one sequence); both batch sizes run in one process, in alternating blocks, and the median of
@@ -28,7 +28,7 @@ from torchtrack.image.corners import harris
 from torchtrack.image.select import select_features
 from torchtrack.image.shape_index import compute_sim, shape_index
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 
 
 def load_frames(seq: str, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -179,10 +179,12 @@ def _maxima_agreement(ours, ref):
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
     p.add_argument("--seq", default="7scenes_redkitchen", help="sequence folder in ../shared/data")
-    p.add_argument("--repeats", type=int, default=30)
-    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1: reproducible)")
+    p.add_argument("--repeats", type=int, default=30, help="timed calls per row")
+    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads (1: reproducible)")
     p.add_argument("--accuracy", action="store_true", help="also print SIM errors and Harris agreement")
     p.add_argument("--tune-malloc", action="store_true", help="glibc: no mmap for big tensors, no heap trimming")
     args = p.parse_args()

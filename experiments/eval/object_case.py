@@ -8,10 +8,10 @@ label=overrides; the default compares the scene region, i.e. the plain default, 
 runs for an object) and the peers of :mod:`peers` on each, and prints one table of ATE / RPE (evo's, as
 :mod:`evaluate`), the best peer and ours against it, plus our mean feature count and re-selections.
 
-    python experiments/object_case.py                                   # every case, the default configurations
-    python experiments/object_case.py --cases slow,fast --peers o3d_color,cv2_rgbd
-    python experiments/object_case.py --ours default= object=region=object "noedge=region=object reselect.edge_step=null"
-    python experiments/object_case.py --roots ../shared/data/visp_castle_simu       # any TUM folder too
+    python experiments/eval/object_case.py                                   # every case, the default configurations
+    python experiments/eval/object_case.py --cases slow,fast --peers o3d_color,cv2_rgbd
+    python experiments/eval/object_case.py --ours default= object=region=object "noedge=region=object reselect.edge_step=null"
+    python experiments/eval/object_case.py --roots ../shared/data/visp_castle_simu       # any TUM folder too
 
 Sequences are cached under ``--cache`` (default ``$TORCHTRACK_CACHE/object_case``, else
 ``~/.cache/torchtrack/object_case``), one folder per case, re-rendered when its configuration changes. Runs go to
@@ -39,7 +39,7 @@ from torchtrack.io import write_json, write_text
 
 log = logging.getLogger("object_case")
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 FRAMES = 60
 # The cases: a small object (object="small") on an empty background unless said otherwise; Kinect-like noise
 # (depth noise, quantisation, holes at the silhouette, colour noise) unless "clean".
@@ -140,14 +140,18 @@ def default_cache() -> Path:
     return (Path(root) if root else Path.home() / ".cache" / "torchtrack") / "object_case"
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """--help: the module docstring as written, and every option's default."""
+
+
 def parse_args(argv: list[str]) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--cases", default=",".join(CASES), help=f"comma-separated, of {', '.join(CASES)} ('' none)")
     ap.add_argument("--roots", type=Path, nargs="*", default=[], help="TUM folders evaluated besides the cases")
     ap.add_argument("--frames", type=int, default=FRAMES, help="frames per synthetic case")
     ap.add_argument("--seed", type=int, default=0, help="seed of the synthetic cases (scene, motion, noise)")
     ap.add_argument("--ours", nargs="+", default=None, metavar="LABEL=OVERRIDES",
-                    help="our configurations, each 'label=space-separated Hydra overrides' (default: "
+                    help="our configurations, each 'label=space-separated Hydra overrides' (None: "
                     + ", ".join(f"'{k}={v}'" for k, v in OURS.items()) + ")")  # fmt: skip
     ap.add_argument("--peers", default=PEERS_DEFAULT, help="comma-separated peers of peers.py ('' none)")
     ap.add_argument("--cache", type=Path, default=default_cache(), help="folder of the built sequences")
@@ -178,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(run_row(root.resolve(), args.ours, args.peers, args.out))
         print(table(rows[-1:], list(args.ours), args.peers).splitlines()[-1], flush=True)
     body = (
-        f"`python experiments/object_case.py {' '.join(argv)}`  \ncommit {git_describe()}, "
+        f"`python experiments/eval/object_case.py {' '.join(argv)}`  \ncommit {git_describe()}, "
         f"{time.perf_counter() - start:.0f} s\n\n{table(rows, list(args.ours), args.peers)}\n\n"
         "Cells: ATE mm / RPE mm (evo's, as evaluate.py); depth px: mean fraction of the image with depth; "
         "feat.: mean tracked features per frame; re-sel.: model re-selections.\n"

@@ -27,7 +27,7 @@ from torchtrack.metrics import trajectory_metrics
 from torchtrack.run import run_tracker
 
 log = logging.getLogger("evaluate")
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CONF = CONF_DIR
 
 # ----------------------------------------------------------------------------------------------- inputs

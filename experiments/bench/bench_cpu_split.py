@@ -2,11 +2,11 @@
 process and of the main (tracking) thread; the rest ran in the loader and front-end threads. Median of ``--runs``.
 
 Load-robust where wall clock is not: on a shared machine compare the CPU columns; run two checkouts alternately
-(``PYTHONPATH=<checkout> python experiments/bench_cpu_split.py``) for a before/after. Hydra overrides pass through:
+(``PYTHONPATH=<checkout> python experiments/bench/bench_cpu_split.py``) for a before/after. Hydra overrides pass through:
 
-    python experiments/bench_cpu_split.py --batch 1 --runs 3                     # the default (frontend.ahead=true)
-    python experiments/bench_cpu_split.py --batch 1 --runs 3 frontend.ahead=false
-    python experiments/bench_cpu_split.py --batch 8 --frames 20 --runs 1
+    python experiments/bench/bench_cpu_split.py --batch 1 --runs 3                     # the default (frontend.ahead=true)
+    python experiments/bench/bench_cpu_split.py --batch 1 --runs 3 frontend.ahead=false
+    python experiments/bench/bench_cpu_split.py --batch 8 --frames 20 --runs 1
 """
 
 from __future__ import annotations
@@ -29,12 +29,16 @@ from torchtrack.factory import build_sequences, build_tracker  # noqa: E402
 from torchtrack.runtime import configure  # noqa: E402
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """--help: the module docstring as written, and every option's default."""
+
+
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--root", type=Path, default=bp.DEFAULT_ROOT)
-    ap.add_argument("--batch", type=int, default=1)
-    ap.add_argument("--frames", type=int, default=50)
-    ap.add_argument("--runs", type=int, default=3)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    ap.add_argument("--root", type=Path, default=bp.DEFAULT_ROOT, help="sequence folder")
+    ap.add_argument("--batch", type=int, default=1, help="B copies of the sequence in lockstep")
+    ap.add_argument("--frames", type=int, default=50, help="frames per copy")
+    ap.add_argument("--runs", type=int, default=3, help="runs; the median is reported")
     args, overrides = ap.parse_known_args()
     configure(1)
     cfg = bp.compose_config(args.root, args.frames, overrides)

@@ -9,8 +9,8 @@ can be run from a few hundred rendered frames. The tracker is
 built and fed as the CLI does it (default config, the CLI's thread count and allocator settings, frames prepared a
 step ahead in the front end's thread when ``frontend.ahead``).
 
-    python experiments/bench_long_run.py                          # 10,000 frames of 160x120, 1 thread
-    python experiments/bench_long_run.py --frames 2000 --size 320 240 relocalise.recover=false
+    python experiments/bench/bench_long_run.py                          # 10,000 frames of 160x120, 1 thread
+    python experiments/bench/bench_long_run.py --frames 2000 --size 320 240 relocalise.recover=false
 
 Prints, every ``--every`` frames: fps, resident memory (MiB) then and its maximum since the previous checkpoint (it
 is read every frame), the largest covariance asymmetry ``max |P - P^T| / max |P|`` and the smallest eigenvalue of P
@@ -67,12 +67,14 @@ def rss_mib() -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--frames", type=int, default=10_000)
-    ap.add_argument("--size", type=int, nargs=2, default=(160, 120), metavar=("W", "H"))
+    ap = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    ap.add_argument("--frames", type=int, default=10_000, help="frames tracked")
+    ap.add_argument("--size", type=int, nargs=2, default=(160, 120), metavar=("W", "H"), help="image size")
     ap.add_argument("--rendered", type=int, default=200, help="frames rendered (played forwards and backwards)")
     ap.add_argument("--every", type=int, default=1000, help="checkpoint interval (frames)")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=1, help="torch threads")
     ap.add_argument("--warmup", type=int, default=1000, help="frames before the memory growth is measured")
     ap.add_argument("--bound", type=float, default=50.0, help="MiB: the largest growth after warm-up accepted")
     ap.add_argument("overrides", nargs="*", help="Hydra overrides of the tracker's config")

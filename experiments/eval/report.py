@@ -1,21 +1,21 @@
 """Turn a sweep folder into the paper's tables (markdown) and plots (PNG).
 
-    python experiments/report.py runs/paper                 # writes runs/paper/report/{REPORT.md,report.json,*.png}
-    python experiments/report.py runs/paper --data ../shared/data --out somewhere
+    python experiments/eval/report.py runs/paper                 # writes runs/paper/report/{REPORT.md,report.json,*.png}
+    python experiments/eval/report.py runs/paper --data ../shared/data --out somewhere
 
-Reads every run ``SWEEP/<method>/<job>/<seq>/metrics.json`` (the layout of experiments/sweep.py; a plain
+Reads every run ``SWEEP/<method>/<job>/<seq>/metrics.json`` (the layout of experiments/eval/sweep.py; a plain
 ``torchtrack`` output folder moved under ``SWEEP/<method>/`` reads the same), its ``frames.csv`` and
 ``trajectory.txt``, and the sequence's ``groundtruth.txt`` (found through the job's ``.hydra/config.yaml``
 ``data.root``, the peer's ``job.json``, or ``--data``). Writes:
 
 * Table II  — mean TIM error of the intensity, SIM and combined trackers: ``SWEEP/table2/table2_tim.md`` from
-  experiments/table2_tim.py when present, plus the mean d_TIM the tracker runs logged (combined vs EKF-2).
+  experiments/paper/table2_tim.py when present, plus the mean d_TIM the tracker runs logged (combined vs EKF-2).
 * Table III — mean reprojection error (16) per sequence: proposed vs ICP, CPD, quaternion.
 * Table V   — the same for the ablations of Table IV (EKF-1, EKF-2, EKF-3).
 * Table VI  — mean percentage improvement (17) of the proposed tracker over each baseline, per axis, over
   the sequences with ground truth, and the per-axis errors behind it.
 * ATE / RPE / fps of every run, the Open3D RGB-D odometry peer included.
-* Table I   — ``SWEEP/table1/table1_spread.md`` from experiments/table1_spread.py when present.
+* Table I   — ``SWEEP/table1/table1_spread.md`` from experiments/paper/table1_spread.py when present.
 
 Per-axis errors (Table VI) compare object poses as the paper's state does: the scene seen from the first
 frame is the object, ``T_cam_obj(t) = inv(T_world_cam(t)) @ T_world_cam(0)``, for the estimate and the
@@ -37,6 +37,9 @@ import numpy as np
 from sweep import METHODS
 
 from torchtrack.io import write_text
+from torchtrack.report import NoRunsError, ReportError, RunRecord, markdown_table, tabulate
+from torchtrack.report import load_runs as load_records
+from torchtrack.report import markdown as settings_markdown
 
 log = logging.getLogger("report")
 
@@ -56,6 +59,7 @@ class Run:
     dir: Path
     metrics: dict
     frames: list[dict] = field(default_factory=list)
+    record: RunRecord | None = None  # as torchtrack-report reads it: the job's overrides
 
     @property
     def job_dir(self) -> Path:
@@ -77,18 +81,20 @@ def read_frames_csv(path: Path) -> list[dict]:
 
 
 def load_runs(sweep: Path) -> list[Run]:
-    """Every ``SWEEP/<method>/<job>/<seq>/metrics.json``, sorted by sequence, then method (table order)."""
-    runs = []
-    for path in sorted(Path(sweep).glob("*/*/*/metrics.json")):
-        method = path.relative_to(sweep).parts[0]
-        metrics = json.loads(path.read_text())
-        seq = metrics.get("sequence", path.parent.name)
-        runs.append(Run(method, seq, path.parent, metrics, read_frames_csv(path.parent / "frames.csv")))
-    if not runs:
+    """Every ``SWEEP/<method>/<job>/<seq>/metrics.json``, sorted by sequence, then method (table order).
+
+    The files are found and read by :func:`torchtrack.report.load_runs` (``torchtrack-report``'s reader)."""
+    try:
+        records = [r for r in load_records(sweep) if len(r.path.relative_to(sweep).parts) == 4]
+    except NoRunsError:
+        records = []
+    if not records:
         raise FileNotFoundError(
             f"no run under {sweep}: expected {sweep}/<method>/<job>/<seq>/metrics.json, as written by "
-            f"experiments/sweep.py --out {sweep}"
+            f"experiments/eval/sweep.py --out {sweep}"
         )
+    runs = [Run(r.path.relative_to(sweep).parts[0], r.sequence, r.path.parent, r.metrics,
+                read_frames_csv(r.path.parent / "frames.csv"), r) for r in records]  # fmt: skip
     return sorted(runs, key=lambda r: (r.sequence, _order(r.method)))
 
 
@@ -167,11 +173,6 @@ def fmt(x, digits: int = 2) -> str:
     if x is None or (isinstance(x, float) and not math.isfinite(x)):
         return "–"
     return f"{x:.{digits}f}"
-
-
-def markdown_table(header: list[str], rows: list[list[str]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
-    return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in rows]) + "\n"
 
 
 def pivot(runs: list[Run], methods, value) -> dict[str, dict[str, float | None]]:
@@ -259,9 +260,9 @@ def build_report(sweep: Path, data: Path | None = None) -> Report:
                "per_axis": {s: {m: None if v is None else v.tolist() for m, v in e.items()} for s, e in errors.items()}}  # fmt: skip
     md = [f"# torchtrack: the paper's tables\n\nSweep: `{sweep}` ({len(runs)} runs).\n"]
     md += _included(
-        sweep / "table1" / "table1_spread.md", "Table I: 3D spread of features vs pose error", "table1_spread.py"
+        sweep / "table1" / "table1_spread.md", "Table I: 3D spread of features vs pose error", "paper/table1_spread.py"
     )
-    md += _included(sweep / "table2" / "table2_tim.md", "Table II: mean TIM error (px)", "table2_tim.py")
+    md += _included(sweep / "table2" / "table2_tim.md", "Table II: mean TIM error (px)", "paper/table2_tim.py")
     md += ["## Mean d_TIM logged by the tracker runs (px)\n\nCombined tracker (Proposed) vs intensity only (EKF-2).\n",
            pivot_table(tim, (PROPOSED, "ekf2"), 3)]  # fmt: skip
     md += ["## Table III: mean reprojection error (px), eq. (16)\n", pivot_table(t3, TABLE3)]
@@ -272,6 +273,8 @@ def build_report(sweep: Path, data: Path | None = None) -> Report:
     md += ["## ATE RMSE (cm)\n", pivot_table({s: {m: None if v is None else 100 * v for m, v in row.items()}
                                               for s, row in ate.items()}, list(next(iter(ate.values()))))]  # fmt: skip
     md += ["## Every run\n", trajectory_table(runs)]
+    md += ["## Settings x sequence (as `torchtrack-report` tabulates the sweep)\n",
+           settings_markdown(tabulate([r.record for r in runs if r.record is not None]), sweep)]  # fmt: skip
     return Report("\n".join(md), numbers)
 
 
@@ -296,17 +299,19 @@ def _jsonable(x):
 
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s][report] %(message)s")
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("sweep", type=Path, help="folder written by experiments/sweep.py")
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    p.add_argument("sweep", type=Path, help="folder written by experiments/eval/sweep.py")
     p.add_argument("--data", type=Path, default=None, help="sequences folder, when the runs do not say where")
-    p.add_argument("--out", type=Path, default=None, help="output folder (default SWEEP/report)")
-    p.add_argument("--no-plots", action="store_true")
+    p.add_argument("--out", type=Path, default=None, help="output folder (None: SWEEP/report)")
+    p.add_argument("--no-plots", action="store_true", help="tables only, no PNG")
     args = p.parse_args(argv)
     try:  # no sweep there (or a sequence's ground truth missing): one line, no traceback
         if not args.sweep.is_dir():
             raise FileNotFoundError(f"{args.sweep} is not a folder")
         report = build_report(args.sweep, args.data)
-    except FileNotFoundError as e:
+    except (FileNotFoundError, ReportError) as e:
         print(f"report.py: error: {e}", file=sys.stderr)
         return 2
     out = args.out or args.sweep / "report"

@@ -8,10 +8,10 @@ tracking against a TSDF raycast; OpenCV 5 ``cv2.Odometry``), scores all with
 best peer and ours against it. The issue's target: ours <= 0.7x the best peer's ATE on the real sequences, <= 1.0x
 on the variants.
 
-    python experiments/evaluate.py                                       # every folder in ../shared/data
-    python experiments/evaluate.py --variants --variant-frames 300 --results experiments/RESULTS.md
-    python experiments/evaluate.py --roots ../shared/data/sun3d_fragment1 --max-frames 20 --peers o3d_hybrid
-    python experiments/evaluate.py pipeline.predict_init=false --out outputs/eval_off   # Hydra overrides
+    python experiments/eval/evaluate.py                                       # every folder in ../shared/data
+    python experiments/eval/evaluate.py --variants --variant-frames 300 --results experiments/RESULTS.md
+    python experiments/eval/evaluate.py --roots ../shared/data/sun3d_fragment1 --max-frames 20 --peers o3d_hybrid
+    python experiments/eval/evaluate.py pipeline.predict_init=false --out outputs/eval_off   # Hydra overrides
 
 ``--seeds 1,2,3`` also runs ours on the ``jitter`` variant (half a grey level of colour noise, seeded) of every row's
 folder, one per seed: the long sequences are chaotic, so one run says little. The row's ATE/RPE and its ratios then
@@ -63,7 +63,7 @@ from torchtrack.metrics import shared_error
 
 log = logging.getLogger("evaluate")
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CONF = CONF_DIR
 DATA = REPO.parent / "shared" / "data"
 TARGET_RATIO = 0.7  # issue 12: ours <= 0.7x the best peer's ATE on the real sequences ...
@@ -328,11 +328,15 @@ def default_cache() -> Path:
     return (Path(root) if root else Path.home() / ".cache" / "torchtrack") / "variants"
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """--help: the module docstring as written, and every option's default."""
+
+
 def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     from peers import PEERS
 
     opts, overrides = split_argv(argv)
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--roots", type=Path, nargs="+", default=[DATA], help="sequence folders or folders of them")
     ap.add_argument("--max-frames", type=int, default=None, help="first N frames of every real sequence")
     ap.add_argument("--out", type=Path, default=REPO / "outputs" / "evaluation", help="output folder")
@@ -361,8 +365,8 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
         help="run nothing: the tables of these evaluation.json files, one after the other",
     )
     ap.add_argument("--no-plots", action="store_true", help="no trajectory/feature pictures per run")
-    ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: the config's)")
-    ap.add_argument("-v", "--verbose", action="store_true")
+    ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (None: the config's)")
+    ap.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
     args = ap.parse_args(opts)
     args.peers = [] if args.no_peer else [p for p in args.peers.split(",") if p]
     args.variants = [v for v in args.variants.split(",") if v and v != "none"]
@@ -417,7 +421,7 @@ def main(argv: list[str] | None = None) -> int:
     log.setLevel(logging.INFO)
     args.out.mkdir(parents=True, exist_ok=True)
     start, rows = time.perf_counter(), []
-    command, commit = "python experiments/evaluate.py " + " ".join(argv), git_describe()
+    command, commit = "python experiments/eval/evaluate.py " + " ".join(argv), git_describe()
     print("\n".join(table([], args.peers, compare).splitlines()[:2]), flush=True)
     for src in find_sequences(args.roots):
         for kind, root in sources(src, args):

@@ -1,7 +1,7 @@
 """Paper Table I: 3D spread of the tracked points vs pose error, on an artificial motion of a real model.
 
-    python experiments/table1_spread.py --out runs/paper/table1          # visp_castle_simu frame 0, 20 trials
-    python experiments/table1_spread.py --sequence sun3d_fragment1 --features 100 --out /tmp/t1
+    python experiments/paper/table1_spread.py --out runs/paper/table1          # visp_castle_simu frame 0, 20 trials
+    python experiments/paper/table1_spread.py --sequence sun3d_fragment1 --features 100 --out /tmp/t1
 
 As in the paper (§III-B, on its Face sequence): the point-cloud model (PCM) of a real frame is taken (the
 object by depth: the pixels with depth in [near, far], automatic by default), a smooth artificial motion is defined, the exact
@@ -36,7 +36,7 @@ from torchtrack.geometry import euler_to_matrix, make_T, project, transform_poin
 from torchtrack.image.object_model import feature_spread, object_mask, point_cloud_model
 from torchtrack.metrics import per_axis_errors
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 AXES = ("Rot-x", "Rot-y", "Rot-z", "Tr-x", "Tr-y", "Tr-z")
 
 
@@ -176,24 +176,26 @@ def plot(result: dict, path: Path) -> None:
 
 
 def parse(argv: list[str] | None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", type=Path, default=DATA)
-    p.add_argument("--sequence", default="visp_castle_simu")
-    p.add_argument("--frame", type=int, default=0)
-    p.add_argument("--near", type=float, default=None, help="object by depth, metres (default: automatic)")
-    p.add_argument("--far", type=float, default=None)
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    p.add_argument("--data", type=Path, default=DATA, help="folder of TUM-layout sequence folders")
+    p.add_argument("--sequence", default="visp_castle_simu", help="the model's sequence")
+    p.add_argument("--frame", type=int, default=0, help="the model's frame")
+    p.add_argument("--near", type=float, default=None, help="object by depth, metres (None: automatic)")
+    p.add_argument("--far", type=float, default=None, help="object by depth, metres (None: automatic)")
     p.add_argument("--features", type=int, default=50, help="points per subset")
     p.add_argument("--fractions", default="0.2,0.4,0.7,1.0", help="distance quantiles of the subsets' pools")
-    p.add_argument("--trials", type=int, default=20)
-    p.add_argument("--frames", type=int, default=60)
-    p.add_argument("--fps", type=float, default=30.0)
-    p.add_argument("--rot-amp-deg", type=float, default=10.0)
+    p.add_argument("--trials", type=int, default=20, help="random subsets per spread")
+    p.add_argument("--frames", type=int, default=60, help="frames of the artificial motion")
+    p.add_argument("--fps", type=float, default=30.0, help="frame rate of the artificial motion")
+    p.add_argument("--rot-amp-deg", type=float, default=10.0, help="rotation amplitude (degrees)")
     p.add_argument("--trans-amp", type=float, default=0.03, help="metres")
-    p.add_argument("--sigma-pix", type=float, default=0.5)
+    p.add_argument("--sigma-pix", type=float, default=0.5, help="pixel noise (px)")
     p.add_argument("--sigma-xyz", type=float, default=0.002, help="metres")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=None)
-    p.add_argument("--out", type=Path, default=Path("outputs/table1"))
+    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("--threads", type=int, default=None, help="torch threads (None: torch's default)")
+    p.add_argument("--out", type=Path, default=Path("outputs/table1"), help="output folder")
     args = p.parse_args(argv)
     args.fractions = [float(f) for f in args.fractions.split(",")]
     return args

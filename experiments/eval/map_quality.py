@@ -2,8 +2,8 @@
 peer's poses against the map from ground-truth poses, on every sequence.
 
 Per sequence: torchtrack's default tracker runs with ``mapping=panorama`` exactly as the CLI composes it (its run
-folder, with ``map.ply`` and ``map.png``, goes to ``OUT/ours/<sequence>/``); the peer (experiments/peers.py) runs or
-comes from its cache (``OUT/peer/<sequence>/``, the cache of experiments/evaluate.py). The frames of the panorama —
+folder, with ``map.ply`` and ``map.png``, goes to ``OUT/ours/<sequence>/``); the peer (experiments/eval/peers.py) runs or
+comes from its cache (``OUT/peer/<sequence>/``, the cache of experiments/eval/evaluate.py). The frames of the panorama —
 the first and every model frame of our run, those with ground truth — are then fused three times with the mapping
 config (B = 3 in one batched map): with the ground-truth poses (the reference), with ours (``trajectory.txt``, the
 same world: anchored on the first ground-truth pose) and with the peer's (also started at the first ground-truth
@@ -15,9 +15,9 @@ estimated map (what is missing or moved away); mean and 90th percentile, mm. The
 is 0 by construction; the voxel size (1 cm) and depth noise bound what a perfect trajectory could show only through
 voxelisation differences (about half a voxel).
 
-    python experiments/map_quality.py                                  # every folder of ../shared/data
-    python experiments/map_quality.py --roots ../shared/data/sun3d_fragment1 --no-results
-    python experiments/map_quality.py mapping.voxel_size=0.02          # Hydra overrides pass through
+    python experiments/eval/map_quality.py                                  # every folder of ../shared/data
+    python experiments/eval/map_quality.py --roots ../shared/data/sun3d_fragment1 --no-results
+    python experiments/eval/map_quality.py mapping.voxel_size=0.02          # Hydra overrides pass through
 
 Writes ``OUT/map_quality.md`` and ``.json``, the pictures ``experiments/figures/map_<sequence>.png`` (our map.png at
 half size) and the section "## Panoramic maps (issue 14)" of experiments/RESULTS.md (``--results``; atomically).
@@ -48,7 +48,7 @@ from torchtrack.run import run_tracker
 
 log = logging.getLogger("map_quality")
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DATA = REPO.parent / "shared" / "data"
 HEADING = "## Panoramic maps (issue 14)"
 POSES = ("gt", "ours", "peer")
@@ -194,23 +194,32 @@ def report(rows: list[dict], command: str, commit: str) -> str:
     return "\n".join(body) + "\n"
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """--help: the module docstring as written, and every option's default."""
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     opts, overrides = split_argv(argv)
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--roots", type=Path, nargs="+", default=[DATA])
-    ap.add_argument("--max-frames", type=int, default=None)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    ap.add_argument("--roots", type=Path, nargs="+", default=[DATA], help="sequence folders or folders of them")
+    ap.add_argument("--max-frames", type=int, default=None, help="first N frames (None: all)")
     ap.add_argument("--out", type=Path, default=REPO / "outputs" / "evaluation", help="runs (peer cache shared)")
-    ap.add_argument("--figures", type=Path, default=REPO / "experiments" / "figures")
-    ap.add_argument("--results", type=Path, default=REPO / "experiments" / "RESULTS.md")
+    ap.add_argument("--figures", type=Path, default=REPO / "experiments" / "figures", help="where the map pictures go")
+    ap.add_argument(
+        "--results",
+        type=Path,
+        default=REPO / "experiments" / "RESULTS.md",
+        help="markdown file whose section is replaced",
+    )
     ap.add_argument("--no-results", action="store_true", help="do not touch RESULTS.md")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=1, help="torch threads")
     ap.add_argument("--report-only", action="store_true", help="rewrite the report from OUT/map_quality.json")
     args = ap.parse_args(opts)
     args.out = args.out.resolve()
     logging.basicConfig(level=logging.WARNING, format="%(name)s: %(message)s")
     torch.set_num_threads(args.threads)
-    command = "python experiments/map_quality.py " + " ".join(argv)
+    command = "python experiments/eval/map_quality.py " + " ".join(argv)
     if args.report_only:
         saved = json.loads((args.out / "map_quality.json").read_text())
         rows, command, commit = saved["rows"], saved["command"], saved["commit"]

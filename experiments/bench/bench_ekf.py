@@ -1,6 +1,6 @@
 """Benchmark of the filter stage (torchtrack.filter): Jacobians, update forms, per-frame step, iterated EKF.
 
-Run: ``python experiments/bench_ekf.py [--n 300] [--reps 40] [--json out.json]``
+Run: ``python experiments/bench/bench_ekf.py [--n 300] [--reps 40] [--json out.json]``
 
 Timings use one thread (``torch.set_num_threads(1)``), run every variant interleaved in one process and
 report the minimum and the median wall time per call (the machine may be shared: compare ratios).
@@ -150,10 +150,14 @@ def bench_iterations(B: int = 4, N: int = 300, frames: int = 30) -> dict:
     return out
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """--help: the module docstring as written, and every option's default."""
+
+
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--n", type=int, default=300, help="features per sequence")
-    ap.add_argument("--reps", type=int, default=40)
+    ap.add_argument("--reps", type=int, default=40, help="timed calls per variant")
     ap.add_argument("--json", default=None, help="also write the results here")
     args = ap.parse_args()
     torch.set_num_threads(1)

@@ -7,8 +7,8 @@ are made in a temporary folder (list files without the block; images linked, not
 each run's own written frames (the jump runs have fewer; an interrupted trajectory omits the frames after a failed
 relocalisation, so read its ATE with the interrupted count).
 
-    python experiments/jump_recovery.py                                   # the default cases below
-    python experiments/jump_recovery.py --case sun3d_fragment1:20:30 --case visp_rbt_sequence:40:55
+    python experiments/eval/jump_recovery.py                                   # the default cases below
+    python experiments/eval/jump_recovery.py --case sun3d_fragment1:20:30 --case visp_rbt_sequence:40:55
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from torchtrack.geometry import T_inv, rotation_angle
 from torchtrack.run import run_tracker
 from torchtrack.runtime import configure
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 CASES = ["sun3d_fragment1:20:30", "sun3d_fragment2:20:30", "visp_rbt_sequence:40:55", "visp_castle_simu:15:22"]
 
 
@@ -55,9 +55,11 @@ def run(root: Path, out: Path, *overrides: str) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
     ap.add_argument("--case", action="append", help="NAME:FIRST:END, frames FIRST..END-1 removed (repeatable)")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=1, help="torch threads")
     args = ap.parse_args(argv)
     configure(args.threads)
     logging.getLogger("torchtrack").setLevel(logging.ERROR)

@@ -1,11 +1,11 @@
 """The paper's sweep: sequences x methods (trackers, ablations, a peer), one folder per job, finished jobs skipped.
 
-    python experiments/sweep.py --data ../shared/data --out runs/paper                      # all, joblib x2
-    python experiments/sweep.py --data ../shared/data --out runs/smoke -- data.max_frames=5 plots=false
-    python experiments/sweep.py --out runs/paper --methods fusion_ekf,horn --sequences sun3d_fragment1
-    python experiments/sweep.py --out runs/paper --launcher submitit_slurm -- hydra.launcher.partition=cpu
-    python experiments/sweep.py --out runs/paper --launcher ray -- hydra.launcher.ray.init.address=HEAD:6379
-    python experiments/sweep.py --out runs/paper --dry-run                                   # print the plan
+    python experiments/eval/sweep.py --data ../shared/data --out runs/paper                      # all, joblib x2
+    python experiments/eval/sweep.py --data ../shared/data --out runs/smoke -- data.max_frames=5 plots=false
+    python experiments/eval/sweep.py --out runs/paper --methods fusion_ekf,horn --sequences sun3d_fragment1
+    python experiments/eval/sweep.py --out runs/paper --launcher submitit_slurm -- hydra.launcher.partition=cpu
+    python experiments/eval/sweep.py --out runs/paper --launcher ray -- hydra.launcher.ray.init.address=HEAD:6379
+    python experiments/eval/sweep.py --out runs/paper --dry-run                                   # print the plan
 
 Layout of ``OUT``::
 
@@ -45,7 +45,7 @@ from torchtrack.io import write_json
 
 log = logging.getLogger("sweep")
 
-DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+DEFAULT_DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 
 
 @dataclass(frozen=True)
@@ -292,17 +292,21 @@ def write_summary(out: Path, args: argparse.Namespace, extra: list[str], command
     write_json(out / "sweep.json", summary)
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawTextHelpFormatter):
+    """--help: help texts as written, and every option's default."""
+
+
 def _parse(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     if "--" in argv:
         i = argv.index("--")
         argv, extra = argv[:i], argv[i + 1 :]
     else:
         extra = []
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter)
     p.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder of TUM-layout sequences")
     p.add_argument("--out", type=Path, required=True, help="sweep folder (re-run it to resume)")
     p.add_argument("--methods", default=",".join(METHODS), help=f"comma list from {','.join(METHODS)}")
-    p.add_argument("--sequences", default=None, help="comma list of folder names under --data (default: all)")
+    p.add_argument("--sequences", default=None, help="comma list of folder names under --data (None: all)")
     p.add_argument(
         "--launcher",
         default="joblib",

@@ -4,8 +4,8 @@ Each configuration tracks the same frames (decoded once, kept in memory), runs i
 median ms per frame (wall clock and process CPU time) and its difference and ratio to the default's, and the torch
 thread count.
 
-    python experiments/bench_landmark_estimation.py --root ../shared/data/sun3d_fragment1 --frames 50 --repeats 3
-    python experiments/bench_landmark_estimation.py --root ../shared/data/sun3d_fragment1 --only default warp \
+    python experiments/bench/bench_landmark_estimation.py --root ../shared/data/sun3d_fragment1 --frames 50 --repeats 3
+    python experiments/bench/bench_landmark_estimation.py --root ../shared/data/sun3d_fragment1 --only default warp \
         --config warp32=landmarks.warp=true,landmarks.warp_crop=32
 """
 
@@ -32,11 +32,13 @@ CONFIGS = {
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--root", type=Path, required=True)
-    ap.add_argument("--frames", type=int, default=50)
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--only", nargs="+", help="run only these of the built-in configurations (default: all)")
+    ap = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    ap.add_argument("--root", type=Path, required=True, help="sequence folder")
+    ap.add_argument("--frames", type=int, default=50, help="frames tracked per run")
+    ap.add_argument("--repeats", type=int, default=3, help="runs per configuration")
+    ap.add_argument("--only", nargs="+", help="run only these of the built-in configurations (None: all)")
     ap.add_argument(
         "--config",
         action="append",

@@ -1,4 +1,4 @@
-"""Plots of experiments/report.py: grouped bars of Tables III/V/VI and ATE, per-frame reprojection error.
+"""Plots of experiments/eval/report.py: grouped bars of Tables III/V/VI and ATE, per-frame reprojection error.
 
 Matplotlib's Agg canvas (no pyplot state); each PNG is written to a temporary name and renamed.
 """

@@ -1,6 +1,6 @@
 """Benchmark of the weighting stage: LearnedWeighting (both modes) against PaperWeighting on the same inputs.
 
-Run: ``python experiments/bench_weighting.py [--b 1] [--n 300] [--reps 2000] [--json out.json]``
+Run: ``python experiments/bench/bench_weighting.py [--b 1] [--n 300] [--reps 2000] [--json out.json]``
 
 One thread (``torch.set_num_threads(1)``, as the CLI), ``torch.inference_mode()`` (as ``run_tracker``), float32
 inputs (as the tracker's), every variant timed interleaved in one process; reports the minimum and the median
@@ -14,7 +14,7 @@ import argparse
 import json
 
 import torch
-from bench_ekf import timeit  # experiments/bench_ekf.py: interleaved timing of both sides in one process
+from bench_ekf import timeit  # experiments/bench/bench_ekf.py: interleaved timing of both sides in one process
 
 from torchtrack.filter.cues import CUE_NAMES, D_TIM_CAP
 from torchtrack.filter.weighting import PaperWeighting, WeightingInputs
@@ -33,10 +33,12 @@ def inputs(B: int, N: int, seed: int = 0) -> WeightingInputs:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--b", type=int, default=1)
-    ap.add_argument("--n", type=int, default=300)
-    ap.add_argument("--reps", type=int, default=2000)
+    ap = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    ap.add_argument("--b", type=int, default=1, help="sequences per batch")
+    ap.add_argument("--n", type=int, default=300, help="features per sequence")
+    ap.add_argument("--reps", type=int, default=2000, help="timed calls per variant")
     ap.add_argument("--json", default=None, help="also write the results here")
     args = ap.parse_args()
     torch.set_num_threads(1)

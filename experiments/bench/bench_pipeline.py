@@ -28,9 +28,9 @@ into a temporary folder; no plots). So decoding and writing are included. Report
 All timings are wall clock on a shared machine: the header prints the load average; ratios come from runs
 interleaved in one session.
 
-    python experiments/bench_pipeline.py                        # ../shared/data/sun3d_fragment1, 50 frames, 1 thread
-    python experiments/bench_pipeline.py --root ../shared/data/visp_rbt_sequence --frames 99 --repeats 5
-    python experiments/bench_pipeline.py --only b1 tracker=icp  # Hydra overrides pass through
+    python experiments/bench/bench_pipeline.py                        # ../shared/data/sun3d_fragment1, 50 frames, 1 thread
+    python experiments/bench/bench_pipeline.py --root ../shared/data/visp_rbt_sequence --frames 99 --repeats 5
+    python experiments/bench/bench_pipeline.py --only b1 tracker=icp  # Hydra overrides pass through
 """
 
 from __future__ import annotations
@@ -67,7 +67,7 @@ from torchtrack.config import CONF_DIR
 from torchtrack.factory import build_sequences, build_tracker
 from torchtrack.runtime import configure
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CONF = CONF_DIR
 DATA = REPO.parent / "shared" / "data"
 DEFAULT_ROOT = DATA / "sun3d_fragment1"
@@ -341,9 +341,19 @@ def median_of(repeats: int, fn) -> dict:
 
 
 def peer_fps(seq) -> float:
-    from peers import open3d_rgbd_odometry
+    return _peers().open3d_rgbd_odometry(seq, progress=False)[1]
 
-    return open3d_rgbd_odometry(seq, progress=False)[1]
+
+def _peers():
+    """experiments/eval/peers.py, loaded by its path: a script run as ``python experiments/bench/<script>.py`` sees
+    only its own folder, and the peers belong with the evaluation that uses them most."""
+    import importlib.util
+
+    path = REPO / "experiments" / "eval" / "peers.py"
+    spec = importlib.util.spec_from_file_location("peers", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def opencv_klt_horn(seq, frames: int, features: int = 300) -> dict:
@@ -513,10 +523,14 @@ def startup_seconds(repeats: int = 3) -> tuple[float, list[float]]:
     return statistics.median(times), times
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """--help: the module docstring as written, and every option's default."""
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     overrides = [a for a in argv if "=" in a and not a.startswith("-")]
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--root", type=Path, default=DEFAULT_ROOT, help="a 640x480 sequence (synthetic when absent)")
     ap.add_argument("--frames", type=int, default=50, help="frames per sequence")
     ap.add_argument("--batch", type=int, default=8, help="B of the lockstep run (the same sequence B times)")

@@ -5,8 +5,8 @@ Runs ours (batched over B) next to Open3D's point-to-point ``registration_icp`` 
 (= per sequence per frame: batch time / B) and ratios. A second table measures accuracy under noise
 and outliers (mean rotation error in degrees, translation error in mm, over the B sequences).
 
-    python experiments/bench_estimators.py            # B=8, N=300, float64 and float32, 1 thread
-    python experiments/bench_estimators.py --threads 2 --repeats 50 > bench.md
+    python experiments/bench/bench_estimators.py            # B=8, N=300, float64 and float32, 1 thread
+    python experiments/bench/bench_estimators.py --threads 2 --repeats 50 > bench.md
 """
 
 from __future__ import annotations
@@ -209,10 +209,12 @@ def bench_accuracy(args):
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--B", type=int, default=8)
-    p.add_argument("--N", type=int, default=300)
-    p.add_argument("--repeats", type=int, default=20)
+    p = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    p.add_argument("--B", type=int, default=8, help="point sets per batch")
+    p.add_argument("--N", type=int, default=300, help="points per set")
+    p.add_argument("--repeats", type=int, default=20, help="timed calls per row")
     p.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (1: reproducible on a loaded box)")
     p.add_argument("--w", type=float, default=0.0, help="CPD outlier weight in the speed table")
     p.add_argument("--pycpd-tol", type=float, default=1e-3, help="pycpd's absolute tolerance on Q (its default)")

@@ -10,9 +10,9 @@ The peer does the same with Open3D's legacy point cloud: per key frame ``create_
 stride, depth range), transform, append to the map and ``voxel_down_sample`` the whole map (mean position and
 colour per voxel: the same map, rebuilt each time because Open3D keeps no per-voxel sums).
 
-    python experiments/bench_mapping.py                                   # 7-Scenes kitchen, 1000 frames
-    python experiments/bench_mapping.py --frames-csv runs/kitchen/7scenes_redkitchen/frames.csv
-    python experiments/bench_mapping.py --root ../shared/data/sun3d_fragment1 --key-every 5 --no-peer
+    python experiments/bench/bench_mapping.py                                   # 7-Scenes kitchen, 1000 frames
+    python experiments/bench/bench_mapping.py --frames-csv runs/kitchen/7scenes_redkitchen/frames.csv
+    python experiments/bench/bench_mapping.py --root ../shared/data/sun3d_fragment1 --key-every 5 --no-peer
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ from torchtrack.data.tum import TumSequence
 from torchtrack.geometry import T_inv
 from torchtrack.mapping import PanoramaMapper
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 
 
 class StepStub:
@@ -77,16 +77,20 @@ class Open3DPeer:
         self.map = (self.map + pcd).voxel_down_sample(self.voxel)
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """--help: the module docstring as written, and every option's default."""
+
+
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--root", type=Path, default=DATA / "7scenes_redkitchen")
-    ap.add_argument("--max-frames", type=int, default=None)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    ap.add_argument("--root", type=Path, default=DATA / "7scenes_redkitchen", help="sequence folder")
+    ap.add_argument("--max-frames", type=int, default=None, help="first N frames (None: all)")
     ap.add_argument("--frames-csv", type=Path, default=None, help="a run's frames.csv: its re-selections")
     ap.add_argument("--key-every", type=int, default=10, help="key frames without --frames-csv")
-    ap.add_argument("--voxel-size", type=float, default=0.01)
-    ap.add_argument("--pixel-stride", type=int, default=2)
-    ap.add_argument("--no-peer", action="store_true")
-    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--voxel-size", type=float, default=0.01, help="map voxel (m)")
+    ap.add_argument("--pixel-stride", type=int, default=2, help="every k-th pixel of a key frame")
+    ap.add_argument("--no-peer", action="store_true", help="skip Open3D's voxel_down_sample")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 

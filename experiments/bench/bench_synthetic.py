@@ -1,6 +1,6 @@
 """Benchmark of the synthetic RGB-D renderer: time to render one 640x480 frame (target <= 50 ms).
 
-    python experiments/bench_synthetic.py [--frames 20] [--threads 1] [--preview /tmp/synth_preview.png]
+    python experiments/bench/bench_synthetic.py [--frames 20] [--threads 1] [--preview /tmp/synth_preview.png]
 
 Times ``render_frame`` (ray casting + texturing, noise-free) on the default scene and object sequences,
 after a warm-up frame that bakes the planes' texture atlases (reported separately, once per scene).
@@ -89,7 +89,9 @@ def bench_mode(mode: str, n: int) -> float:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
     ap.add_argument("--frames", type=int, default=20, help="timed frames per mode")
     ap.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
     ap.add_argument("--preview", type=Path, default=None, help="write a colour|depth PNG of frame 0 of both modes")

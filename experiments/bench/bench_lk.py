@@ -14,9 +14,9 @@ steady-state cost per frame (``prepare_frame`` of the new frame + tracker), whic
 OpenCV (it builds its pyramids inside each call). Then the batched throughput for B = 1, 4, 8. Issue 15's
 target: torch per frame within 1.5x OpenCV at B=1 (printed as met / NOT met).
 
-    python experiments/bench_lk.py                     # 1 thread, 300 features, 40 repeats
-    python experiments/bench_lk.py --threads 2 --repeats 100
-    python experiments/bench_lk.py --one-pass          # the one-pass table only
+    python experiments/bench/bench_lk.py                     # 1 thread, 300 features, 40 repeats
+    python experiments/bench/bench_lk.py --threads 2 --repeats 100
+    python experiments/bench/bench_lk.py --one-pass          # the one-pass table only
 
 Results and the machine's load: experiments/RESULTS.md, "Speed (issue 15)".
 """
@@ -43,7 +43,7 @@ from torchtrack.image.lk import lk_track_flat  # noqa: E402
 from torchtrack.image.pyramid import build_pyramid  # noqa: E402
 
 TARGET_RATIO = 1.5  # issues 15 and 25
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 
 
 def load_pairs(seq: str, count: int, n_features: int):
@@ -149,14 +149,18 @@ def bench_batch(b, tracker, data, args, levels, repeats):
     return {k: np.array(v) for k, v in rows.items()}  # repeats x (wall, cpu)
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """--help: the module docstring as written, and every option's default."""
+
+
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--repeats", type=int, default=40)
-    ap.add_argument("--features", type=int, default=300)
-    ap.add_argument("--seq", default="sun3d_fragment1")
-    ap.add_argument("--window", type=int, default=21)
-    ap.add_argument("--levels", type=int, default=3)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
+    ap.add_argument("--threads", type=int, default=1, help="torch and OpenCV threads")
+    ap.add_argument("--repeats", type=int, default=40, help="timed calls per row")
+    ap.add_argument("--features", type=int, default=300, help="points tracked")
+    ap.add_argument("--seq", default="sun3d_fragment1", help="sequence folder in ../shared/data")
+    ap.add_argument("--window", type=int, default=21, help="LK window (px)")
+    ap.add_argument("--levels", type=int, default=3, help="LK pyramid levels")
     ap.add_argument("--lk-backend", default="auto", help="the combined tracker's LK: auto | cpp | torch")
     ap.add_argument("--one-pass", action="store_true", help="only the one-pass table")
     a = ap.parse_args()

@@ -5,7 +5,7 @@ sequence and variant; the variants come from :func:`torchtrack.data.perturb.make
 frame, ``jitterS`` the ``jitter`` kind with seed S (half a grey level of noise: the run-to-run spread of a chaotic
 sequence), and the other kinds by name (seed 0). A finished run (its ``metrics.json``) is not run again.
 
-    python experiments/landmarks_ablation.py --roots /work/shared/data/7scenes_redkitchen \\
+    python experiments/eval/landmarks_ablation.py --roots /work/shared/data/7scenes_redkitchen \\
         --variants real,jitter1,jitter2,jitter3,skip2,skip3,skip4 --variant-frames 1000 \\
         --configs off= landmarks=landmarks.enabled=true --out /tmp/abl
 
@@ -56,14 +56,16 @@ def cell(m: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
     ap.add_argument("--roots", nargs="+", type=Path, required=True, help="TUM-layout sequence folders")
     ap.add_argument("--variants", default="real", help="comma-separated: real, skipK, jitterS, reversed, ...")
-    ap.add_argument("--variant-frames", type=int, default=None, help="variants from the first N frames (all)")
-    ap.add_argument("--max-frames", type=int, default=None, help="real runs on the first N frames (all)")
+    ap.add_argument("--variant-frames", type=int, default=None, help="variants from the first N frames (None: all)")
+    ap.add_argument("--max-frames", type=int, default=None, help="real runs on the first N frames (None: all)")
     ap.add_argument("--configs", nargs="+", required=True, help="NAME=override,override (NAME= : the default)")
-    ap.add_argument("--cache", type=Path, default=Path("/tmp/torchtrack_variants"))
-    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--cache", type=Path, default=Path("/tmp/torchtrack_variants"), help="folder of the built variants")
+    ap.add_argument("--out", type=Path, required=True, help="output folder")
     args = ap.parse_args(argv)
     configs = {}
     for c in args.configs:
