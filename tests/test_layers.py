@@ -114,8 +114,6 @@ DEVICE_KNOWN = {
     "data/synthetic/writer.py::_depth_camera: torch.tensor": 1,
     "data/tum.py::_extrinsic: torch.eye": 1,
     "data/tum.py::_extrinsic: torch.tensor": 1,
-    "estimators/keyframe_window.py::refine_keyframes: torch.zeros": 3,
-    "estimators/window.py::refine_window: torch.tensor": 2,
     "learn/cache.py::object_poses_gt: torch.arange": 1,
     "learn/cache.py::object_poses_gt: torch.eye": 1,
     "learn/model.py::__init__: torch.tensor": 2,
@@ -144,9 +142,6 @@ DEVICE_KNOWN = {
     "metrics.py::rpe_pairs: torch.tensor": 1,
     "metrics.py::trajectory_metrics: torch.ones": 1,
     "metrics.py::umeyama_alignment: torch.ones": 1,
-    "pipeline/landmark_window.py::note: torch.full": 2,
-    "pipeline/landmarks.py::reacquire: torch.full": 1,
-    "pipeline/relocalise.py::reset: torch.zeros": 1,
     "viz/overlay.py::snapshot_indices: torch.linspace": 1,
 }
 

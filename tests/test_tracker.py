@@ -14,6 +14,7 @@ from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 from torchtrack.factory import build_tracker
 from torchtrack.geometry import T_inv, rotation_angle
 from torchtrack.geometry.rig import color_poses, tracker_world
+from torchtrack.pipeline.state import Measure
 
 CONF = CONF_DIR
 
@@ -140,7 +141,8 @@ def test_keep_survivors_keeps_their_world_points_and_the_pose(synth):
     n_select = len(tracker.reselect.select(s().prev.gray, s().prev.depth, frames[-1].K, sim=s().prev.sim).valid[0])
     width = max(n_select, s().pixels.shape[1])  # the new model: the selector's width or the old model's
 
-    tracker.state, _ = tracker._new_model(s(), frames[-1], s().prev, torch.ones(1, dtype=torch.bool))
+    measure = Measure(s().prev.depth, frames[-1].K, frames[-1].T_color_depth)
+    tracker.state, _ = tracker._new_model(s(), frames[-1], s().prev, measure, torch.ones(1, dtype=torch.bool))
     valid = s().valid[0]
     new_pixels = s().pixels[0][valid]
     new_points = (world()[..., 0] + s().T_world_obj[:, None, :3, 3].float())[0][valid]
@@ -169,7 +171,8 @@ def test_keep_survivors_keeps_them_all_when_the_selection_is_poor(synth):
             for f in ("pixels", "points", "cornerness", "cornerness_int", "cornerness_sim", "valid")
         }
     )  # noqa: E501
+    measure = Measure(tracker.state.prev.depth, frames[-1].K, frames[-1].T_color_depth)
     tracker.state, _ = tracker._new_model(
-        tracker.state, frames[-1], tracker.state.prev, torch.ones(1, dtype=torch.bool)
+        tracker.state, frames[-1], tracker.state.prev, measure, torch.ones(1, dtype=torch.bool)
     )
     assert survivors > 5 and int(tracker.state.valid.sum()) >= survivors

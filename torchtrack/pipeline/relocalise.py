@@ -160,10 +160,10 @@ class Relocaliser:
         self.agree_m, self.agree_rad = agree_m, float(np.deg2rad(agree_deg))
         self.reset(0, 0)
 
-    def reset(self, B: int, slots: int) -> None:
+    def reset(self, B: int, slots: int, device: torch.device | str | None = None) -> None:
         """Nothing stored for B sequences of a keyframe store with ``slots`` slots each (the tracker's first frame)."""
         self.orb: list[list[Keyframe | None]] = [[None] * slots for _ in range(B)]  # per keyframe slot
-        self.interrupted = torch.zeros(B, dtype=torch.bool)
+        self.interrupted = torch.zeros(B, dtype=torch.bool, device=device)
 
     def check(self, store: KeyframeStore, frame, cur: PreparedFrame, result, n_prev: Tensor | None) -> Relocalisation:
         """The loss check of the frame ``result`` (a :class:`~torchtrack.pipeline.state.StepResult`) that the tracker
@@ -181,7 +181,6 @@ class Relocaliser:
         retry = (lost | (self.interrupted & frame.active)) & self.recover
         relocalised = torch.zeros(B, dtype=torch.bool, device=dev)
         inliers = torch.zeros(B, dtype=torch.long, device=dev)
-        self.interrupted = self.interrupted.to(dev)
         T_new = result.T_world_depth.clone()
         for b in retry.nonzero()[:, 0].tolist():
             T, inliers[b] = self._relocalise(store, frame, cur, b)

@@ -230,7 +230,7 @@ class Tracker:
         if self.landmarks is not None:
             self.landmarks.reset()
         if self.relocaliser is not None:
-            self.relocaliser.reset(B, self.keyframes.slots)
+            self.relocaliser.reset(B, self.keyframes.slots, dev)
         everyone = torch.ones(B, dtype=torch.bool, device=dev)
         self.state, model_T_cam_obj = self._new_model(s, frame, cur, measure, everyone)
         return _result(self.state, None, None, everyone, model_T_cam_obj=model_T_cam_obj)
