@@ -18,7 +18,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchtrack.config import VIEW_SIZE, MappingConfig
 from torchtrack.data.frame import FrameBatch
 from torchtrack.frontend import depth_in_colour, smooth_depth_mask
 from torchtrack.geometry import backproject, transform_points
@@ -88,17 +87,17 @@ class PanoramaMapper:
     def __init__(
         self,
         *,
-        voxel_size: float = MappingConfig.voxel_size,
-        every: int | None = MappingConfig.every,
-        pixel_stride: int = MappingConfig.pixel_stride,
-        min_depth: float = MappingConfig.min_depth,
-        max_depth: float = MappingConfig.max_depth,
-        edge_step: float | None = MappingConfig.edge_step,
-        tsdf: bool = MappingConfig.tsdf,
-        tsdf_voxel_size: float = MappingConfig.tsdf_voxel_size,
-        tsdf_trunc: float = MappingConfig.tsdf_trunc,
-        views: bool = MappingConfig.views,
-        view_size: tuple[int, int] = VIEW_SIZE,
+        voxel_size: float = 0.01,
+        every: int | None = None,
+        pixel_stride: int = 2,
+        min_depth: float = 0.1,
+        max_depth: float = 4.0,
+        edge_step: float | None = 0.05,
+        tsdf: bool = False,
+        tsdf_voxel_size: float = 0.01,
+        tsdf_trunc: float = 0.04,
+        views: bool = True,
+        view_size: tuple[int, int] = (480, 640),
     ) -> None:
         if voxel_size <= 0:
             raise ValueError(f"PanoramaMapper: voxel_size must be > 0, got {voxel_size}")

@@ -14,7 +14,8 @@
 The per-frame stages it is composed of besides (front end, region, selection, LK, weighting, back end) live with
 their kind: :mod:`torchtrack.frontend`, :mod:`torchtrack.image`, :mod:`torchtrack.filter`,
 :mod:`torchtrack.estimators`. Each stage is built by :func:`torchtrack.factory.build_tracker` from its own config
-group, whose schema (:mod:`torchtrack.config`) holds its defaults.
+group; each takes plain keyword arguments whose defaults equal its schema's (:mod:`torchtrack.config`,
+``tests/test_config.py``).
 """
 
 from torchtrack.pipeline.state import StepResult, TrackerState

@@ -15,8 +15,6 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchtrack.config import KeyframeConfig
-
 
 class KeyframeStore:
     """Per sequence the last ``size`` model keyframes (slots 0 .. size - 1, a ring: the oldest is replaced) and the
@@ -32,7 +30,7 @@ class KeyframeStore:
     slot holds a keyframe.
     """
 
-    def __init__(self, *, size: int = KeyframeConfig.size, every: int = KeyframeConfig.every) -> None:
+    def __init__(self, *, size: int = 8, every: int = 10) -> None:
         if size < 1 or every < 0:
             raise ValueError(f"keyframes.size must be >= 1 and keyframes.every >= 0, got {size}, {every}")
         self.size, self.every = size, every

@@ -6,7 +6,6 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchtrack.config import OutlierConfig
 from torchtrack.metrics import reprojection_errors
 
 
@@ -24,7 +23,7 @@ class ResidualDrop:
     """Drops the features whose pixel is farther than ``max_residual_px`` from their model point reprojected with the
     updated pose (None = the paper: every tracked feature stays)."""
 
-    def __init__(self, *, max_residual_px: float | None = OutlierConfig.max_residual_px) -> None:
+    def __init__(self, *, max_residual_px: float | None = 3.0) -> None:
         if max_residual_px is not None and max_residual_px <= 0:
             raise ValueError(f"outliers.max_residual_px must be > 0 (or null), got {max_residual_px}")
         self.max_residual_px = max_residual_px

@@ -25,7 +25,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchtrack.config import RelocaliseConfig
 from torchtrack.filter.models import measure_points
 from torchtrack.frontend import PreparedFrame
 from torchtrack.geometry import T_inv, rotation_angle
@@ -142,16 +141,16 @@ class Relocaliser:
     def __init__(
         self,
         *,
-        recover: bool = RelocaliseConfig.recover,
-        min_survival: float = RelocaliseConfig.min_survival,
-        max_rejected: float = RelocaliseConfig.max_rejected,
-        max_pos_std: float = RelocaliseConfig.max_pos_std,
-        orb_features: int = RelocaliseConfig.orb_features,
-        ratio: float = RelocaliseConfig.ratio,
-        reprojection_px: float = RelocaliseConfig.reprojection_px,
-        min_inliers: int = RelocaliseConfig.min_inliers,
-        agree_m: float = RelocaliseConfig.agree_m,
-        agree_deg: float = RelocaliseConfig.agree_deg,
+        recover: bool = True,
+        min_survival: float = 0.25,
+        max_rejected: float = 0.95,
+        max_pos_std: float = 0.01,
+        orb_features: int = 1000,
+        ratio: float = 0.8,
+        reprojection_px: float = 3.0,
+        min_inliers: int = 30,
+        agree_m: float = 0.02,
+        agree_deg: float = 2.0,
     ) -> None:
         self.recover = recover
         self.min_survival, self.max_rejected, self.max_pos_std = min_survival, max_rejected, max_pos_std
