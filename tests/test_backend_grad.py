@@ -293,7 +293,7 @@ def test_backend_equals_the_stateful_filter_over_a_rollout():
     two take the same arithmetic in other orders (einsum vs matmul): within 1e-12 on poses of order 1 (float64)."""
     obs = noisy_observations(frames=4)
     var_xyz, var_pix = variances(4, *obs[0].valid.shape)
-    backend, ref = EKFBackend(FusionEKF(), gate=0.999, refit=0.999, noise_scale=False), FusionEKF()
+    backend, ref = EKFBackend(FusionEKF(gate=0.999, refit=0.999, noise_scale=False)), FusionEKF()
     everyone = torch.ones(2, dtype=torch.bool)
     backend.reset(true_pose(0.0), everyone)
     state = ref.initial_state(true_pose(0.0))

@@ -40,23 +40,23 @@ def estimate(backend, obs_var):
 def test_refit_equals_the_update_without_the_outlier():
     # 4 px and 2 cm: inside the gate of the prediction (the velocity is still unknown), so only the refit sees it
     obs = observation(outlier_px=4.0, outlier_m=0.02)
-    plain = estimate(EKFBackend(FusionEKF(), gate=0.999, refit=None), obs)
-    refit = estimate(EKFBackend(FusionEKF(), gate=0.999, refit=0.999), obs)
-    oracle = estimate(EKFBackend(FusionEKF(), gate=0.999, refit=None), observation(drop_outlier=True))
+    plain = estimate(EKFBackend(FusionEKF(gate=0.999, refit=None)), obs)
+    refit = estimate(EKFBackend(FusionEKF(gate=0.999, refit=0.999)), obs)
+    oracle = estimate(EKFBackend(FusionEKF(gate=0.999, refit=None)), observation(drop_outlier=True))
     torch.testing.assert_close(refit, oracle, atol=1e-12, rtol=0)
     assert float((plain - oracle).abs().max()) > 1e-5  # the outlier did bias the plain update
 
 
 def test_refit_changes_nothing_without_outliers():
     obs = observation()
-    plain = estimate(EKFBackend(FusionEKF(), gate=None, refit=None), obs)
-    torch.testing.assert_close(estimate(EKFBackend(FusionEKF(), gate=None, refit=0.999), obs), plain, atol=0, rtol=0)
+    plain = estimate(EKFBackend(FusionEKF(gate=None, refit=None)), obs)
+    torch.testing.assert_close(estimate(EKFBackend(FusionEKF(gate=None, refit=0.999)), obs), plain, atol=0, rtol=0)
 
 
 def test_gate_drops_gross_outliers():
     obs = observation(outlier_px=200.0, outlier_m=1.0)
-    gated = estimate(EKFBackend(FusionEKF(), gate=0.999, refit=None), obs)
-    oracle = estimate(EKFBackend(FusionEKF(), gate=None, refit=None), observation(drop_outlier=True))
+    gated = estimate(EKFBackend(FusionEKF(gate=0.999, refit=None)), obs)
+    oracle = estimate(EKFBackend(FusionEKF(gate=None, refit=None)), observation(drop_outlier=True))
     torch.testing.assert_close(gated, oracle, atol=1e-12, rtol=0)
 
 
@@ -70,13 +70,13 @@ def test_chi2_quantile_against_known_values():
 @pytest.mark.parametrize("name, p", [("gate", 1.0), ("refit", 0.0)])
 def test_bad_probabilities_raise(name, p):
     with pytest.raises(ValueError, match=name):
-        EKFBackend(FusionEKF(), **{name: p})
+        EKFBackend(FusionEKF(**{name: p}))
 
 
 def test_refit_drops_a_failing_3d_point_alone():
     """A feature whose 3D point alone is off loses only that: the oracle is the filter with that point masked."""
     obs, var = observation(outlier_m=0.02)
-    refit = estimate(EKFBackend(FusionEKF(), gate=None, refit=0.999), (obs, var))
+    refit = estimate(EKFBackend(FusionEKF(gate=None, refit=0.999)), (obs, var))
     keep = obs.valid.clone()
     keep[:, 0] = False
     oracle = FusionEKF()
@@ -85,7 +85,7 @@ def test_refit_drops_a_failing_3d_point_alone():
                             obs.K, obs.T_color_depth)  # fmt: skip
     expected = oracle.injected(prior, update).T_cam_obj
     torch.testing.assert_close(refit, expected, atol=1e-12, rtol=0)
-    dropped_both = estimate(EKFBackend(FusionEKF(), gate=None, refit=None), observation(drop_outlier=True))
+    dropped_both = estimate(EKFBackend(FusionEKF(gate=None, refit=None)), observation(drop_outlier=True))
     assert float((refit - dropped_both).abs().max()) > 1e-9  # the good pixel of feature 0 was kept
 
 
@@ -93,8 +93,8 @@ def test_a_pixel_alone_is_not_dropped():
     """Policy (EKFBackend._keep): the pixel variances of eq. (11) are relative, so a pixel is dropped only with
     its 3D point; a pixel-only outlier leaves the update as it is, and no second update is run."""
     obs = observation(outlier_px=4.0)
-    plain = estimate(EKFBackend(FusionEKF(), gate=None, refit=None), obs)
-    backend = EKFBackend(FusionEKF(), gate=None, refit=0.999)
+    plain = estimate(EKFBackend(FusionEKF(gate=None, refit=None)), obs)
+    backend = EKFBackend(FusionEKF(gate=None, refit=0.999))
     calls = []
     update = backend.ekf.updated
     backend.ekf.updated = lambda *a, **k: calls.append(1) or update(*a, **k)

@@ -18,7 +18,7 @@ from torchtrack.config import (
     CONF_DIR,
     SCHEMAS,
     CPDConfig,
-    EKFBackendConfig,
+    FilterConfig,
     FlowConfig,
     ICPConfig,
     PaperWeightingConfig,
@@ -89,7 +89,7 @@ def test_every_experiment_composes_with_every_estimator_and_weighting(experiment
         assert tracker_obj.outliers.max_residual_px is None and tracker_obj.reselect.edge_step is None
         assert not tracker_obj.reselect.keep_survivors and tracker_obj.landmarks is None
         if tracker == "fusion_ekf":
-            assert tracker_obj.backend.gate is None and tracker_obj.backend.refit is None
+            assert tracker_obj.backend.ekf.gate is None and tracker_obj.backend.ekf.refit is None
 
 
 @pytest.mark.parametrize("experiment", [None, "paper"])
@@ -105,7 +105,7 @@ def test_the_estimator_choice_changes_only_the_estimator(tracker, experiment):
 def test_paper_experiment_sets_the_paper_values():
     cfg = config("+experiment=paper")
     assert cfg.weighting.depth_var_exponent == 0.0 and cfg.weighting.sigma2_xyz == 1e-4
-    assert cfg.flow.policy == "min_tim" and cfg.tracker.gate is None and cfg.tracker.refit is None
+    assert cfg.flow.policy == "min_tim" and cfg.filter.gate is None and cfg.filter.refit is None
     assert config("+experiment=paper", "weighting=fixed").weighting == config("weighting=fixed").weighting
 
 
@@ -117,7 +117,7 @@ PARTNERS = {
     PaperWeightingConfig: ("torchtrack.filter.weighting.paper_variances",),
     ICPConfig: ("torchtrack.estimators.icp.icp",),
     CPDConfig: ("torchtrack.estimators.cpd.cpd_rigid",),
-    EKFBackendConfig: ("torchtrack.filter.frame.ekf_frame",),
+    FilterConfig: ("torchtrack.filter.frame.ekf_frame",),
 }
 KNOWN: set[tuple[str, str]] = set()  # known disagreements between a signature and its schema: none
 # Not the schema's knob under the same name: ekf_frame takes the NoiseScale object itself (None: off, as false).
@@ -156,16 +156,18 @@ def test_the_front_end_levels_default_to_the_flow_levels():
 
 
 def test_paper_values_stay_reachable():
-    """+experiment=paper is the one place of the paper's values: each it sets differs from the default."""
+    """+experiment=paper is the one file of the paper's values (with the weighting option it selects): each value it
+    sets differs from the default, and the composed config carries it."""
     ours, paper = config(), config("+experiment=paper")
-    for group, keys in {
-        "pipeline": ("predict_init",), "reselect": ("edge_step", "keep_survivors", "point_mean"), "outliers": ("max_residual_px",),
-        "landmarks": ("enabled",),
-        "flow": ("policy",), "relocalise": ("recover",), "select": ("roi_fraction",),
-        "weighting": ("sigma2_xyz", "depth_var_exponent"), "tracker": ("gate", "refit"),
-    }.items():  # fmt: skip
-        for key in keys:
-            assert ours[group][key] != paper[group][key], f"{group}.{key}"
+    values = OmegaConf.load(CONF / "experiment" / "paper.yaml")
+    weighting = OmegaConf.load(CONF / "weighting" / "paper_as_written.yaml")
+    assert list(values.pop("defaults")) == [{"override /weighting": "paper_as_written"}]
+    weighting.pop("defaults")
+    values.weighting = weighting
+    assert len(values) == 9 and paper.filter.state == "euler"  # groups
+    for group, node in values.items():
+        for key, value in node.items():
+            assert paper[group][key] == value and ours[group][key] != value, f"{group}.{key}"
 
 
 @pytest.mark.parametrize(

@@ -1,6 +1,7 @@
 """The fusion EKF (FusionEKF's pure steps, EKFBackend the one stateful filter), both pose states: convergence on an
 exact synthetic moving rigid body, masks, resets, forms, batching."""
 
+import copy
 import math
 
 import pytest
@@ -69,11 +70,18 @@ def constant(B, N, var_pix=1.0, var_xyz=1e-4):
     return Variances(torch.full((B, N), var_pix, dtype=F64), torch.full((B, N), var_xyz, dtype=F64))
 
 
+def ungated(ekf: FusionEKF) -> FusionEKF:
+    """A copy of ``ekf`` without the innovation gate and the refit: the paper's update of every measurement."""
+    out = copy.copy(ekf)
+    out.gate = out.refit = None
+    return out
+
+
 def run(ekf, steps, X, K, T_cd, valid=None, start=None, var=(1.0, 1e-4)):
     """EKFBackend (no gate, no refit) over ``steps`` frames of the true motion; the last frame's result and the
     pose errors of every frame."""
     B, N = X.shape[:2]
-    backend = EKFBackend(ekf, gate=None, refit=None)
+    backend = EKFBackend(ungated(ekf))
     backend.reset(true_pose(0.0) if start is None else start, torch.ones(B, dtype=torch.bool))
     errs = []
     for k in range(1, steps + 1):
@@ -179,7 +187,7 @@ def test_valid_xyz_masks_only_the_3d_part():
 @pytest.mark.parametrize("state", STATES)
 def test_reset_and_set_pose_with_mask_touch_only_masked_sequences(state):
     X, K, T_cd = body(N=10)
-    backend = EKFBackend(FusionEKF(init_sigma_angle=0.01, state=state), gate=None, refit=None)
+    backend = EKFBackend(FusionEKF(init_sigma_angle=0.01, state=state, gate=None, refit=None))
     backend.reset(true_pose(0.0), torch.ones(2, dtype=torch.bool))
     backend.step(observation(true_pose(DT), X, K, T_cd), constant(2, 10))
     before = backend.state
@@ -211,7 +219,7 @@ def test_batched_equals_looped(state):
 
 
 def run_one(ekf, steps, X, K, T_cd, b):
-    backend = EKFBackend(ekf, gate=None, refit=None)
+    backend = EKFBackend(ungated(ekf))
     backend.reset(true_pose(0.0)[b : b + 1], torch.ones(1, dtype=torch.bool))
     for k in range(1, steps + 1):
         out = backend.step(observation(true_pose(k * DT)[b : b + 1], X, K, T_cd), constant(1, X.shape[1]))

@@ -1,4 +1,4 @@
-"""The online noise scale (filter/noise_scale.py, EKFBackend(noise_scale=True)).
+"""The online noise scale (filter/noise_scale.py, FusionEKF(noise_scale=True)).
 
 Oracle: observations whose true noise is k x the model's, for the pixel block or the 3D block alone: the scale
 estimates k, and the filter that estimates it tracks as well as the filter given the true noise. Then: batched
@@ -14,7 +14,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from torchtrack.config import CONF_DIR, EKFBackendConfig
+from torchtrack.config import CONF_DIR, FilterConfig
 from torchtrack.filter import FusionEKF, Variances
 from torchtrack.filter.backend import EKFBackend
 from torchtrack.filter.frame import ekf_frame
@@ -42,7 +42,7 @@ def track(oracle, var_scale=(1.0, 1.0), *, noise_scale=False, active=None, valid
     true variances divided by ``var_scale`` (pix, xyz). Returns the per-frame poses (T, B, 4, 4) and scales
     (T, B, 2) (None when off)."""
     w = oracle.windows
-    backend = EKFBackend(FusionEKF(), gate=outliers, refit=outliers, noise_scale=noise_scale, **kw)
+    backend = EKFBackend(FusionEKF(gate=outliers, refit=outliers, noise_scale=noise_scale, **kw))
     backend.reset(w.start_T_cam_obj, torch.ones(w.dt.shape[1], dtype=torch.bool))
     poses, scales = [], []
     for t in range(w.frames):
@@ -140,7 +140,7 @@ def test_inactive_and_featureless_sequences_keep_their_scale():
 def test_a_reselection_keeps_the_scale_and_a_new_batch_starts_at_one():
     oracle = windows(4.0, 1.0, B=2, T=10)
     w = oracle.windows
-    backend = EKFBackend(FusionEKF(), gate=0.999, refit=0.999, noise_scale=True)
+    backend = EKFBackend(FusionEKF(gate=0.999, refit=0.999, noise_scale=True))
     backend.reset(w.start_T_cam_obj, torch.ones(2, dtype=torch.bool))
     for t in range(10):
         out = backend.step(w.observation(t), Variances(oracle.var_pix[t] / 4.0, oracle.var_xyz[t]))
@@ -160,7 +160,7 @@ def test_the_scale_is_bounded(k, bound):
 def test_off_is_the_filter_of_today():
     oracle = windows(4.0, 1.0, B=2, T=5)
     w, ekf = oracle.windows, FusionEKF()
-    state, off = ekf.initial_state(w.start_T_cam_obj), EKFBackend(ekf, gate=0.999, refit=0.999, noise_scale=False)
+    state, off = ekf.initial_state(w.start_T_cam_obj), EKFBackend(FusionEKF(noise_scale=False))
     off.reset(w.start_T_cam_obj, torch.ones(2, dtype=torch.bool))
     for t in range(5):
         var = Variances(oracle.var_pix[t], oracle.var_xyz[t])
@@ -202,14 +202,14 @@ def test_bad_parameters_raise(kwargs):
 def test_configuration():
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         default = compose("config")
-        on = compose("config", overrides=["tracker.noise_forgetting=0.9"])
-        off = compose("config", overrides=["tracker.noise_scale=false"])
+        on = compose("config", overrides=["filter.noise_forgetting=0.9"])
+        off = compose("config", overrides=["filter.noise_scale=false"])
         paper = compose("config", overrides=["+experiment=paper"])
-    assert default.tracker.noise_scale is True and isinstance(instantiate(default.tracker).noise, NoiseScale)
-    assert instantiate(off.tracker).noise is None and paper.tracker.noise_scale is False
-    assert instantiate(paper.tracker).noise is None
-    noise = instantiate(on.tracker).noise
-    assert isinstance(noise, NoiseScale) and noise.forgetting == 0.9 and noise.clip == EKFBackendConfig.noise_clip
+    assert default.filter.noise_scale is True and isinstance(instantiate(default.tracker).ekf.noise, NoiseScale)
+    assert instantiate(off.tracker).ekf.noise is None and paper.filter.noise_scale is False
+    assert instantiate(paper.tracker).ekf.noise is None
+    noise = instantiate(on.tracker).ekf.noise
+    assert isinstance(noise, NoiseScale) and noise.forgetting == 0.9 and noise.clip == FilterConfig.noise_clip
 
 
 def test_frames_csv_reports_the_back_ends_scale(tmp_path):
@@ -225,7 +225,7 @@ def test_frames_csv_reports_the_back_ends_scale(tmp_path):
     seq = TumSequence(ensure_sequence(SyntheticConfig(width=160, height=120, frames=6, seed=1), tmp_path / "data"))
     for on in (False, True):
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            tracker = build_tracker(compose("config", overrides=[f"tracker.noise_scale={str(on).lower()}"]))
+            tracker = build_tracker(compose("config", overrides=[f"filter.noise_scale={str(on).lower()}"]))
         run_tracker(tracker, [seq], tmp_path / str(on), plots=False)
         with open(tmp_path / str(on) / seq.name / "frames.csv") as f:
             rows = list(csv.DictReader(f))

@@ -18,8 +18,7 @@ from torchtrack.filter.backend import EKFBackend
 from torchtrack.filter.frame import Observation
 from torchtrack.filter.fusion import FusionEKF
 from torchtrack.filter.weighting import Variances
-from torchtrack.geometry import make_T, so3_exp, transform_points
-from torchtrack.pipeline.landmarks import Reacquired
+from torchtrack.geometry import make_T, so3_exp
 from torchtrack.pipeline.relocalise import LossCheck, Relocalisation, Relocaliser
 
 
@@ -100,28 +99,11 @@ def test_the_tracker_applies_the_relocalisers_decision(synth):  # noqa: F811
             assert tracker.state.velocity.abs().sum() > 0  # a moving camera: the zero above is the reset
 
 
-def test_reacquired_landmarks_as_measurements_of_the_model():
-    """The observation's model points are the stored world positions in the model frame: mapped back by T_world_obj
-    they are the world positions (float32 rounding); not valid rows are zeros."""
-    g = torch.Generator().manual_seed(0)
-    world = torch.randn(2, 5, 3, generator=g, dtype=torch.float64) + torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64)
-    valid = torch.tensor([[True, True, False, True, True], [False, True, True, True, False]])
-    acq = Reacquired(torch.rand(2, 5, 2, generator=g) * 100, world, world.float(), torch.zeros(2, 5, 2), valid,
-                     torch.eye(4, dtype=torch.float64).expand(2, 4, 4))  # fmt: skip
-    T_world_obj = torch.stack([_pose(30.0, [0.1, 0.2, 0.3]), _pose(-60.0, [1.0, 0.0, -1.0])])
-    K = torch.eye(3).expand(2, 3, 3)
-    obs = acq.observation(T_world_obj, torch.full((2,), 0.1), K, torch.eye(4).expand(2, 4, 4))
-    back = transform_points(T_world_obj, obs.points_obj.double())
-    torch.testing.assert_close(back[valid], world[valid], atol=1e-6, rtol=0)
-    assert not obs.points_obj[~valid].any() and torch.equal(obs.valid, valid)
-    assert torch.equal(obs.pixels[valid], acq.pixels[valid]) and not obs.pixels[~valid].any()
-
-
 def test_a_tracker_run_again_gives_the_same_trajectory(synth):  # noqa: F811
     """After ``reset`` the first frame starts everything anew, the back end's noise scales included (they adapt during a
     run): a second run of the same tracker on the same frames is the first run again (the same computation: exactly)."""
     seq = synth(seed=2, frames=6)
-    tracker, runs = make_tracker("data=tum", "tracker.noise_scale=true"), []
+    tracker, runs = make_tracker("data=tum", "filter.noise_scale=true"), []
     for _ in range(2):
         tracker.reset()
         runs.append([tracker.step(f).T_world_depth for f in iterate_batched([seq], prefetch=False)])

@@ -95,7 +95,7 @@ def tracked(tmp_path_factory):
                         intrinsics_depth=(cam["fx"], cam["fy"], cam["cx"], cam["cy"]))  # fmt: skip
     out = {}
     for name, seq in (("registered", reg), ("unregistered", unreg)):
-        off = "tracker.noise_scale=false"  # the rig under the weighting's own R (with the scale: the 1.3x test)
+        off = "filter.noise_scale=false"  # the rig under the weighting's own R (with the scale: the 1.3x test)
         cfg = config("mapping=panorama", off) if name == "unregistered" else config(off)
         mapper = build_mapper(cfg)
         poses = []

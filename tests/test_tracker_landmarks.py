@@ -94,7 +94,7 @@ def test_returning_camera_finds_its_first_pass_accuracy(pan):
     the last two frames off 6.2 mm, on 3.2 mm (mean).
     """
     poses, frames = pan
-    fixed = "tracker.noise_scale=false"  # the landmarks under the weighting's own R (with the scale: the docstring)
+    fixed = "filter.noise_scale=false"  # the landmarks under the weighting's own R (with the scale: the docstring)
     off, _ = run(frames, poses, *OFF, fixed)
     on, tracker = run(frames, poses, *ON, fixed)
     assert int(tracker.state.reacquired_total.sum()) > 50  # measured: 133

@@ -88,7 +88,7 @@ def test_unregistered_depth_end_to_end(renders):
         f"data.depth_intrinsics=[{cam['fx']!r},{cam['fy']!r},{cam['cx']!r},{cam['cy']!r}]",
     ]  # fmt: skip
     (seq,) = build_sequences(config(*data).data)
-    off = "tracker.noise_scale=false"  # the rig under the weighting's own R (the scale: docstring)
+    off = "filter.noise_scale=false"  # the rig under the weighting's own R (the scale: docstring)
     torch.testing.assert_close(
         seq.T_color_depth.double(), torch.tensor(cam["T_color_depth"], dtype=torch.float64), atol=1e-6, rtol=0
     )

@@ -127,7 +127,7 @@ def test_replay_of_a_recording_equals_the_tracker(tmp_path):
     """The rollout of a recorded sequence with the recording's weighting reproduces the tracker's poses: replay is
     the tracker's back end (windows from frame 0: the first model's exact pose). The rollout takes the recorded
     variances as R (training learns them), so the recording runs without the online noise scale."""
-    cfg = tiny_config(tmp_path, [], "tracker.noise_scale=false")
+    cfg = tiny_config(tmp_path, [], "filter.noise_scale=false")
     (path, _) = build_synthetic_set(cfg, tmp_path / "obs", progress=False)
     seq = load_observations(path)
     win = sequence_windows(seq, window=seq.frames - 1, stride=seq.frames)  # one window: all the updates
@@ -139,7 +139,7 @@ def test_replay_of_a_recording_equals_the_tracker(tmp_path):
         t = next(calls)
         return seq.variances(t)
 
-    out = rollout(ekf, recorded, win, gate=cfg.tracker.gate, refit=cfg.tracker.refit)
+    out = rollout(ekf, recorded, win, gate=cfg.filter.gate, refit=cfg.filter.refit)
     torch.testing.assert_close(out.T_cam_obj[:, 0], seq.T_cam_obj_est[1:], rtol=0, atol=1e-9)
 
 

@@ -185,7 +185,8 @@ class FrontendConfig:
 
 @dataclass
 class FilterConfig:
-    """:class:`torchtrack.filter.fusion.FusionEKF` (eqs. 2-7, 15); variances per feature come from the weighting."""
+    """:class:`torchtrack.filter.fusion.FusionEKF` (eqs. 2-7, 15): the fusion EKF's model, prior, gate, refit and
+    online noise scale; variances per feature come from the weighting."""
 
     _target_: str = "torchtrack.filter.fusion.FusionEKF"
     sigma_ang_acc: float = 3.0  # rad/s^2, constant-velocity process noise (eqs. 3-4)
@@ -202,6 +203,13 @@ class FilterConfig:
     # se3 (improvement: a local error state on SE(3), regular at every attitude) | euler (the paper's eq. 2: Euler
     # angles, singular at 90 deg pitch; +experiment=paper)
     state: str = "se3"
+    gate: float | None = 0.999  # improvement (null = paper): chi-square gate on each feature's innovations
+    refit: float | None = 0.999  # improvement (null = paper): re-update without features failing this quantile
+    noise_scale: bool = True  # improvement (false = paper): online R scale per block (pix, 3D), from the residuals
+    noise_forgetting: float = 0.98  # ... its forgetting factor per frame (a window of ~50 frames)
+    noise_scale_min: float = 0.01  # ... bounds of the scale
+    noise_scale_max: float = 100.0
+    noise_clip: float | None = 0.9  # ... chi-square quantile winsorising each feature's residual (null: none)
 
 
 @dataclass
@@ -243,17 +251,11 @@ class LearnedWeightingConfig:
 
 @dataclass
 class EKFBackendConfig:
-    """The fusion EKF as the pose estimator (``tracker=fusion_ekf``); its filter is the ``filter`` node."""
+    """The fusion EKF as the pose estimator (``tracker=fusion_ekf``); the filter and its settings are the ``filter``
+    node (present whatever the estimator, so that ``+experiment=paper`` sets them in one file)."""
 
     _target_: str = EKF_BACKEND
     ekf: Any = "${filter}"
-    gate: float | None = 0.999  # improvement (null = paper): chi-square gate on each feature's innovations
-    refit: float | None = 0.999  # improvement (null = paper): re-update without features failing this quantile
-    noise_scale: bool = True  # improvement (false = paper): online R scale per block (pix, 3D), from the residuals
-    noise_forgetting: float = 0.98  # ... its forgetting factor per frame (a window of ~50 frames)
-    noise_scale_min: float = 0.01  # ... bounds of the scale
-    noise_scale_max: float = 100.0
-    noise_clip: float | None = 0.9  # ... chi-square quantile winsorising each feature's residual (null: none)
 
 
 @dataclass

@@ -80,14 +80,14 @@ def bench_batch(B: int, N: int, reps: int) -> dict:
     fixed_var = Variances(var[..., 3], var[..., 0])
     for state in ("se3", "euler"):
         for jac in ("forward", "analytic"):
-            backend = EKFBackend(FusionEKF(jacobian=jac, state=state), gate=None, refit=None, noise_scale=False)
+            backend = EKFBackend(FusionEKF(jacobian=jac, state=state, gate=None, refit=None, noise_scale=False))
             backend.reset(make_T(torch.eye(3, dtype=F64).expand(B, 3, 3), x[:, 3:6]), valid[:, 0])
 
             def step(backend=backend):
                 backend.step(obs, fixed_var)
 
             steps[f"EKFBackend step (predict+update), state={state}, jacobian={jac}"] = step
-    scaled = EKFBackend(FusionEKF(), gate=None, refit=None, noise_scale=True)  # the default's online noise scale
+    scaled = EKFBackend(FusionEKF(gate=None, refit=None, noise_scale=True))  # the default's online noise scale
     scaled.reset(make_T(torch.eye(3, dtype=F64).expand(B, 3, 3), x[:, 3:6]), valid[:, 0])
     steps["EKFBackend step (predict+update), state=se3, jacobian=analytic, with the online noise scale"] = lambda: (
         scaled.step(obs, fixed_var)
@@ -129,7 +129,7 @@ def bench_iterations(B: int = 4, N: int = 300, frames: int = 30) -> dict:
     var = Variances(torch.full((B, N), noise_pix**2, dtype=F64), torch.full((B, N), noise_xyz**2, dtype=F64))
     T_cd = torch.eye(4, dtype=F64).expand(B, 4, 4)
     for it in (1, 2, 3):
-        backend = EKFBackend(FusionEKF(iterations=it, jacobian="analytic"), gate=None, refit=None, noise_scale=False)
+        backend = EKFBackend(FusionEKF(iterations=it, jacobian="analytic", gate=None, refit=None, noise_scale=False))
         backend.reset(true_pose(torch.tensor(0.0, dtype=F64), B), valid[:, 0])
         rot, trans, t_step = [], [], []
         for T, pd, px in meas:

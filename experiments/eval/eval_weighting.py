@@ -69,8 +69,8 @@ DATA = REPO.parent / "shared" / "data"
 HEADING = "## Learned weighting (issue 11)"
 VARIANTS = ("skip3", "reversed", "photometric", "depth_noise")
 BASE = {
-    "fixed": ["weighting=fixed", "tracker.noise_scale=false"],
-    "paper": ["weighting=paper", "tracker.noise_scale=false"],
+    "fixed": ["weighting=fixed", "filter.noise_scale=false"],
+    "paper": ["weighting=paper", "filter.noise_scale=false"],
 }
 # the weightings as they give R (eqs. 11-14, EKF-3), without the online noise scale of the default; the default itself
 # is the column --method=default=weighting=paper
@@ -118,7 +118,7 @@ def resolve_methods(
 ) -> tuple[list[Method], list]:
     """The methods to run and notes on learned models that cannot run (printed and put under the table); ``custom``:
     ``NAME=OVERRIDES`` columns (space-separated Hydra overrides, e.g. ``learned_off=weighting=learned
-    tracker.noise_scale=false``), run with the configured model where they select ``weighting=learned``."""
+    filter.noise_scale=false``), run with the configured model where they select ``weighting=learned``."""
     unknown = sorted(set(weightings) - {"fixed", "paper", "learned"})
     if unknown:
         raise SystemExit(f"eval_weighting: unknown weighting(s) {unknown}; choose from fixed, paper, learned")
@@ -436,7 +436,7 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
         action="append",
         default=[],
         metavar="NAME=OVERRIDES",
-        help="a column of its own Hydra overrides, e.g. 'scale=weighting=paper tracker.noise_scale=true'",
+        help="a column of its own Hydra overrides, e.g. 'scale=weighting=paper filter.noise_scale=true'",
     )
     ap.add_argument("--max-frames", type=int, default=None, help="first N frames of every sequence")
     ap.add_argument("--runs", type=int, default=0, help="R jittered re-runs per real sequence: run-to-run spread")

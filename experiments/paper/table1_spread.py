@@ -111,7 +111,7 @@ def track(X: Tensor, points_d: Tensor, pixels: Tensor, K: Tensor, T0: Tensor, fp
     frames with fixed variances (the first frame initialises): returns T_cam_obj (F, B, 4, 4)."""
     F_, B, N, _ = points_d.shape
     backend = EKFBackend(
-        FusionEKF(**{"state": "euler", **ekf_kwargs}), gate=None, refit=None, noise_scale=False
+        FusionEKF(**{"state": "euler", **ekf_kwargs}, gate=None, refit=None, noise_scale=False)
     )  # eq. (2), the variances as given
     backend.reset(T0.expand(B, 4, 4), torch.ones(B, dtype=torch.bool, device=X.device))
     valid = torch.ones(B, N, dtype=torch.bool, device=X.device)

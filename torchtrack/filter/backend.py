@@ -14,47 +14,20 @@ from torch import Tensor
 
 from torchtrack.filter.frame import FrameUpdate, Observation, ekf_frame
 from torchtrack.filter.fusion import FilterState, FusionEKF
-from torchtrack.filter.noise_scale import NoiseScale, ScaleState
+from torchtrack.filter.noise_scale import ScaleState
 from torchtrack.filter.weighting import Variances
 
 log = logging.getLogger(__name__)
 
 
 class EKFBackend:
-    """The paper's fusion EKF as a tracker back end: owns the filter state, runs :func:`ekf_frame` once per frame.
+    """The paper's fusion EKF as a tracker back end: owns the filter state, runs :func:`ekf_frame` once per frame with
+    the filter's settings (``ekf``: a :class:`~torchtrack.filter.fusion.FusionEKF`, its parameters; its gate, refit and
+    online noise scale among them). The back end owns the noise scales k (B, 2); a re-selection (:meth:`reset`) keeps
+    them (the sensor did not change)."""
 
-    Args:
-        ekf: a :class:`torchtrack.filter.fusion.FusionEKF` (its parameters; its own state is not used).
-        gate: improvement over the paper (None = off): chi-square quantile of the innovation gate (see
-            :func:`ekf_frame`). Nearest-pixel depth at occlusion boundaries and LK slips produce outliers of metres
-            or pixels that a Gaussian update cannot absorb.
-        refit: improvement over the paper (None = off): chi-square quantile of the refit at the updated pose (see
-            :func:`ekf_frame`). The gate can only see outliers larger than the prediction's uncertainty; the refit
-            catches the smaller ones that would otherwise bias this frame's pose before the tracker drops them.
-        noise_scale: improvement over the paper (False = off): the online noise scale per sequence and block
-            (:mod:`torchtrack.filter.noise_scale`): R = k R0 with k (B, 2) [pix, xyz] estimated from the residuals.
-            The back end owns k; a re-selection (:meth:`reset`) keeps it (the sensor did not change).
-        noise_forgetting, noise_scale_min, noise_scale_max, noise_clip: its forgetting factor, bounds and
-            winsorising quantile (:class:`~torchtrack.filter.noise_scale.NoiseScale`).
-    """
-
-    def __init__(
-        self,
-        ekf: FusionEKF,
-        gate: float | None = 0.999,
-        refit: float | None = 0.999,
-        noise_scale: bool = True,
-        noise_forgetting: float = 0.98,
-        noise_scale_min: float = 0.01,
-        noise_scale_max: float = 100.0,
-        noise_clip: float | None = 0.9,
-    ) -> None:
-        for name, p in (("gate", gate), ("refit", refit)):
-            if p is not None and not 0.0 < p < 1.0:
-                raise ValueError(f"EKFBackend: {name} is a probability in (0, 1), got {p}")
+    def __init__(self, ekf: FusionEKF) -> None:
         self.ekf = ekf
-        self.gate, self.refit = gate, refit
-        self.noise = NoiseScale(noise_forgetting, noise_scale_min, noise_scale_max, noise_clip) if noise_scale else None
         self.state: FilterState | None = None
         self.scale_state: ScaleState | None = None  # the online noise scale's, (B, 2) each
 
@@ -74,7 +47,7 @@ class EKFBackend:
                 )
             self.state = init
             B = T_cam_obj.shape[0]
-            self.scale_state = None if self.noise is None else self.noise.initial(B, device=T_cam_obj.device)
+            self.scale_state = None if self.ekf.noise is None else self.ekf.noise.initial(B, device=T_cam_obj.device)
             return
         self.state = init.select(mask, self.state)
 
@@ -91,7 +64,7 @@ class EKFBackend:
         their noise scales (the result's ``noise`` is the back end's after the frame)."""
         if self.state is None:
             raise ValueError("EKFBackend: call reset(T_cam_obj, mask) before the first frame")
-        out = ekf_frame(self.ekf, self.state, obs, var, gate=self.gate, refit=self.refit, noise_scale=self.noise,
+        out = ekf_frame(self.ekf, self.state, obs, var, gate=self.ekf.gate, refit=self.ekf.refit, noise_scale=self.ekf.noise,
                         scale_state=self.scale_state)  # fmt: skip
         self.state = out.posterior if active is None else out.posterior.select(active, self.state)
         if out.noise is not None:

@@ -31,6 +31,7 @@ from torchtrack.filter.models import (
     pose_to_state,
     state_to_pose,
 )
+from torchtrack.filter.noise_scale import NoiseScale
 
 JacobianMode = Literal["forward", "reverse", "analytic"]
 StateMode = Literal["se3", "euler"]
@@ -182,6 +183,16 @@ class FusionEKF:
             jacfwd) or "reverse" (jacrev).
         state: "se3" (default: the local error state on SE(3), regular at every attitude,
             :mod:`~torchtrack.filter.error_state`) or "euler" (the paper's eq. (2), singular at 90 degrees pitch).
+        gate: improvement over the paper (None = off): chi-square quantile of the innovation gate of each frame
+            (:func:`~torchtrack.filter.frame.ekf_frame`). Nearest-pixel depth at occlusion boundaries and LK slips
+            produce outliers of metres or pixels that a Gaussian update cannot absorb.
+        refit: improvement over the paper (None = off): chi-square quantile of the refit at the updated pose: the gate
+            only sees outliers larger than the prediction's uncertainty; the refit catches the smaller ones that would
+            otherwise bias this frame's pose.
+        noise_scale: improvement over the paper (False = off): the online noise scale per sequence and block
+            (:mod:`torchtrack.filter.noise_scale`), R = k R0 with k (B, 2) [pix, xyz] estimated from the residuals.
+        noise_forgetting, noise_scale_min, noise_scale_max, noise_clip: its forgetting factor, bounds and winsorising
+            quantile (:class:`~torchtrack.filter.noise_scale.NoiseScale`).
         dtype: filter state dtype (float64 default: the 12 x 12 algebra is cheap and well-conditioned).
 
     Poses and covariances are returned in ``dtype``.
@@ -199,8 +210,18 @@ class FusionEKF:
         form: Literal["information", "gain"] = "information",
         jacobian: JacobianMode = "analytic",
         state: StateMode = "se3",
+        gate: float | None = 0.999,
+        refit: float | None = 0.999,
+        noise_scale: bool = True,
+        noise_forgetting: float = 0.98,
+        noise_scale_min: float = 0.01,
+        noise_scale_max: float = 100.0,
+        noise_clip: float | None = 0.9,
         dtype: torch.dtype = torch.float64,
     ) -> None:
+        for name, p in (("gate", gate), ("refit", refit)):
+            if p is not None and not 0.0 < p < 1.0:
+                raise ValueError(f"FusionEKF: {name} is a probability in (0, 1), got {p}")
         if form not in ("information", "gain") or jacobian not in ("forward", "reverse", "analytic"):
             raise ValueError(f"FusionEKF: bad form={form!r} or jacobian={jacobian!r}")
         if state not in ("se3", "euler"):
@@ -211,6 +232,8 @@ class FusionEKF:
         init_std = [init_sigma_angle] * 3 + [init_sigma_trans] * 3 + [init_sigma_ang_vel] * 3 + [init_sigma_lin_vel] * 3
         self.init_var = torch.tensor(init_std, dtype=dtype, device="cpu") ** 2  # moved to each pose's device
         self.iterations, self.form, self.jacobian, self.state, self.dtype = iterations, form, jacobian, state, dtype
+        self.gate, self.refit = gate, refit
+        self.noise = NoiseScale(noise_forgetting, noise_scale_min, noise_scale_max, noise_clip) if noise_scale else None
 
     @property
     def euler(self) -> bool:
