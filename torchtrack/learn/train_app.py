@@ -189,9 +189,9 @@ Usage: torchtrack-train [key=value ...]   (or: python -m torchtrack.learn.train_
   train.model._target_=torchtrack.learn.model.LearnedWeighting  the weighting trained: any torch module
                             WeightingInputs -> Variances importable by that dotted path (docs/extending.md); the
                             other train.model keys are its constructor's arguments; train.model.hidden=32 (width)
-  +train.model.mode=absolute  LearnedWeighting's other arguments (their defaults: mode=normalised, i.e. relative
-                            variances whose mean eqs. 11-14 keep; sigma2_pix=1.0, sigma2_xyz=4e-6,
-                            depth_var_exponent=4.0, depth_ref=1.0), added with a leading +
+  +train.model.mode=absolute  LearnedWeighting's other arguments, added with a leading +: mode (normalised: relative
+                            variances whose mean eqs. 11-14 keep | absolute), sigma2_pix, sigma2_xyz,
+                            depth_var_exponent, depth_ref (nominal values; defaults in torchtrack/learn/model.py)
 
 Every torchtrack config group and key applies and sets the pipeline that records the sequences and the filter that
 training runs through: select=, flow=, frontend=, pipeline=, filter= and their keys (torchtrack --help lists them).
