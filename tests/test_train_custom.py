@@ -133,7 +133,9 @@ def test_a_target_that_does_not_import_is_one_line_naming_it(tmp_path, monkeypat
     with pytest.raises(ImportError, match=r"moved\.pt: weighting _target_ 'nowhere_pkg\.Weighting' is not importable"):
         load_checkpoint(tmp_path / "moved.pt")
     torch.save({**blob, "model": {**blob["model"], "hidden": 5}}, tmp_path / "wider.pt")
-    with pytest.raises(ValueError, match=rf"wider\.pt: the weights do not fit {TARGET}\(.*\): Error") as e:
+    with pytest.raises(
+        ValueError, match=rf"wider\.pt: the weights do not fit {TARGET}\(.*\): size mismatch for net\.0\.weight"
+    ) as e:
         load_checkpoint(tmp_path / "wider.pt")
     assert "\n" not in str(e.value)
     sys.modules.pop("broken_ext", None)
@@ -175,3 +177,15 @@ def test_train_model_target_and_arguments_from_the_command_line():
     assert type(m) is TinyWeighting and m.net[0].out_features == 16
     d = build_weighting(OmegaConf.to_container(default.train.model))
     assert type(d) is LearnedWeighting and d.config == LearnedWeighting().config
+
+
+def test_torchtrack_train_with_a_target_that_does_not_import_exits_with_one_line(tmp_path):
+    """Before recording anything: exit code 2 and the one line naming the target."""
+    import subprocess
+
+    cmd = [sys.executable, "-m", "torchtrack.learn.train_app", "train.model._target_=nowhere_pkg.Weighting",
+           "dataset=synthetic_tiny", f"observations={tmp_path / 'obs'}", f"hydra.run.dir={tmp_path / 'run'}"]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert done.returncode == 2
+    assert "weighting _target_ 'nowhere_pkg.Weighting' is not importable" in done.stdout + done.stderr
+    assert not (tmp_path / "obs").exists()

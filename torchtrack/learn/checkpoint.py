@@ -167,9 +167,9 @@ def load_checkpoint(path: str | Path) -> tuple[nn.Module, dict]:
         raise ImportError(f"{path}: {e}") from e
     try:
         model.load_state_dict(blob["state_dict"])
-    except RuntimeError as e:  # torch lists every key over several lines: the first says what is wrong
-        first = str(e).strip().splitlines()[0]
-        raise ValueError(f"{path}: the weights do not fit {blob['target']}(**{blob['model']}): {first}") from e
+    except RuntimeError as e:  # torch lists every key on a line of its own: the first one says what is wrong
+        first = [ln.strip() for ln in str(e).splitlines() if ln.strip()][1:2] or [str(e)]
+        raise ValueError(f"{path}: the weights do not fit {blob['target']}(**{blob['model']}): {first[0]}") from e
     meta = {k: v for k, v in blob.items() if k != "state_dict"}
     return model.eval(), meta
 
@@ -192,8 +192,7 @@ def learned_weighting(checkpoint: str | Path | None = None, **expected) -> nn.Mo
             )
         checkpoint = DEFAULT_CHECKPOINT
     model, meta = load_checkpoint(checkpoint)
-    # LearnedWeighting knows all its arguments (a node may hold only those that differ from its defaults)
-    config = model.config if isinstance(model, LearnedWeighting) else meta["model"]
+    config = meta["model"]
     expected = {k: v for k, v in expected.items() if v is not None}  # null in the config: not checked
     if unknown := sorted(set(expected) - set(config)):
         raise ValueError(f"learned_weighting: unknown arguments {unknown}; a checkpoint defines {sorted(config)}")

@@ -63,9 +63,11 @@ def split(sequences: list[SequenceObservations], cfg: DictConfig) -> tuple[list,
 
 
 def train_from_config(cfg: DictConfig, out: Path, progress: bool = True) -> list[dict]:
+    tc = TrainConfig(**OmegaConf.to_container(cfg.train, resolve=True))
+    torch.manual_seed(tc.seed)
+    model = build_weighting(tc.model)  # first: a train.model that does not build fails before any recording
     sequences = [load_observations(f) for f in observation_files(cfg)]
     train_seqs, val_seqs = split(sequences, cfg)
-    tc = TrainConfig(**OmegaConf.to_container(cfg.train, resolve=True))
     need_gt = tc.loss == "supervised"  # the NLL needs no ground truth: unlabelled windows start at the estimate
     train_w = windows_of(train_seqs, tc.window, tc.stride, need_ground_truth=need_gt)
     if train_w is None:
@@ -80,8 +82,6 @@ def train_from_config(cfg: DictConfig, out: Path, progress: bool = True) -> list
             log.info("%d of the %d %s windows have no ground truth: they start from the tracker's recorded estimate "
                      "and report the NLL only", n, w.dt.shape[1], name)  # fmt: skip
     ekf = instantiate(cfg.filter, jacobian=tc.jacobian)
-    torch.manual_seed(tc.seed)
-    model = build_weighting(tc.model)
     extra = {
         "config": OmegaConf.to_yaml(cfg, resolve=True),
         "train_sequences": [s.sequence for s in train_seqs],
