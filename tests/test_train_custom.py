@@ -168,15 +168,22 @@ def test_the_factory_and_the_cli_config_rebuild_the_custom_class(tmp_path):
 
 def test_train_model_target_and_arguments_from_the_command_line():
     """``train.model._target_=... train.model.hidden=16`` composes without a ``+`` and builds that class with those
-    arguments; the default node builds the shipped LearnedWeighting with its defaults."""
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose("learn", overrides=[f"train.model._target_={TARGET}", "train.model.hidden=16"])
-        default = compose("learn")
-    tc = TrainConfig(**OmegaConf.to_container(cfg.train, resolve=True))
-    m = build_weighting(tc.model)
+    arguments (LearnedWeighting's keys, null in the recipe, stay out); the default node builds the shipped
+    LearnedWeighting with its defaults, ``train.model.mode=absolute`` sets its mode; a LearnedWeighting key set for a
+    class that does not take it is an error, not ignored."""
+
+    def built(*overrides: str) -> nn.Module:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = compose("learn", overrides=list(overrides))
+        return build_weighting(TrainConfig(**OmegaConf.to_container(cfg.train, resolve=True)).model)
+
+    m = built(f"train.model._target_={TARGET}", "train.model.hidden=16")
     assert type(m) is TinyWeighting and m.net[0].out_features == 16
-    d = build_weighting(OmegaConf.to_container(default.train.model))
+    d = built()
     assert type(d) is LearnedWeighting and d.config == LearnedWeighting().config
+    assert built("train.model.mode=absolute").config == LearnedWeighting(mode="absolute").config
+    with pytest.raises(TypeError, match="mode"):
+        built(f"train.model._target_={TARGET}", "train.model.mode=absolute")
 
 
 def test_torchtrack_train_with_a_target_that_does_not_import_exits_with_one_line(tmp_path):

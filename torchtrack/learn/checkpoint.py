@@ -62,11 +62,18 @@ def import_target(target: str) -> Any:
     return obj
 
 
+def _split(node: Mapping[str, Any]) -> tuple[str, dict]:
+    """(target, arguments) of a node; no ``_target_``: LearnedWeighting; a null argument: the constructor's default
+    (left out, so that the recipe's LearnedWeighting keys left null do not reach a class that does not take them)."""
+    args = {k: v for k, v in node.items() if v is not None}
+    return args.pop("_target_", None) or DEFAULT_TARGET, args
+
+
 def build_weighting(node: Mapping[str, Any]) -> nn.Module:
     """The module of a config node ``{"_target_": dotted path, **constructor kwargs}`` (no ``_target_``: the
-    shipped :class:`~torchtrack.learn.model.LearnedWeighting`), e.g. ``train.model`` of torchtrack-train."""
-    args = dict(node)
-    target = args.pop("_target_", None) or DEFAULT_TARGET
+    shipped :class:`~torchtrack.learn.model.LearnedWeighting`; null arguments: the constructor's defaults), e.g.
+    ``train.model`` of torchtrack-train."""
+    target, args = _split(node)
     model = import_target(target)(**args)
     if not isinstance(model, nn.Module):
         raise TypeError(f"weighting _target_ {target!r} built a {type(model).__name__}, not a torch.nn.Module")
@@ -92,8 +99,7 @@ def weighting_spec(model: nn.Module, spec: Mapping[str, Any] | None = None) -> d
     """The config node that rebuilds ``model``: ``spec`` (the node it was built from) when given, else what the
     model says of itself (``{"_target_": its class, **model.config}``, as LearnedWeighting does)."""
     if spec is not None:
-        args = dict(spec)
-        target = args.pop("_target_", None) or DEFAULT_TARGET
+        target, args = _split(spec)
         return {"_target_": target, **_with_defaults(import_target(target), args)}
     cls = type(model)
     if not hasattr(model, "config"):

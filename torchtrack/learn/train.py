@@ -66,8 +66,8 @@ class TrainConfig:
         jacobian: the filter's Jacobian mode while training ("analytic": the same numbers as autograd, faster).
         seed: torch seed of the initialisation and the window order.
         model: the weighting's config node: ``_target_`` (a dotted path; absent: the shipped
-            :class:`~torchtrack.learn.model.LearnedWeighting`) and its constructor arguments
-            (:func:`~torchtrack.learn.checkpoint.build_weighting`).
+            :class:`~torchtrack.learn.model.LearnedWeighting`) and its constructor arguments, null ones left to
+            their defaults (:func:`~torchtrack.learn.checkpoint.build_weighting`).
         max_windows: cap on the training windows per epoch (random subset each epoch; None = all).
     """
 

@@ -188,10 +188,11 @@ Usage: torchtrack-train [key=value ...]   (or: python -m torchtrack.learn.train_
   train.seed=0              initialisation, window order and the validation split
   train.model._target_=torchtrack.learn.model.LearnedWeighting  the weighting trained: any torch module
                             WeightingInputs -> Variances importable by that dotted path (docs/extending.md); the
-                            other train.model keys are its constructor's arguments; train.model.hidden=32 (width)
-  +train.model.mode=absolute  LearnedWeighting's other arguments, added with a leading +: mode (normalised: relative
-                            variances whose mean eqs. 11-14 keep | absolute), sigma2_pix, sigma2_xyz,
-                            depth_var_exponent, depth_ref (nominal values; defaults in torchtrack/learn/model.py)
+                            other train.model keys are its constructor's arguments, null ones left to its defaults
+  train.model.hidden=32     LearnedWeighting's width
+  train.model.mode=null     normalised (the default: relative variances whose mean eqs. 11-14 keep) | absolute;
+                            train.model.sigma2_pix, sigma2_xyz, depth_var_exponent, depth_ref: its nominal values
+                            (null: its defaults, those of the paper weighting)
 
 Every torchtrack config group and key applies and sets the pipeline that records the sequences and the filter that
 training runs through: select=, flow=, frontend=, pipeline=, filter= and their keys (torchtrack --help lists them).
