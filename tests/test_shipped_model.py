@@ -22,7 +22,13 @@ from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 from torchtrack.filter import WeightingInputs
 from torchtrack.filter.cues import CUE_NAMES
 from torchtrack.learn.cache import load_observations
-from torchtrack.learn.checkpoint import DEFAULT_CHECKPOINT, learned_weighting, load_checkpoint
+from torchtrack.learn.checkpoint import (
+    DEFAULT_CHECKPOINT,
+    build_weighting,
+    learned_weighting,
+    load_checkpoint,
+    weighting_spec,
+)
 from torchtrack.learn.model import LearnedWeighting
 from torchtrack.learn.record import record_sequences
 from torchtrack.learn.rollout import rollout
@@ -52,8 +58,12 @@ def test_default_model_was_trained_on_synthetic_sequences_only_with_the_document
     assert all(s.split("-")[0] in ("scene", "object", "object_bare") for s in seen)  # the synthetic set's names
     trained = yaml.safe_load(meta["config"])["train"]
     recipe = yaml.safe_load((CONF_DIR / "train" / "default.yaml").read_text())
-    for key in ("window", "stride", "batch", "epochs", "lr", "loss", "gate", "refit", "seed", "model"):
+    for key in ("window", "stride", "batch", "epochs", "lr", "loss", "gate", "refit", "seed"):
         assert trained[key] == recipe[key], key
+    # the recipe's node (with the defaults it leaves) builds the shipped architecture, as its run's config did
+    spec = weighting_spec(build_weighting(recipe["model"]), recipe["model"])
+    assert spec.pop("_target_") == "torchtrack.learn.model.LearnedWeighting" and spec == meta["model"]
+    assert trained["model"] == {k: meta["model"][k] for k in trained["model"]}
 
 
 def test_default_model_is_the_best_epoch_of_its_recorded_run():

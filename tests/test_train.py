@@ -1,8 +1,6 @@
 """Training learned weighting through the fusion EKF: the known-optimal weighting is recovered (oracle windows with
 var_xyz ~ z^4 and 10 % of the features at 400x the pixel variance), and the loop is deterministic and resumable."""
 
-import math
-
 import pytest
 import torch
 
@@ -110,105 +108,10 @@ def test_bad_config_raises():
         TrainConfig(window=0)
 
 
-def test_burn_in_scores_only_the_frames_after_it():
-    """burn_in = k: the batch replays all k + window frames from the window's start and the loss is the NLL per
-    measurement of the last ``window`` frames only (the definition, on the rollout's own numbers); its counts too."""
-    from torchtrack.learn.rollout import nll_loss
-    from torchtrack.learn.train import window_loss
-
-    oracle = oracle_windows(B=8, T=5, N=20, seed=6)
-    ekf, model = FusionEKF(jacobian="analytic"), LearnedWeighting(mode="absolute", depth_var_exponent=0.0)
-    cfg = TrainConfig(window=3, burn_in=2, loss="nll", gate=None, refit=None)
-    assert cfg.span == 5
-    with torch.no_grad():
-        out = rollout(ekf, model, oracle.windows, with_nll=True)
-        loss, sums = window_loss(ekf, model, oracle.windows, cfg)
-        whole = window_loss(ekf, model, oracle.windows, TrainConfig(window=5, loss="nll", gate=None, refit=None))[0]
-    tail = out.nll[2:].sum() / out.n_used[2:].sum()
-    assert float(loss) == pytest.approx(float(tail), rel=1e-12) and float(whole) == pytest.approx(float(nll_loss(out)))
-    assert sums["loss"][1] == float(out.n_used[2:].sum()) and abs(float(tail) - float(whole)) > 1e-3
-    with pytest.raises(ValueError, match="burn_in"):
-        TrainConfig(burn_in=-1)
-
-
-def test_ground_truth_start_velocity_carries_the_previous_pose_to_the_start():
-    """train.start_velocity=ground_truth: the start velocity is the one the filter's constant-velocity motion
-    (eqs. 3-4) needs to move the previous frame's pose onto the start pose in prev_dt (oracle windows: a constant
-    twist, so the previous pose is exact); zero where prev_dt is 0; the rollout starts with it."""
-    from torchtrack.geometry import make_T, so3_exp
-    from torchtrack.learn.rollout import window_start_velocity
-
-    win = oracle_windows(B=6, T=2, N=10, seed=7).windows
-    win.prev_dt[0] = 0.0
-    A = make_T(so3_exp(torch.tensor([0.4, -0.7, 0.2], dtype=torch.float64)), torch.tensor([0.1, 0.0, -0.05]).double())
-    win.prev_T_cam_obj, win.start_T_cam_obj = win.prev_T_cam_obj @ A, win.start_T_cam_obj @ A  # another object frame
-    for state in ("se3", "euler"):
-        ekf = FusionEKF(jacobian="analytic", state=state)
-        vel = window_start_velocity(ekf, win)
-        assert float(vel[0].abs().max()) == 0.0 and float(vel[1:].abs().min()) > 0
-        moved = ekf.predicted(ekf.initial_state(win.prev_T_cam_obj, vel), win.prev_dt).T_cam_obj
-        assert torch.allclose(moved[1:], win.start_T_cam_obj[1:], atol=1e-12), state
-    with pytest.raises(ValueError, match="start_velocity"):
-        TrainConfig(start_velocity="gt")
-
-
-def test_previous_pose_from_the_depth_camera_ground_truth():
-    """The pose one frame before a window's start, in the start's object frame: the object fixed in the world at W,
-    the depth camera's ground truth G = T_world_color @ T_color_depth, so it is inv(G[s-1]) @ W exactly; the start
-    pose and 0 s at frame 0 and where ground truth is missing."""
-    from types import SimpleNamespace
-
-    from torchtrack.geometry import T_inv, make_T, so3_exp
-    from torchtrack.learn.train import _previous_pose
-
-    g = torch.Generator().manual_seed(0)
-    F = torch.float64
-    poses = make_T(so3_exp(0.3 * torch.randn(6, 3, generator=g, dtype=F)), torch.randn(6, 3, generator=g, dtype=F))
-    T_cd = make_T(so3_exp(torch.tensor([0.01, -0.02, 0.005], dtype=F)), torch.tensor([0.025, 0.0, 0.001], dtype=F))
-    W = make_T(so3_exp(torch.tensor([0.2, 0.1, -0.3], dtype=F)), torch.tensor([0.1, -0.2, 1.5], dtype=F))
-    gt_valid = torch.tensor([True, True, True, False, True, True])
-    seq = SimpleNamespace(T_world_color_gt=poses, T_color_depth=T_cd, gt_valid=gt_valid,
-                          dt=torch.tensor([0.0, 0.03, 0.04, 0.03, 0.05, 0.03], dtype=F))  # fmt: skip
-    G = poses @ T_cd
-    s = torch.tensor([0, 1, 2, 4, 5])
-    start = T_inv(G[s]) @ W
-    prev, dt = _previous_pose(seq, s, start)
-    assert torch.allclose(prev[[1, 2, 4]], (T_inv(G) @ W)[[0, 1, 4]], atol=1e-12)
-    assert torch.equal(prev[[0, 3]], start[[0, 3]]) and dt.tolist() == [0.0, 0.03, 0.04, 0.0, 0.03]
-
-
-def test_residual_nll_at_the_ground_truth_pose_matches_its_expectation():
-    """The heteroscedastic residual likelihood under the true variances of oracle windows (Gaussian noise of known
-    variance around eqs. 6-7 at the exact pose): r^2 / var is chi-square, so the NLL per measurement is, in
-    expectation, sum 0.5 (dof + dof log(2 pi var)) / 5 per feature; 25,600 measurements: within 1 %. Frames without
-    ground truth are not counted; a negative weight is refused."""
-    from torchtrack.geometry import make_T, project, so3_exp, transform_points
-    from torchtrack.learn.rollout import residual_nll
-
-    oracle = oracle_windows(B=32, T=4, N=40, seed=8)
-    win = oracle.windows  # with a depth -> colour extrinsic: the pixels re-drawn through it, the same noise
-    P = transform_points(win.T_cam_obj_gt, win.points_obj)
-    T_cd = make_T(so3_exp(torch.tensor([0.02, -0.03, 0.01], dtype=P.dtype)), torch.tensor([0.025, 0.01, 0.0]).double())
-    win.T_color_depth = T_cd.expand_as(win.T_color_depth).clone()
-    win.pixels = (
-        project(win.K[None], transform_points(win.T_color_depth[None], P)) + win.pixels - project(win.K[None], P)
-    )
-    with torch.no_grad():
-        out = rollout(FusionEKF(jacobian="analytic"), TrueVariances(oracle), win)
-    total, n = residual_nll(out, win)
-    v3, v2 = oracle.var_xyz, oracle.var_pix
-    c = math.log(2 * math.pi)
-    expect = (0.5 * (3 + 3 * (v3.log() + c)) + 0.5 * (2 + 2 * (v2.log() + c))).sum() / (5 * v3.numel())
-    assert int(n) == 5 * v3.numel() and float(total / n) == pytest.approx(float(expect), rel=0.01)
-    win.gt_valid[1:] = False
-    assert int(residual_nll(out, win)[1]) == 5 * int(win.valid[0].sum())
-    with pytest.raises(ValueError, match="residual_weight"):
-        TrainConfig(residual_weight=-1.0)
-
-
 def test_the_recipe_file_and_the_schema_agree():
     """conf/train/default.yaml (the CLI's recipe) and TrainConfig (a direct call's) hold the same values, and its
-    model block is LearnedWeighting's defaults: training from Python and from torchtrack-train is the same recipe."""
+    model block builds LearnedWeighting with its defaults: training from Python and from torchtrack-train is the same
+    recipe."""
     import dataclasses
     import inspect
 
@@ -220,5 +123,8 @@ def test_the_recipe_file_and_the_schema_agree():
     recipe = yaml.safe_load((CONF_DIR / "train" / "default.yaml").read_text())
     fields = {f.name: f.default for f in dataclasses.fields(TrainConfig) if f.name != "model"}
     assert {k: v for k, v in recipe.items() if k != "model"} == fields
+    model = dict(recipe["model"])
+    assert model.pop("_target_") == "torchtrack.learn.model.LearnedWeighting"
     params = inspect.signature(LearnedWeighting).parameters
-    assert recipe["model"] == {k: params[k].default for k in recipe["model"]}
+    assert set(model) <= set(params) and model["hidden"] is not None  # null: the constructor's default
+    assert {k: v for k, v in model.items() if v is not None} == {k: params[k].default for k in model if model[k]}

@@ -54,8 +54,7 @@ from tqdm import tqdm
 from torchtrack.config import CONF_DIR, load_option
 from torchtrack.io import write_json, write_text
 from torchtrack.learn.cache import load_observations
-from torchtrack.learn.checkpoint import DEFAULT_CHECKPOINT, load_checkpoint, save_checkpoint
-from torchtrack.learn.model import LearnedWeighting
+from torchtrack.learn.checkpoint import DEFAULT_CHECKPOINT, build_weighting, load_checkpoint, save_checkpoint
 from torchtrack.learn.rollout import concat_windows, rollout
 from torchtrack.learn.train import TrainConfig, fit, select_windows, windows_of
 
@@ -112,20 +111,21 @@ def synthetic_windows(folder: Path, tc: TrainConfig, n: int, seed: int):
     files = sorted(folder.glob("*.pt"))
     if not files:
         raise SystemExit(f"eval_selfcal_loo: no synthetic recordings (*.pt) in {folder}; pass --synthetic DIR")
-    win = windows_of([load_observations(f) for f in files], tc.span, tc.stride, need_ground_truth=False)
+    win = windows_of([load_observations(f) for f in files], tc.window, tc.stride, need_ground_truth=False)
     g = torch.Generator().manual_seed(seed)
     pick = torch.randperm(win.dt.shape[1], generator=g)[: min(n, win.dt.shape[1])]
     return select_windows(win, pick.sort().values)
 
 
-def initial_model(args, tc: TrainConfig) -> LearnedWeighting:
+def initial_model(args, tc: TrainConfig) -> torch.nn.Module:
+    torch.manual_seed(tc.seed)
+    recipe = build_weighting(tc.model)
     if args.init == "shipped":
         model, _ = load_checkpoint(DEFAULT_CHECKPOINT)
-        if model.config.get("mode") != tc.model.get("mode"):
+        if model.config.get("mode") != getattr(recipe, "config", {}).get("mode"):
             raise SystemExit(f"eval_selfcal_loo: the shipped model is {model.config}, the recipe {tc.model}")
         return model
-    torch.manual_seed(tc.seed)
-    return LearnedWeighting(**tc.model)
+    return recipe
 
 
 def train_fold(held_out: str, real: dict, synth, tc: TrainConfig, ekf, args) -> Path:
@@ -133,7 +133,7 @@ def train_fold(held_out: str, real: dict, synth, tc: TrainConfig, ekf, args) -> 
     path = args.out / "models" / f"loo-{held_out}.pt"
     if path.is_file() and args.reuse:
         return path
-    parts = [windows_of([s], tc.span, tc.stride, need_ground_truth=False) for n, s in real.items() if n != held_out]
+    parts = [windows_of([s], tc.window, tc.stride, need_ground_truth=False) for n, s in real.items() if n != held_out]
     parts = [w for w in parts if w is not None] + ([synth] if synth is not None else [])
     train = concat_windows(parts)
     model = initial_model(args, tc).train().requires_grad_(True)
@@ -159,15 +159,14 @@ def window_nll(ekf, weighting, win, tc: TrainConfig) -> tuple[torch.Tensor, torc
         for i in range(0, win.dt.shape[1], tc.batch):
             idx = torch.arange(i, min(i + tc.batch, win.dt.shape[1]))
             out = rollout(ekf, weighting, select_windows(win, idx), gate=tc.gate, refit=tc.refit, with_nll=True)
-            out_nll, n = out.nll[tc.burn_in :], out.n_used[tc.burn_in :]
-            sums.append(out_nll.sum(0).double())
-            counts.append(n.sum(0).double())
+            sums.append(out.nll.sum(0).double())
+            counts.append(out.n_used.sum(0).double())
     return torch.cat(sums), torch.cat(counts)
 
 
 def held_out_nll(seq, weightings: dict, ekf, tc: TrainConfig) -> dict:
     """Per weighting: pooled NLL per measurement, std over windows, and the paired difference to ``paper``."""
-    win = windows_of([seq], tc.span, tc.stride, need_ground_truth=False)
+    win = windows_of([seq], tc.window, tc.stride, need_ground_truth=False)
     per = {}
     for name, w in weightings.items():
         s, n = window_nll(ekf, w, win, tc)

@@ -106,8 +106,6 @@ def oracle_windows(
         model_T_cam_obj=torch.eye(4, dtype=F64).expand(T, B, 4, 4).clone(),
         T_cam_obj_gt=poses,
         gt_valid=torch.ones(T, B, dtype=torch.bool),
-        prev_T_cam_obj=pose(-dt),
-        prev_dt=torch.full((B,), dt, dtype=F64),
     )
     return OracleWindows(win, torch.stack(var_pix), torch.stack(var_xyz), flagged)
 

@@ -14,7 +14,6 @@ error with a delta of up to T frames), or on unlabelled footage the tracker's re
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass, fields
 from typing import NamedTuple
@@ -25,9 +24,8 @@ from torch import Tensor
 from torchtrack.filter.cues import CUE_INDEX
 from torchtrack.filter.frame import Observation, ekf_frame
 from torchtrack.filter.fusion import FusionEKF
-from torchtrack.filter.models import euler_velocity
 from torchtrack.filter.weighting import Variances, WeightingInputs
-from torchtrack.geometry import T_inv, project, so3_log, transform_points
+from torchtrack.geometry import T_inv
 
 
 @dataclass
@@ -43,9 +41,6 @@ class Windows:
         reselected: (T, B) bool, the model was re-selected after frame t's update; model_T_cam_obj: (T, B, 4, 4)
             the pose the filter is then reset to.
         T_cam_obj_gt: (T, B, 4, 4) ground truth of each frame's update; gt_valid: (T, B) bool.
-        prev_T_cam_obj: (B, 4, 4) the pose one frame before the start, in the start's object frame, from the depth
-            camera's ground truth (the start pose where there is none); prev_dt: (B,) seconds between the two
-            (0 where there is no ground truth for both): the ground-truth start velocity (``start_velocity``).
     """
 
     start_T_cam_obj: Tensor
@@ -62,8 +57,6 @@ class Windows:
     model_T_cam_obj: Tensor
     T_cam_obj_gt: Tensor
     gt_valid: Tensor
-    prev_T_cam_obj: Tensor
-    prev_dt: Tensor
 
     @property
     def frames(self) -> int:
@@ -95,14 +88,7 @@ def concat_windows(parts: list[Windows]) -> Windows:
     return Windows(**out)
 
 
-PER_WINDOW = (
-    "start_T_cam_obj",
-    "K",
-    "T_color_depth",
-    "focal",
-    "prev_T_cam_obj",
-    "prev_dt",
-)  # (B, ...); else (T, B, ...)
+PER_WINDOW = ("start_T_cam_obj", "K", "T_color_depth", "focal")  # (B, ...); else (T, B, ...)
 
 
 def _pad_features(x: Tensor, n: int) -> Tensor:
@@ -136,14 +122,11 @@ def rollout(
     gate: float | None = None,
     refit: float | None = None,
     with_nll: bool = False,
-    start_velocity: bool = False,
 ) -> Rollout:
     """Run ``weighting`` and :func:`~torchtrack.filter.frame.ekf_frame` over the T frames of ``win``.
 
-    Each window starts at ``win.start_T_cam_obj`` with zero velocity, or with ``start_velocity`` its ground-truth
-    velocity (:func:`window_start_velocity`) where ``win.prev_dt > 0``."""
-    velocity = window_start_velocity(ekf, win) if start_velocity else None
-    state = ekf.initial_state(win.start_T_cam_obj, velocity)
+    Each window starts at ``win.start_T_cam_obj`` with zero velocity."""
+    state = ekf.initial_state(win.start_T_cam_obj)
     poses, nll, n_used, vp, vx = [], [], [], [], []
     for t in range(win.frames):
         var = weighting(win.weighting_inputs(t))
@@ -158,20 +141,6 @@ def rollout(
         if bool(reset.any()):  # the tracker's model re-selection: the filter restarts at the new model's pose
             state = ekf.initial_state(win.model_T_cam_obj[t]).select(reset, state)
     return Rollout(torch.stack(poses), torch.stack(nll), torch.stack(n_used), torch.stack(vp), torch.stack(vx))
-
-
-def window_start_velocity(ekf: FusionEKF, win: Windows) -> Tensor:
-    """(B, 6) the state velocity that carries ``win.prev_T_cam_obj`` to ``win.start_T_cam_obj`` in ``win.prev_dt``
-    under the filter's constant-velocity motion (eqs. 3-4), zero where ``prev_dt`` is 0."""
-    moving = win.prev_dt > 0
-    dt = torch.where(moving, win.prev_dt, torch.ones_like(win.prev_dt)).to(ekf.dtype)
-    T0, T1 = win.prev_T_cam_obj.to(ekf.dtype), win.start_T_cam_obj.to(ekf.dtype)
-    if ekf.euler:  # the paper's eq. (2): Euler-angle rates and the translation's rate
-        vel = euler_velocity(T0, T1, dt)
-    else:  # the SE(3) state: R1 = Exp(omega dt) R0, t1 = t0 + v dt (error_state.predict_nominal)
-        omega = so3_log(T1[:, :3, :3] @ T0[:, :3, :3].transpose(-1, -2))
-        vel = torch.cat([omega, T1[:, :3, 3] - T0[:, :3, 3]], -1) / dt[:, None]
-    return torch.where(moving[:, None], vel, torch.zeros_like(vel))
 
 
 def pose_errors(T_est: Tensor, T_gt: Tensor) -> tuple[Tensor, Tensor]:
@@ -195,23 +164,6 @@ def nll_loss(out: Rollout) -> Tensor:
     """Innovation negative log-likelihood per used measurement, over all frames and windows (needs no ground
     truth)."""
     return out.nll.sum() / out.n_used.sum().clamp_min(1)
-
-
-def residual_nll(out: Rollout, win: Windows) -> tuple[Tensor, Tensor]:
-    """Heteroscedastic residual likelihood at the ground-truth pose: (sum, count) of the Gaussian negative
-    log-likelihood of every valid feature's 3D and pixel residuals against eqs. (6)-(7) at ``win.T_cam_obj_gt``
-    under the weighting's variances ``out.var_xyz`` (per axis) and ``out.var_pix``, over the frames with ground
-    truth; count = 5 per feature. Unlike the innovation NLL it scores each feature on its own, at the true pose
-    (needs ground truth)."""
-    X_d = transform_points(win.T_cam_obj_gt, win.points_obj.to(win.T_cam_obj_gt.dtype))  # eq. (6), T,B,N,3
-    u = project(win.K[None], transform_points(win.T_color_depth[None], X_d))  # eq. (7), T,B,N,2
-    r3 = (win.points_d - X_d).square().sum(-1)
-    r2 = (win.pixels - u).square().sum(-1)
-    v3, v2 = out.var_xyz.to(r3.dtype), out.var_pix.to(r2.dtype)
-    log2pi = math.log(2 * math.pi)
-    nll = 0.5 * (r3 / v3 + 3 * (v3.log() + log2pi)) + 0.5 * (r2 / v2 + 2 * (v2.log() + log2pi))
-    m = win.valid & win.gt_valid[..., None]
-    return torch.where(m, nll, torch.zeros_like(nll)).sum(), 5 * m.sum().to(nll.dtype)
 
 
 def _charbonnier(e: Tensor, eps: float) -> Tensor:

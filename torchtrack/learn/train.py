@@ -26,35 +26,31 @@ from __future__ import annotations
 import csv
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
+from typing import Any
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 from tqdm import tqdm
 
 from torchtrack.filter.fusion import FusionEKF
-from torchtrack.geometry import T_inv
 from torchtrack.io import write_atomic
 from torchtrack.learn.cache import SequenceObservations
-from torchtrack.learn.checkpoint import load_checkpoint, save_checkpoint
-from torchtrack.learn.model import LearnedWeighting
+from torchtrack.learn.checkpoint import load_checkpoint, save_checkpoint, weighting_spec
 from torchtrack.learn.rollout import (
     PER_WINDOW,
-    Rollout,
     Windows,
     concat_windows,
     nll_loss,
     pose_errors,
-    residual_nll,
     rollout,
     supervised_loss,
 )
 
 log = logging.getLogger(__name__)
 LOSSES = ("supervised", "nll")
-START_VELOCITIES = ("zero", "ground_truth")
 
 
 @dataclass
@@ -69,16 +65,10 @@ class TrainConfig:
         gate, refit: the back end's chi-square quantiles during training (None = off), as in the tracker.
         jacobian: the filter's Jacobian mode while training ("analytic": the same numbers as autograd, faster).
         seed: torch seed of the initialisation and the window order.
-        model: :class:`~torchtrack.learn.model.LearnedWeighting` arguments (mode, hidden, sigma2_pix, ...).
+        model: the weighting's config node: ``_target_`` (a dotted path; absent: the shipped
+            :class:`~torchtrack.learn.model.LearnedWeighting`) and its constructor arguments, null ones left to
+            their defaults (:func:`~torchtrack.learn.checkpoint.build_weighting`).
         max_windows: cap on the training windows per epoch (random subset each epoch; None = all).
-        burn_in: frames replayed before each window's ``window`` scored ones, outside the loss (0: none): the
-            window starts ``burn_in`` frames earlier, so that the filter's velocity and covariance have settled
-            from the zero velocity and initial covariance every window starts with.
-        start_velocity: "zero" (every window starts at rest, as after a model selection) or "ground_truth" (the
-            velocity between the ground truth of the frame before the start and the start, where both exist:
-            :func:`~torchtrack.learn.rollout.window_start_velocity`; zero elsewhere).
-        residual_weight: weight of the heteroscedastic residual likelihood at the ground-truth pose
-            (:func:`~torchtrack.learn.rollout.residual_nll`, per measurement) added to the loss; 0: off.
     """
 
     window: int = 8
@@ -96,9 +86,6 @@ class TrainConfig:
     jacobian: str = "analytic"
     seed: int = 0
     max_windows: int | None = None
-    burn_in: int = 0
-    start_velocity: str = "zero"
-    residual_weight: float = 0.0
     model: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -106,17 +93,6 @@ class TrainConfig:
             raise ValueError(f"train.loss must be one of {LOSSES}, got {self.loss!r}")
         if self.window < 1 or self.stride < 1 or self.batch < 1 or self.epochs < 0 or self.lr <= 0:
             raise ValueError("train: window, stride, batch must be >= 1, epochs >= 0 and lr > 0")
-        if self.start_velocity not in START_VELOCITIES:
-            raise ValueError(f"train.start_velocity must be one of {START_VELOCITIES}, got {self.start_velocity!r}")
-        if self.residual_weight < 0:
-            raise ValueError(f"train.residual_weight must be >= 0, got {self.residual_weight}")
-        if self.burn_in < 0:
-            raise ValueError(f"train.burn_in must be >= 0, got {self.burn_in}")
-
-    @property
-    def span(self) -> int:
-        """Frames replayed per window: the burn-in and the scored window."""
-        return self.burn_in + self.window
 
 
 # -- windows ---------------------------------------------------------------------------------------------
@@ -140,7 +116,6 @@ def sequence_windows(
     rows = s[None, :] + torch.arange(1, window + 1, device=s.device)[:, None]  # T,B: the updates of each window
     gt_or_est = torch.where(seq.T_cam_obj_gt_valid[s][:, None, None], seq.T_cam_obj_gt[s], seq.T_cam_obj_est[s])
     start_pose = torch.where(seq.reselected[s][:, None, None], seq.model_T_cam_obj[s], gt_or_est)
-    prev_pose, prev_dt = _previous_pose(seq, s, start_pose)
     B = len(starts)
     win = Windows(
         start_T_cam_obj=start_pose,
@@ -157,24 +132,11 @@ def sequence_windows(
         model_T_cam_obj=seq.model_T_cam_obj[rows],
         T_cam_obj_gt=seq.T_cam_obj_gt[rows],
         gt_valid=seq.T_cam_obj_gt_valid[rows],
-        prev_T_cam_obj=prev_pose,
-        prev_dt=prev_dt,
     )
     if not need_ground_truth:
         return win
     keep = win.gt_valid.any(0)
     return select_windows(win, keep.nonzero().squeeze(1)) if bool(keep.any()) else None
-
-
-def _previous_pose(seq: SequenceObservations, s: Tensor, start: Tensor) -> tuple[Tensor, Tensor]:
-    """The pose of frame s - 1 in the object frame of ``start`` (B, 4, 4) at frames ``s`` (B,), from the depth
-    camera's ground truth G = T_world_color_gt @ T_color_depth: ``inv(G[s-1]) @ G[s] @ start`` (the object is fixed
-    in the world), and the seconds between (B,); ``start`` and 0 s where either frame lacks ground truth."""
-    p = (s - 1).clamp_min(0)
-    ok = (s > 0) & seq.gt_valid[s] & seq.gt_valid[p]
-    G = seq.T_world_color_gt @ seq.T_color_depth.to(seq.T_world_color_gt.dtype)
-    prev = T_inv(G[p]) @ G[s] @ start.to(G.dtype)
-    return torch.where(ok[:, None, None], prev.to(start.dtype), start), torch.where(ok, seq.dt[s], 0.0)
 
 
 def _startable(seq: SequenceObservations, s: int) -> bool:
@@ -187,14 +149,6 @@ def select_windows(win: Windows, index: Tensor) -> Windows:
         f.name: getattr(win, f.name)[index] if f.name in PER_WINDOW else getattr(win, f.name)[:, index]
         for f in fields(Windows)
     })  # fmt: skip
-
-
-def frames_from(win: Windows, t0: int) -> Windows:
-    """The frames t0.. of every window (per-window fields kept)."""
-    if t0 == 0:
-        return win
-    return Windows(**{f.name: getattr(win, f.name) if f.name in PER_WINDOW else getattr(win, f.name)[t0:]
-                      for f in fields(Windows)})  # fmt: skip
 
 
 def windows_of(
@@ -215,20 +169,8 @@ def window_loss(ekf: FusionEKF, model: Callable, win: Windows, cfg: TrainConfig)
     own count (measurements for nll, frames with ground truth for supervised), the pose errors over the frames with
     ground truth, the NLL over the used measurements. :func:`summarise` turns them into means."""
     nll = cfg.loss == "nll"
-    out = rollout(
-        ekf,
-        model,
-        win,
-        gate=cfg.gate,
-        refit=cfg.refit,
-        with_nll=nll,
-        start_velocity=cfg.start_velocity == "ground_truth",
-    )
-    out, win = Rollout(*(x[cfg.burn_in :] for x in out)), frames_from(win, cfg.burn_in)  # the scored frames
+    out = rollout(ekf, model, win, gate=cfg.gate, refit=cfg.refit, with_nll=nll)
     loss = nll_loss(out) if nll else supervised_loss(out, win, cfg.w_trans, cfg.w_rot)
-    if cfg.residual_weight > 0:
-        r_sum, r_n = residual_nll(out, win)
-        loss = loss + cfg.residual_weight * r_sum / r_n.clamp_min(1)
     with torch.no_grad():
         e_t, e_r = pose_errors(out.T_cam_obj, win.T_cam_obj_gt.to(out.T_cam_obj.dtype))
         m = win.gt_valid
@@ -268,7 +210,7 @@ def evaluate(ekf: FusionEKF, model: Callable, win: Windows, cfg: TrainConfig) ->
 
 
 def fit(
-    model: LearnedWeighting,
+    model: nn.Module,
     ekf: FusionEKF,
     train: Windows,
     cfg: TrainConfig,
@@ -277,16 +219,21 @@ def fit(
     out_dir: Path | None = None,
     extra: dict | None = None,
     progress: bool = True,
+    spec: Mapping[str, Any] | None = None,
 ) -> list[dict]:
-    """Train ``model`` on the windows ``train``; returns one dict of metrics per epoch.
+    """Train ``model`` (a weighting: WeightingInputs -> Variances, with parameters) on the windows ``train``; returns
+    one dict of metrics per epoch.
 
     With ``out_dir``: metrics.csv, loss.png, last.pt (resumed from when present) and best.pt (lowest validation
     loss, or training loss without ``val``) are written there; ``extra`` (e.g. the resolved config) goes into both
-    checkpoints.
+    checkpoints, and ``spec``, the config node ``model`` was built from (``{"_target_": ..., **kwargs}``: None for a
+    model with ``.config``), rebuilds it (:func:`~torchtrack.learn.checkpoint.save_checkpoint`).
     """
     torch.manual_seed(cfg.seed)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    history, start = _resume(model, opt, out_dir)
+    if out_dir is not None:  # before the first epoch: a model that cannot be saved fails now, not after one
+        spec = weighting_spec(model, spec)
+    history, start = _resume(model, opt, out_dir, spec)
     B = train.dt.shape[1]
     best = min((h["select"] for h in history), default=float("inf"))
     epochs = tqdm(range(start, cfg.epochs), desc="training", unit="epoch", disable=not progress, initial=start,
@@ -317,20 +264,21 @@ def fit(
             meta = {"history": history, **(extra or {})}
             if row["select"] < best:
                 best = row["select"]
-                save_checkpoint(out_dir / "best.pt", model, extra={**meta, "epoch": epoch + 1})
-            save_checkpoint(
-                out_dir / "last.pt", model, extra={**meta, "epoch": epoch + 1, "optimizer": opt.state_dict()}
-            )
+                save_checkpoint(out_dir / "best.pt", model, spec=spec, extra={**meta, "epoch": epoch + 1})
+            last = {**meta, "epoch": epoch + 1, "optimizer": opt.state_dict()}
+            save_checkpoint(out_dir / "last.pt", model, spec=spec, extra=last)
             write_metrics(out_dir, history)
     return history
 
 
-def _resume(model: LearnedWeighting, opt: torch.optim.Optimizer, out_dir: Path | None) -> tuple[list[dict], int]:
+def _resume(
+    model: nn.Module, opt: torch.optim.Optimizer, out_dir: Path | None, spec: dict | None
+) -> tuple[list[dict], int]:
     if out_dir is None or not (out_dir / "last.pt").is_file():
         return [], 0
     saved, meta = load_checkpoint(out_dir / "last.pt")
-    if saved.config != model.config:
-        raise ValueError(f"{out_dir / 'last.pt'}: a model with other settings ({saved.config}); use another out dir")
+    if (theirs := {"_target_": meta["target"], **meta["model"]}) != spec:
+        raise ValueError(f"{out_dir / 'last.pt'}: a model with other settings ({theirs}); use another out dir")
     model.load_state_dict(saved.state_dict())
     opt.load_state_dict(meta["optimizer"])
     log.info("resuming %s at epoch %d", out_dir, meta["epoch"])

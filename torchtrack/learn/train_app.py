@@ -3,7 +3,9 @@
 Hydra app on conf/learn.yaml: the pipeline of conf/config.yaml records the observations of ``dataset`` (the
 synthetic set by default: no real sequence is needed), plus any recorded caches in ``extra_observations``; the
 sequences in ``leave_out`` are dropped (leave-one-sequence-out), ``val_fraction`` of the rest is held out for
-validation, and :func:`torchtrack.learn.train.fit` trains ``train.model`` through the filter of ``filter``.
+validation, and :func:`torchtrack.learn.train.fit` trains ``train.model`` (the shipped LearnedWeighting, or any
+weighting module its ``_target_`` names, built with the other keys as its arguments) through the filter of
+``filter``.
 Writes into the run folder: metrics.csv, loss.png, last.pt, best.pt (with the resolved config and the sequence
 lists), and copies best.pt to ``export`` when set.
 """
@@ -26,7 +28,7 @@ from torchtrack.console import console_main
 from torchtrack.data.errors import DataError
 from torchtrack.io import write_atomic
 from torchtrack.learn.cache import SequenceObservations, load_observations
-from torchtrack.learn.model import LearnedWeighting
+from torchtrack.learn.checkpoint import build_weighting
 from torchtrack.learn.train import TrainConfig, evaluate, fit, windows_of
 from torchtrack.runtime import configure
 
@@ -61,14 +63,16 @@ def split(sequences: list[SequenceObservations], cfg: DictConfig) -> tuple[list,
 
 
 def train_from_config(cfg: DictConfig, out: Path, progress: bool = True) -> list[dict]:
+    tc = TrainConfig(**OmegaConf.to_container(cfg.train, resolve=True))
+    torch.manual_seed(tc.seed)
+    model = build_weighting(tc.model)  # first: a train.model that does not build fails before any recording
     sequences = [load_observations(f) for f in observation_files(cfg)]
     train_seqs, val_seqs = split(sequences, cfg)
-    tc = TrainConfig(**OmegaConf.to_container(cfg.train, resolve=True))
     need_gt = tc.loss == "supervised"  # the NLL needs no ground truth: unlabelled windows start at the estimate
-    train_w = windows_of(train_seqs, tc.span, tc.stride, need_ground_truth=need_gt)
+    train_w = windows_of(train_seqs, tc.window, tc.stride, need_ground_truth=need_gt)
     if train_w is None:
         raise DataError(_no_window(train_seqs, tc, "training"))
-    val_w = windows_of(val_seqs, tc.span, tc.stride, need_ground_truth=need_gt)
+    val_w = windows_of(val_seqs, tc.window, tc.stride, need_ground_truth=need_gt)
     if val_w is None and val_seqs:
         log.warning("%s", _no_window(val_seqs, tc, "validation"))
     log.info("training on %d windows of %d sequences, validating on %d windows of %d sequences",
@@ -78,8 +82,6 @@ def train_from_config(cfg: DictConfig, out: Path, progress: bool = True) -> list
             log.info("%d of the %d %s windows have no ground truth: they start from the tracker's recorded estimate "
                      "and report the NLL only", n, w.dt.shape[1], name)  # fmt: skip
     ekf = instantiate(cfg.filter, jacobian=tc.jacobian)
-    torch.manual_seed(tc.seed)
-    model = LearnedWeighting(**tc.model)
     extra = {
         "config": OmegaConf.to_yaml(cfg, resolve=True),
         "train_sequences": [s.sequence for s in train_seqs],
@@ -90,7 +92,7 @@ def train_from_config(cfg: DictConfig, out: Path, progress: bool = True) -> list
             base = instantiate(load_option("weighting", name))
             extra[f"val_{name}"] = evaluate(ekf, base, val_w, tc)
             log.info("validation, weighting=%s: %s", name, _fmt(extra[f"val_{name}"]))
-    history = fit(model, ekf, train_w, tc, val=val_w, out_dir=out, extra=extra, progress=progress)
+    history = fit(model, ekf, train_w, tc, val=val_w, out_dir=out, extra=extra, progress=progress, spec=tc.model)
     if cfg.get("export"):
         export(out / "best.pt", Path(cfg.export))
     return history
@@ -99,12 +101,10 @@ def train_from_config(cfg: DictConfig, out: Path, progress: bool = True) -> list
 def _no_window(sequences: list[SequenceObservations], tc: TrainConfig, split: str) -> str:
     """One line: why ``sequences`` give no window (too short, or no ground truth for the supervised loss)."""
     names = ", ".join(s.sequence for s in sequences) or "none"
-    if tc.loss == "supervised" and all(s.frames > tc.span for s in sequences):
+    if tc.loss == "supervised" and all(s.frames > tc.window for s in sequences):
         return (f"no {split} window: train.loss=supervised needs ground truth and the {split} sequences ({names}) have "
                 "none; train.loss=nll needs none (calibration on unlabelled sequences)")  # fmt: skip
-    return (
-        f"no {split} window: the {split} sequences ({names}) have at most train.window + train.burn_in={tc.span} frames"
-    )
+    return f"no {split} window: the {split} sequences ({names}) have at most train.window={tc.window} frames"
 
 
 def export(src: Path, dst: Path) -> None:
@@ -122,7 +122,7 @@ def app(cfg: DictConfig) -> None:
     out = Path(HydraConfig.get().runtime.output_dir)
     try:
         history = train_from_config(cfg, out)
-    except (DataError, FileNotFoundError) as e:
+    except (DataError, FileNotFoundError, ImportError) as e:  # ImportError: train.model._target_ (one line)
         log.error("%s", e)
         sys.exit(2)
     if history:
@@ -183,15 +183,16 @@ Usage: torchtrack-train [key=value ...]   (or: python -m torchtrack.learn.train_
   train.stride=4            frames between window starts
   train.batch=32            windows per optimiser step
   train.max_windows=null    a random subset of this many training windows per epoch (null: all)
-  train.burn_in=0           frames replayed before each window's scored ones, outside the loss (settles the velocity)
-  train.start_velocity=zero  zero (windows start at rest) | ground_truth (the velocity between the ground truth of the
-                            frame before the start and the start, where both exist; zero elsewhere)
-  train.residual_weight=0.0  weight of a per-feature residual likelihood at the ground-truth pose added to the loss
   train.gate=0.999          the filter's chi-square gate during training, as in the tracker; train.refit=0.999 likewise
   train.jacobian=analytic   the filter's Jacobian while training (forward: autograd, equal to 1e-10, slower)
   train.seed=0              initialisation, window order and the validation split
-  train.model.mode=normalised  relative variances (their mean kept as eqs. 11-14 do) | absolute; train.model.hidden=32
-                            (width), train.model.sigma2_pix, sigma2_xyz, depth_var_exponent, depth_ref (nominal values)
+  train.model._target_=torchtrack.learn.model.LearnedWeighting  the weighting trained: any torch module
+                            WeightingInputs -> Variances importable by that dotted path (docs/extending.md); the
+                            other train.model keys are its constructor's arguments, null ones left to its defaults
+  train.model.hidden=32     LearnedWeighting's width
+  train.model.mode=null     normalised (the default: relative variances whose mean eqs. 11-14 keep) | absolute;
+                            train.model.sigma2_pix, sigma2_xyz, depth_var_exponent, depth_ref: its nominal values
+                            (null: its defaults, those of the paper weighting)
 
 Every torchtrack config group and key applies and sets the pipeline that records the sequences and the filter that
 training runs through: select=, flow=, frontend=, pipeline=, filter= and their keys (torchtrack --help lists them).
