@@ -125,7 +125,7 @@ def save_strip(path: Path, tiles: list[np.ndarray], columns: int = 4, title: str
 
 def snapshot_indices(length: int, count: int = 4) -> set[int]:
     """Evenly spaced frame indices (first and last included) for an image strip."""
-    return {int(round(i)) for i in torch.linspace(0, max(length - 1, 0), min(count, length)).tolist()}
+    return {int(round(i)) for i in torch.linspace(0, max(length - 1, 0), min(count, length), device="cpu").tolist()}
 
 
 def panel_scale(width: int) -> float:
