@@ -67,7 +67,8 @@ class PerAxisErrors(NamedTuple):
 
 
 def _as_f64(x, name: str) -> Tensor:
-    return torch.as_tensor(x).detach().to(_F64)
+    """A tensor stays on its device; arrays and lists (host data) come to the CPU."""
+    return x.detach().to(_F64) if isinstance(x, Tensor) else torch.as_tensor(x, dtype=_F64, device="cpu")
 
 
 def _as_poses(T, name: str) -> Tensor:

@@ -247,7 +247,7 @@ def _colour(scene: Scene, poses: _PrimPoses, dx: Tensor, dy: Tensor, t: Tensor, 
         which = torch.repeat_interleave(torch.tensor(ks, device="cpu"), sizes)
         tex = batch_textures([p.texture for p in scene.primitives], which)
         albedo = texture_rgb(scene, tex, torch.cat(u), torch.cat(v))
-        lit = torch.cat([torch.as_tensor(x).expand(len(i)) for x, i in zip(lit, idx, strict=True)])
+        lit = torch.cat([torch.as_tensor(x, device="cpu").expand(len(i)) for x, i in zip(lit, idx, strict=True)])
         rgb.index_copy_(0, torch.cat(idx), torch.stack(albedo, dim=1) * lit[:, None])
     return rgb.clamp_(0, 1)
 
