@@ -67,7 +67,8 @@ class PerAxisErrors(NamedTuple):
 
 
 def _as_f64(x, name: str) -> Tensor:
-    return torch.as_tensor(x).detach().to(_F64)
+    """A tensor stays on its device; arrays and lists (host data) come to the CPU."""
+    return x.detach().to(_F64) if isinstance(x, Tensor) else torch.as_tensor(x, dtype=_F64, device="cpu")
 
 
 def _as_poses(T, name: str) -> Tensor:
@@ -118,7 +119,7 @@ def umeyama_alignment(src, dst, with_scale: bool = False) -> UmeyamaResult:
         var_src = (xs * xs).sum((-1, -2)) / src.shape[-2]  # eq. (36)
         s = (d * S).sum(-1) / var_src  # eq. (42)
     else:
-        s = torch.ones(src.shape[:-2], dtype=_F64)
+        s = torch.ones(src.shape[:-2], dtype=_F64, device=src.device)
     t = mu_dst - s[..., None] * (R @ mu_src[..., None])[..., 0]  # eq. (41)
     return UmeyamaResult(R, t, s)
 
@@ -138,10 +139,10 @@ def ate(T_est, T_gt, align: bool = True) -> ATEResult:
         R, t, _ = umeyama_alignment(p_est, p_gt)
         T_align = make_T(R, t)
     else:
-        T_align = torch.eye(4, dtype=_F64)
+        T_align = torch.eye(4, dtype=_F64, device=p_est.device)
     errors = (transform_points(T_align, p_est) - p_gt).norm(dim=-1)
     return ATEResult(
-        _rms(errors), float(errors.mean()), float(np.median(errors.numpy())), float(errors.max()), errors, T_align
+        _rms(errors), float(errors.mean()), float(np.median(errors.cpu().numpy())), float(errors.max()), errors, T_align
     )
 
 
@@ -187,13 +188,13 @@ def rpe_pairs(
         starts = range(F - d) if all_pairs else range(0, F - d, d)
         pairs = [(i, i + d) for i in starts]
     elif unit == "meters":
-        p = T_est[:, :3, 3].numpy()
+        p = T_est[:, :3, 3].cpu().numpy()
         steps = np.linalg.norm(p[1:] - p[:-1], axis=1)
         pairs = _pairs_by_accumulation(steps, float(delta), float(delta) * rel_delta_tol, all_pairs, eps=0.0)
     elif unit == "seconds":
         if timestamps is None:
             raise ValueError("rpe: unit='seconds' needs timestamps (F,)")
-        ts = _as_f64(timestamps, "timestamps").numpy()
+        ts = _as_f64(timestamps, "timestamps").cpu().numpy()
         if ts.shape != (F,) or np.any(np.diff(ts) <= 0):
             raise ValueError(f"rpe: timestamps must be strictly increasing with shape ({F},), got {ts.shape}")
         pairs = _pairs_by_accumulation(np.diff(ts), float(delta), float(delta) * rel_delta_tol, all_pairs, _SECONDS_EPS)
@@ -201,7 +202,7 @@ def rpe_pairs(
         raise ValueError(f"rpe: unit must be 'frames', 'meters' or 'seconds', got {unit!r}")
     if not pairs:
         raise ValueError(f"rpe: delta = {delta} {unit} gives no pair among {F} poses")
-    return torch.tensor(pairs, dtype=torch.long)
+    return torch.tensor(pairs, dtype=torch.long, device=T_est.device)
 
 
 def rpe(
@@ -303,7 +304,9 @@ def _reprojection_inputs(K, T_cam_obj, points_obj, pixels, valid):
         )
     if X.shape[:-1] != x.shape[:-1]:
         raise ValueError(f"points_obj {tuple(X.shape)} and pixels {tuple(x.shape)} must have the same (..., N)")
-    valid = torch.ones(x.shape[:-1], dtype=torch.bool) if valid is None else torch.as_tensor(valid).bool()
+    if valid is None:
+        valid = torch.ones(x.shape[:-1], dtype=torch.bool, device=x.device)
+    valid = torch.as_tensor(valid, device=x.device).bool()
     if valid.shape != x.shape[:-1]:
         raise ValueError(f"valid {tuple(valid.shape)} must be (..., N) = {tuple(x.shape[:-1])}")
     return K, T, X, x, valid
@@ -365,7 +368,9 @@ def trajectory_metrics(timestamps, T_est, T_gt, gt_valid=None) -> dict:
     """
     ts = _as_f64(timestamps, "timestamps")
     F = ts.shape[0] if ts.dim() == 1 else -1
-    valid = torch.ones(max(F, 0), dtype=torch.bool) if gt_valid is None else torch.as_tensor(gt_valid).bool()
+    if gt_valid is None:
+        gt_valid = torch.ones(max(F, 0), dtype=torch.bool, device=ts.device)
+    valid = torch.as_tensor(gt_valid, device=ts.device).bool()
     if F < 0 or valid.shape != (F,):
         raise ValueError(
             f"trajectory_metrics: timestamps {tuple(ts.shape)} and gt_valid {tuple(valid.shape)} must be (F,)"

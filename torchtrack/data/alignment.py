@@ -150,7 +150,8 @@ def estimate_depth_shift(
     m = max_shift // (2 * rf)
     scales = [1.0]
     if scale_range is not None and hi.spread() >= min_spread:
-        scales = torch.linspace(*scale_range, max(2, round((scale_range[1] - scale_range[0]) / 0.025)) + 1).tolist()
+        n = max(2, round((scale_range[1] - scale_range[0]) / 0.025)) + 1
+        scales = torch.linspace(*scale_range, n, device="cpu").tolist()  # host: a list of trial scales
     s, t0, on_border = _coarse_search(lo, scales, m, min_scale_gain)
     t, n_agree = _fine_shift(hi, s, t0, agree_px)
     score, score0 = hi.ncc_at_zero(s, t, 2 * m), hi.ncc_at_zero(1.0, (0.0, 0.0), 2 * m)

@@ -67,17 +67,18 @@ def _stack(frames: Sequence[RGBDFrame], seqs: Sequence[RGBDSequence], active: li
     if len(sizes) > 1:
         got = ", ".join(f"{s.name}: {tuple(f.rgb.shape[1:])}" for s, f in zip(seqs, frames, strict=True))
         raise DataError(f"sequences batched together must share the image size (H, W); got {got}")
+    dev = frames[0].rgb.device  # the per-frame scalars go where the images are
     return FrameBatch(
         rgb=_batch([f.rgb for f in frames]),
         depth=_batch([f.depth for f in frames]),
         K=torch.stack([s.K for s in seqs]).float(),
         K_depth=torch.stack([s.K_depth for s in seqs]).float(),
         T_color_depth=torch.stack([s.T_color_depth for s in seqs]).float(),
-        timestamp=torch.tensor([f.timestamp for f in frames], dtype=torch.float64),
+        timestamp=torch.tensor([f.timestamp for f in frames], dtype=torch.float64, device=dev),
         T_world_color_gt=torch.stack([f.T_world_color_gt for f in frames]).double(),
-        gt_valid=torch.tensor([f.gt_valid for f in frames], dtype=torch.bool),
-        active=torch.tensor(active, dtype=torch.bool),
-        index=torch.tensor([f.index for f in frames], dtype=torch.int64),
+        gt_valid=torch.tensor([f.gt_valid for f in frames], dtype=torch.bool, device=dev),
+        active=torch.tensor(active, dtype=torch.bool, device=dev),
+        index=torch.tensor([f.index for f in frames], dtype=torch.int64, device=dev),
     )
 
 
@@ -142,8 +143,8 @@ class FrameCursor:
 
 def _placeholder(like: RGBDFrame) -> RGBDFrame:
     """A blank frame of ``like``'s size for a sequence that failed before its first usable frame (inactive)."""
-    return RGBDFrame(torch.zeros_like(like.rgb), torch.zeros_like(like.depth), 0.0, torch.eye(4, dtype=torch.float64),
-                     False, -1)  # fmt: skip
+    T = torch.eye(4, dtype=torch.float64, device=like.rgb.device)
+    return RGBDFrame(torch.zeros_like(like.rgb), torch.zeros_like(like.depth), 0.0, T, False, -1)
 
 
 def iterate_batched(

@@ -127,7 +127,9 @@ class EdgeLevel:
         self.centre = ((centre[0] - (r - 1) / 2) / r, (centre[1] - (r - 1) / 2) / r)  # pixel centres of the blocks
         h, w = depth.shape[-2:]
         self.ys, self.xs = torch.meshgrid(
-            torch.arange(h, dtype=depth.dtype), torch.arange(w, dtype=depth.dtype), indexing="ij"
+            torch.arange(h, dtype=depth.dtype, device=depth.device),
+            torch.arange(w, dtype=depth.dtype, device=depth.device),
+            indexing="ij",
         )
 
     def _warped(self, s: float, t: tuple[float, float], m: int) -> tuple[Tensor, Tensor]:

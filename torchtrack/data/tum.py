@@ -220,10 +220,10 @@ class TumSequence:
             log.warning("%s: no ground-truth pose within max_dt=%g s of any frame", gt_file, max_dt)
 
     def _extrinsic(self, T) -> Tensor:
-        if T is None:
-            return torch.eye(4)
+        if T is None:  # the reader's tensors are host tensors; the runner moves the batch
+            return torch.eye(4, device="cpu")
         T = torch.as_tensor(np.asarray(T, dtype=np.float64)).float()
-        if T.shape != (4, 4) or not torch.allclose(T[3], torch.tensor([0.0, 0, 0, 1])):
+        if T.shape != (4, 4) or not torch.allclose(T[3], torch.tensor([0.0, 0, 0, 1], device="cpu")):
             raise DataError(f"{self.root}: T_color_depth must be a 4x4 rigid transform, got shape {tuple(T.shape)}")
         return T
 

@@ -125,12 +125,13 @@ class PanoramaMapper:
 
     def add(self, frame: FrameBatch, res) -> None:
         """Fuse this frame where it is a key frame; ``res`` a :class:`torchtrack.pipeline.StepResult`."""
-        B = frame.rgb.shape[0]
+        B, dev = frame.rgb.shape[0], frame.rgb.device
         if self.map is None:
-            self.map = VoxelPointMap(voxel_size=self.voxel_size, batch_size=B)
-            self.anchor = torch.eye(4, dtype=torch.float64).repeat(B, 1, 1)
-            self.first, self.K, self.fused = self.anchor.clone(), frame.K.clone(), torch.zeros(B, dtype=torch.int64)
-            self.started = torch.zeros(B, dtype=torch.bool)
+            self.map = VoxelPointMap(voxel_size=self.voxel_size, batch_size=B, device=dev)
+            self.anchor = torch.eye(4, dtype=torch.float64, device=dev).repeat(B, 1, 1)
+            self.fused = torch.zeros(B, dtype=torch.int64, device=dev)
+            self.first, self.K = self.anchor.clone(), frame.K.clone()
+            self.started = torch.zeros(B, dtype=torch.bool, device=dev)
         start = frame.active & ~self.started  # each sequence's first tracked frame (frame 0 may have been dropped)
         if start.any():
             self.anchor[start] = tracker_world(
@@ -146,8 +147,9 @@ class PanoramaMapper:
         """Fuse the frames of the sequences where ``select`` (B,) with the colour cameras' poses T_world_color
         (B, 4, 4) (the first call's poses are the perspective view's cameras when :meth:`add` was not used)."""
         if self.map is None:
-            B = len(select)
-            self.map, self.fused = VoxelPointMap(voxel_size=self.voxel_size, batch_size=B), torch.zeros(B).long()
+            B, dev = len(select), frame.rgb.device
+            self.map = VoxelPointMap(voxel_size=self.voxel_size, batch_size=B, device=dev)
+            self.fused = torch.zeros(B, dtype=torch.int64, device=dev)
             self.first, self.K = T_world_color.double().clone(), frame.K.clone()
         if not bool(select.any()):
             return
@@ -159,9 +161,10 @@ class PanoramaMapper:
                 self.tsdf.integrate(b, frame.rgb[b], fp.depth[i, 0], frame.K[b], T_world_color[b])
 
     def points(self, b: int = 0) -> MapPoints:
-        """Sequence b's map so far."""
+        """Sequence b's map so far (on the frames' device; an empty one on the CPU before any frame)."""
         if self.map is None:
-            return MapPoints(torch.zeros(0, 3, dtype=torch.float64), torch.zeros(0, 3), torch.zeros(0).long())
+            xyz = torch.zeros(0, 3, dtype=torch.float64, device="cpu")
+            return MapPoints(xyz, torch.zeros(0, 3, device="cpu"), torch.zeros(0, dtype=torch.int64, device="cpu"))
         return self.map.points(b)
 
     def finish(self, b: int, out_dir: Path) -> dict:
@@ -196,8 +199,8 @@ def write_point_cloud(path: Path, pts: MapPoints) -> Path:
     import open3d as o3d
 
     pcd = o3d.t.geometry.PointCloud()
-    pcd.point.positions = o3d.core.Tensor(pts.xyz.float().numpy())
-    pcd.point.colors = o3d.core.Tensor((pts.rgb.clamp(0, 1) * 255).round().byte().numpy())
+    pcd.point.positions = o3d.core.Tensor(pts.xyz.float().cpu().numpy())
+    pcd.point.colors = o3d.core.Tensor((pts.rgb.clamp(0, 1) * 255).round().byte().cpu().numpy())
 
     def writer(tmp: Path) -> None:
         if not o3d.t.io.write_point_cloud(str(tmp), pcd, write_ascii=False):
@@ -220,7 +223,7 @@ def write_views(
     import cv2
 
     img = render_views(pts, T_world_color0, K, size, voxel_size)
-    bgr = np.ascontiguousarray((img.flip(0).permute(1, 2, 0).clamp(0, 1) * 255).round().byte().numpy())
+    bgr = np.ascontiguousarray((img.flip(0).permute(1, 2, 0).clamp(0, 1) * 255).round().byte().cpu().numpy())
     for x, text in ((8, "from the first camera"), (size[1] + 8, "top-down")):
         cv2.putText(bgr, text, (x, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (40, 40, 40), 1, cv2.LINE_AA)
     cv2.line(bgr, (size[1], 0), (size[1], size[0] - 1), (128, 128, 128), 1)

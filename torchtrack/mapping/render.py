@@ -28,12 +28,12 @@ def splat(
         raise ValueError(f"splat: need uv (M, 2), z (M,), rgb (M, 3); got {tuple(uv.shape)}, {tuple(z.shape)}, "
                          f"{tuple(rgb.shape)}")  # fmt: skip
     H, W = size
-    radius = torch.as_tensor(radius, dtype=torch.int64).expand(len(uv))
+    radius = torch.as_tensor(radius, dtype=torch.int64, device=uv.device).expand(len(uv))
     r_max = int(radius.max()) if len(uv) else 0
     px = uv.round().long()
     z = z.float()
-    zbuf = torch.full((H * W,), float("inf"))
-    image = torch.full((H * W, 3), float(background))
+    zbuf = torch.full((H * W,), float("inf"), device=uv.device)
+    image = torch.full((H * W, 3), float(background), device=uv.device)
     offsets = [(dx, dy) for dy in range(-r_max, r_max + 1) for dx in range(-r_max, r_max + 1)]
 
     def covered(dx: int, dy: int) -> tuple[Tensor, Tensor]:
@@ -74,7 +74,7 @@ def top_down_view(
     """(3, H, W) orthographic view of xyz (M, 3) from above: image right = the camera's x, image up = its viewing
     direction projected on the ground, depth = the camera's +y ("down"); scaled to fit (1st-99th percentile box)."""
     if len(xyz) == 0:
-        return torch.ones(3, *size)
+        return torch.ones(3, *size, device=xyz.device)
     R = T_world_cam[:3, :3].double()
     down = R[:, 1]
     right = R[:, 0] - (R[:, 0] @ down) * down

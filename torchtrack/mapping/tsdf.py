@@ -52,11 +52,13 @@ class TsdfFusion:
 
     def integrate(self, b: int, rgb: Tensor, depth: Tensor, K: Tensor, T_world_color: Tensor) -> None:
         """Fuse one frame of sequence b: rgb (3, H, W) in [0, 1], depth (H, W) metres in the colour camera's grid,
-        K (3, 3) colour intrinsics, T_world_color (4, 4) the colour camera's pose."""
+        K (3, 3) colour intrinsics, T_world_color (4, 4) the colour camera's pose. The volume is Open3D's, on the
+        CPU: the frame is brought there whatever its device."""
         import open3d.core as o3c
         from open3d.t.geometry import Image
 
         grid = self._grid(b)
+        rgb, depth, K, T_world_color = (x.cpu() for x in (rgb, depth, K, T_world_color))
         depth_im = Image(o3c.Tensor(np.ascontiguousarray(depth.float().numpy())))
         colour_im = Image(o3c.Tensor(np.ascontiguousarray(rgb.permute(1, 2, 0).float().clamp(0, 1).numpy())))
         intr = o3c.Tensor(K.double().numpy())

@@ -50,9 +50,10 @@ class VoxelPointMap:
     Args:
         voxel_size: edge of a voxel, metres.
         batch_size: B, the number of maps (<= 512).
+        device: where the sums and the index live; the points added must be on it (the tracker's frames' device).
     """
 
-    def __init__(self, *, voxel_size: float = 0.01, batch_size: int = 1) -> None:
+    def __init__(self, *, voxel_size: float = 0.01, batch_size: int = 1, device: torch.device | str = "cpu") -> None:
         if voxel_size <= 0:
             raise ValueError(f"VoxelPointMap: voxel_size must be > 0, got {voxel_size}")
         if not 1 <= batch_size <= MAX_BATCH:
@@ -62,11 +63,16 @@ class VoxelPointMap:
         self.dropped = 0  # points outside the representable range
         self._runs: list[tuple[Tensor, Tensor]] = []  # (keys ascending, their rows), largest first; disjoint
         self._n = 0  # rows used in the buffer
-        self._sums = torch.empty(0, 7, dtype=torch.float64)  # by row: sum of x, y, z, r, g, b; count
+        self._sums = torch.empty(0, 7, dtype=torch.float64, device=device)  # by row: sum of x, y, z, r, g, b; count
 
     def __len__(self) -> int:
         """Occupied voxels over all B maps."""
         return sum(len(k) for k, _ in self._runs)
+
+    @property
+    def device(self) -> torch.device:
+        """Where the map lives."""
+        return self._sums.device
 
     @property
     def nbytes(self) -> int:
@@ -80,6 +86,11 @@ class VoxelPointMap:
                 f"VoxelPointMap.add: need points (P, 3), rgb (P, 3), batch (P,); got {tuple(points.shape)}, "
                 f"{tuple(rgb.shape)}, {tuple(batch.shape)}"
             )
+        if not points.device == rgb.device == batch.device == self.device:
+            raise ValueError(
+                f"VoxelPointMap.add: points, rgb and batch must be on the map's device {self.device}; got "
+                f"{points.device}, {rgb.device}, {batch.device}"
+            )
         if len(batch) and (int(batch.min()) < 0 or int(batch.max()) >= self.batch_size):
             raise ValueError(
                 f"VoxelPointMap.add: batch indices must be in [0, {self.batch_size}), got {batch.unique()}"
@@ -91,9 +102,10 @@ class VoxelPointMap:
         if len(keys) == 0:
             return
         uk, inv = torch.unique(keys, sorted=True, return_inverse=True)
-        values = torch.cat([points.double(), rgb.double(), torch.ones(len(keys), 1, dtype=torch.float64)], 1)
-        sums = torch.zeros(len(uk), 7, dtype=torch.float64).index_add_(0, inv, values)
-        new = torch.ones(len(uk), dtype=torch.bool)
+        ones = torch.ones(len(keys), 1, dtype=torch.float64, device=keys.device)
+        values = torch.cat([points.double(), rgb.double(), ones], 1)
+        sums = torch.zeros(len(uk), 7, dtype=torch.float64, device=uk.device).index_add_(0, inv, values)
+        new = torch.ones(len(uk), dtype=torch.bool, device=uk.device)
         for run_keys, run_rows in self._runs:
             pos = torch.searchsorted(run_keys, uk).clamp_(max=len(run_keys) - 1)
             hit = run_keys[pos] == uk
@@ -108,7 +120,7 @@ class VoxelPointMap:
             return
         self._reserve(self._n + k)
         self._sums[self._n : self._n + k] = sums
-        self._runs.append((keys, torch.arange(self._n, self._n + k)))
+        self._runs.append((keys, torch.arange(self._n, self._n + k, device=keys.device)))
         self._n += k
         while len(self._runs) > 1 and len(self._runs[-2][0]) <= 2 * len(self._runs[-1][0]):
             (ka, ra), (kb, rb) = self._runs.pop(), self._runs.pop()
@@ -119,21 +131,22 @@ class VoxelPointMap:
         cap = len(self._sums)
         if rows <= cap:
             return
-        new = torch.empty(max(rows, 2 * cap, 1024), 7, dtype=torch.float64)  # rows past _n are never read
+        # rows past _n are never read
+        new = torch.empty(max(rows, 2 * cap, 1024), 7, dtype=torch.float64, device=self.device)
         new[: self._n] = self._sums[: self._n]
         self._sums = new
 
     def _rows(self, b: int) -> Tensor:
         """(M_b,) buffer rows of sequence b's voxels, in key order."""
         lo, hi = b << (3 * AXIS_BITS), (b + 1) << (3 * AXIS_BITS) if b + 1 < MAX_BATCH else torch.iinfo(torch.int64).max
-        bounds = torch.tensor([lo, hi], dtype=torch.int64)
+        bounds = torch.tensor([lo, hi], dtype=torch.int64, device=self.device)
         keys, rows = [], []
         for run_keys, run_rows in self._runs:
             i, j = torch.searchsorted(run_keys, bounds).tolist()
             keys.append(run_keys[i:j])
             rows.append(run_rows[i:j])
         if not keys:
-            return torch.empty(0, dtype=torch.int64)
+            return torch.empty(0, dtype=torch.int64, device=self.device)
         order = torch.argsort(torch.cat(keys))
         return torch.cat(rows)[order]
 
@@ -149,7 +162,7 @@ class VoxelPointMap:
 
     def clear(self, b: int) -> None:
         """Forget sequence b's map and compact the buffer (a finished sequence's memory is released)."""
-        drop = torch.zeros(self._n, dtype=torch.bool)
+        drop = torch.zeros(self._n, dtype=torch.bool, device=self.device)
         drop[self._rows(b)] = True
         if not bool(drop.any()):
             return

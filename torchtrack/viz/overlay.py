@@ -46,18 +46,22 @@ def draw_frame(
     rgb (3, H, W) in [0, 1]; pixels (N, 2) tracked pixels; valid (N,); winner (N,) 0 intensity, 1 SIM, -1 new;
     K (3, 3) colour intrinsics; T_color_obj (4, 4) the estimated pose; points_obj (N, 3) model points;
     trail: the same features' pixels (N, 2) in the last frames, oldest first, the last = pixels (entries of another
-    N, from padding changed by another sequence of the batch, are left out), or None.
+    N, from padding changed by another sequence of the batch, are left out), or None. A picture is drawn on the
+    host: the inputs come to the CPU whatever their device.
     """
     if pixels.shape[-1] != 2 or points_obj.shape[-1] != 3 or valid.shape != pixels.shape[:1]:
         raise ValueError(f"draw_frame: pixels (N, 2), points_obj (N, 3), valid (N,); got {tuple(pixels.shape)}, "
                          f"{tuple(points_obj.shape)}, {tuple(valid.shape)}")  # fmt: skip
+    rgb, pixels, valid, winner, K, T_color_obj, points_obj = (
+        x.cpu() for x in (rgb, pixels, valid, winner, K, T_color_obj, points_obj)
+    )
     scale = panel_scale(rgb.shape[-1])
     base = _dimmed(rgb, scale)
     ok = valid.bool()
     win = winner.long()
     at = _to_panel(pixels.float(), scale)
     tracks = base.copy()
-    trail = [t for t in trail or [] if t.shape == pixels.shape]
+    trail = [t.cpu() for t in trail or [] if t.shape == pixels.shape]
     if len(trail) > 1:
         lines = _to_panel(torch.stack(trail).float(), scale).permute(1, 0, 2)[ok]  # N_ok,T,2
         colours = [_colour(int(w)) for w in win[ok].tolist()]
@@ -125,7 +129,7 @@ def save_strip(path: Path, tiles: list[np.ndarray], columns: int = 4, title: str
 
 def snapshot_indices(length: int, count: int = 4) -> set[int]:
     """Evenly spaced frame indices (first and last included) for an image strip."""
-    return {int(round(i)) for i in torch.linspace(0, max(length - 1, 0), min(count, length)).tolist()}
+    return {int(round(i)) for i in torch.linspace(0, max(length - 1, 0), min(count, length), device="cpu").tolist()}
 
 
 def panel_scale(width: int) -> float:

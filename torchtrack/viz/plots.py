@@ -28,7 +28,7 @@ def save_atomic(fig: Figure, path_png, dpi: int = 100) -> Path:
 
 
 def _poses(T, name: str, F: int | None = None) -> torch.Tensor:
-    T = torch.as_tensor(T).detach().to(torch.float64)
+    T = torch.as_tensor(T, device="cpu").detach().to(torch.float64)  # a plot: host data
     if T.dim() != 3 or T.shape[-2:] != (4, 4) or (F is not None and T.shape[0] != F):
         want = f"({F}, 4, 4)" if F is not None else "(F, 4, 4)"
         raise ValueError(f"{name} must be {want} poses, got {tuple(T.shape)}")
@@ -143,7 +143,7 @@ def plot_errors(
     """
     if not series:
         raise ValueError("plot_errors: no series given")
-    ys = {name: np.asarray(torch.as_tensor(v).detach().to(torch.float64)) for name, v in series.items()}
+    ys = {name: np.asarray(torch.as_tensor(v, device="cpu").detach().to(torch.float64)) for name, v in series.items()}
     F = next(iter(ys.values())).shape
     if any(y.ndim != 1 or y.shape != F for y in ys.values()):
         raise ValueError(
@@ -165,7 +165,7 @@ def plot_per_axis_errors(
     path_png, errors: PerAxisErrors, *, x=None, xlabel: str = "frame", title: str = "", dpi: int = 100
 ) -> Path:
     """Rotation (degrees) and translation (millimetres) errors per axis against time (Table VI's quantities)."""
-    rot, trans = np.asarray(errors.rot_deg), 1000 * np.asarray(errors.trans_m)
+    rot, trans = (np.asarray(torch.as_tensor(v, device="cpu")) for v in (errors.rot_deg, 1000 * errors.trans_m))
     x = np.arange(rot.shape[0]) if x is None else np.asarray(x)
     fig = Figure(figsize=(10, 6), layout="constrained")
     fig.suptitle(title)

@@ -45,7 +45,7 @@ class SequencePoses(NamedTuple):
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> Tensor:
     """(4, 4) float64 T_world_cam of a camera at eye looking at target (z forward, y down, x right)."""
-    e, c, u = (torch.tensor(v, dtype=torch.float64) for v in (eye, target, up))
+    e, c, u = (torch.tensor(v, dtype=torch.float64, device="cpu") for v in (eye, target, up))
     z = (c - e) / (c - e).norm()
     x = torch.linalg.cross(z, u)
     x = x / x.norm()
@@ -60,7 +60,7 @@ def smooth_curve(frames: int, rms_step: float, gen: torch.Generator, offset: flo
     period = PERIODS[0] + (PERIODS[1] - PERIODS[0]) * torch.rand(3, HARMONICS, generator=gen, dtype=torch.float64)
     phase = 2 * math.pi * torch.rand(3, HARMONICS, generator=gen, dtype=torch.float64)
     w = 2 * math.pi / period
-    t = (torch.arange(frames, dtype=torch.float64) + offset)[:, None, None]
+    t = (torch.arange(frames, dtype=torch.float64, device=amp.device) + offset)[:, None, None]
     x = (amp * (torch.sin(w * t + phase) - torch.sin(phase))).sum(-1)  # F,3
     rms_speed = ((amp * w) ** 2).sum().div(2).sqrt()  # time-average of |dx/dt| squared, incommensurate harmonics
     return x * (rms_step / rms_speed)

@@ -115,8 +115,9 @@ def _T_prim_cam(scene: Scene, T_world_cam: Tensor, T_world_obj: Tensor | None) -
     if T_world_obj is None and 1 in groups:
         raise ValueError("render: the scene has a moving object (group 1) but T_world_obj was not given")
     T_cam_world = T_inv(T_world_cam.double())
-    T_world_group1 = torch.eye(4, dtype=torch.float64) if T_world_obj is None else T_world_obj.double()
-    T_cam_group = torch.stack([T_cam_world, T_cam_world @ T_world_group1])[torch.tensor(groups, dtype=torch.long)]
+    T_world_group1 = torch.eye(4, dtype=torch.float64, device="cpu") if T_world_obj is None else T_world_obj.double()
+    group = torch.tensor(groups, dtype=torch.long, device="cpu")
+    T_cam_group = torch.stack([T_cam_world, T_cam_world @ T_world_group1])[group]
     T = T_inv(T_cam_group @ torch.stack([p.T_group_prim.double() for p in scene.primitives]))
     T_list = T.tolist()
     return _PrimPoses(T, [[row[:3] for row in Tk[:3]] for Tk in T_list], [[row[3] for row in Tk[:3]] for Tk in T_list])
@@ -135,7 +136,9 @@ def _local_box(prim: Primitive) -> list[float]:
     return [s[0]] * 3 if prim.kind == "sphere" else list(s)
 
 
-_SIGNS = torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=torch.float64)
+_SIGNS = torch.tensor(
+    [[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=torch.float64, device="cpu"
+)
 
 
 def _screen_boxes(scene: Scene, T_pc: Tensor) -> list[tuple[int, int, int, int] | None]:
@@ -146,7 +149,7 @@ def _screen_boxes(scene: Scene, T_pc: Tensor) -> list[tuple[int, int, int, int] 
     Planes are one-sided: seen from behind (camera at local z <= 0) they are culled. Batched over primitives.
     """
     T_cp = T_inv(T_pc)  # P,4,4 primitive -> camera
-    half = torch.tensor([_local_box(p) for p in scene.primitives], dtype=torch.float64)  # P,3
+    half = torch.tensor([_local_box(p) for p in scene.primitives], dtype=torch.float64, device="cpu")  # P,3
     pts = (_SIGNS * half[:, None]) @ T_cp[:, :3, :3].transpose(1, 2) + T_cp[:, None, :3, 3]  # P,8,3 corners
     a, b = pts[:, :, None], pts[:, None, :]  # crossings of every corner pair with z = _NEAR
     w = ((_NEAR - a[..., 2]) / (b[..., 2] - a[..., 2])).nan_to_num(-1.0)
@@ -157,10 +160,10 @@ def _screen_boxes(scene: Scene, T_pc: Tensor) -> list[tuple[int, int, int, int] 
     K = scene.K.double()
     u = (K[0, 0] * pts[..., 0] / z + K[0, 2]).clamp(-1e6, 1e6)
     v = (K[1, 1] * pts[..., 1] / z + K[1, 2]).clamp(-1e6, 1e6)
-    big = torch.tensor(1e7, dtype=torch.float64)
+    big = torch.tensor(1e7, dtype=torch.float64, device="cpu")
     lo_u, hi_u = torch.where(use, u, big).amin(1), torch.where(use, u, -big).amax(1)
     lo_v, hi_v = torch.where(use, v, big).amin(1), torch.where(use, v, -big).amax(1)
-    backface = torch.tensor([p.kind == "plane" for p in scene.primitives]) & (T_pc[:, 2, 3] <= 0)
+    backface = torch.tensor([p.kind == "plane" for p in scene.primitives], device="cpu") & (T_pc[:, 2, 3] <= 0)
     seen = use.any(1) & ~backface
     boxes: list[tuple[int, int, int, int] | None] = []
     for ok, u0, u1, v0, v1 in zip(
@@ -189,8 +192,8 @@ def _cast(scene: Scene, poses: _PrimPoses, dirs: Tensor | None) -> tuple[Tensor,
     dirs None: the full image grid, each primitive restricted to its screen box. Else rays (1, n, 3).
     """
     h, w = (scene.height, scene.width) if dirs is None else dirs.shape[:2]
-    zbuf = torch.full((h, w), _INF)
-    ids = torch.full((h, w), -1, dtype=torch.int16)  # small ints: cheaper z-buffer writes
+    zbuf = torch.full((h, w), _INF, device="cpu")
+    ids = torch.full((h, w), -1, dtype=torch.int16, device="cpu")  # small ints: cheaper z-buffer writes
     boxes = _screen_boxes(scene, poses.T) if dirs is None else None
     for k, prim in enumerate(scene.primitives):
         if boxes is not None:
@@ -215,7 +218,7 @@ def _colour(scene: Scene, poses: _PrimPoses, dx: Tensor, dy: Tensor, t: Tensor, 
 
     Planes read their baked atlas; all other primitives are textured together in one call.
     """
-    rgb = torch.tensor(scene.background_rgb)[None].repeat(t.shape[0], 1)  # rows: contiguous scatter
+    rgb = torch.tensor(scene.background_rgb, device="cpu")[None].repeat(t.shape[0], 1)  # rows: contiguous scatter
     small = torch.int8 if len(scene.primitives) < 127 else torch.int32  # small ints sort fastest
     order = torch.sort(ids.to(small), stable=True).indices  # pixels grouped by primitive, one pass
     counts = torch.bincount(ids + 1, minlength=len(scene.primitives) + 1).tolist()
@@ -240,10 +243,11 @@ def _colour(scene: Scene, poses: _PrimPoses, dx: Tensor, dy: Tensor, t: Tensor, 
             solids.append((k, idx, u, v, shade(scene, n_local, light[k])))
     if solids:
         ks, idx, u, v, lit = zip(*solids, strict=True)
-        which = torch.repeat_interleave(torch.tensor(ks), torch.tensor([len(i) for i in idx]))
+        sizes = torch.tensor([len(i) for i in idx], device="cpu")
+        which = torch.repeat_interleave(torch.tensor(ks, device="cpu"), sizes)
         tex = batch_textures([p.texture for p in scene.primitives], which)
         albedo = texture_rgb(scene, tex, torch.cat(u), torch.cat(v))
-        lit = torch.cat([torch.as_tensor(x).expand(len(i)) for x, i in zip(lit, idx, strict=True)])
+        lit = torch.cat([torch.as_tensor(x, device="cpu").expand(len(i)) for x, i in zip(lit, idx, strict=True)])
         rgb.index_copy_(0, torch.cat(idx), torch.stack(albedo, dim=1) * lit[:, None])
     return rgb.clamp_(0, 1)
 

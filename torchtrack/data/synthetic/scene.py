@@ -112,7 +112,8 @@ class Scene:
 
 def pixel_grid_xy(H: int, W: int) -> Tensor:
     """(H, W, 2) float32 pixel centres (x, y)."""
-    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32), indexing="ij")
+    y, x = (torch.arange(n, dtype=torch.float32, device="cpu") for n in (H, W))
+    ys, xs = torch.meshgrid(y, x, indexing="ij")
     return torch.stack([xs, ys], dim=-1)
 
 
@@ -125,15 +126,15 @@ def pixel_rays(K: Tensor, pixels: Tensor) -> Tensor:
 
 def pose(xyz: tuple[float, float, float], rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Tensor:
     """(4, 4) float64 from a translation and Euler angles in degrees (R = Rz @ Ry @ Rx)."""
-    R = euler_to_matrix(torch.tensor([math.radians(a) for a in rpy_deg], dtype=torch.float64))
-    return make_T(R, torch.tensor(xyz, dtype=torch.float64))
+    R = euler_to_matrix(torch.tensor([math.radians(a) for a in rpy_deg], dtype=torch.float64, device="cpu"))
+    return make_T(R, torch.tensor(xyz, dtype=torch.float64, device="cpu"))
 
 
 def frame_pose(origin, x_axis, y_axis) -> Tensor:
     """(4, 4) float64 whose local x, y axes are the given world directions (z = x cross y)."""
-    x, y = torch.tensor(x_axis, dtype=torch.float64), torch.tensor(y_axis, dtype=torch.float64)
+    x, y = (torch.tensor(v, dtype=torch.float64, device="cpu") for v in (x_axis, y_axis))
     R = torch.stack([x, y, torch.linalg.cross(x, y)], dim=-1)
-    return make_T(R, torch.tensor(origin, dtype=torch.float64))
+    return make_T(R, torch.tensor(origin, dtype=torch.float64, device="cpu"))
 
 
 class _Textures:

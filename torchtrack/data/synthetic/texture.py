@@ -120,7 +120,7 @@ def batch_textures(texs: list[TextureParams], which: Tensor) -> TextureParams:
          t.checker_weight if t.checker_m > 0 else 0.0, t.cell_m, *t.cell_offset, *t.uv_offset]
         for t in texs
     ]  # fmt: skip
-    c = torch.tensor(rows, dtype=torch.float32).index_select(0, which).T.contiguous()  # 17,n
+    c = torch.tensor(rows, dtype=torch.float32, device=which.device).index_select(0, which).T.contiguous()  # 17,n
     return TextureParams(
         c0=(c[0], c[1], c[2]), c1=(c[3], c[4], c[5]), c2=(c[6], c[7], c[8]), noise_m=c[9], checker_m=c[10],
         checker_weight=c[11], cell_m=c[12], cell_offset=(c[13], c[14]), uv_offset=(c[15], c[16]),
@@ -180,9 +180,9 @@ def plane_atlas(scene: Scene, k: int) -> Tensor:
         texel = _atlas_texel(scene)
         Wt = min(math.ceil(2 * hx / texel) + 1, ATLAS_MAX_TEXELS)
         Ht = min(math.ceil(2 * hy / texel) + 1, ATLAS_MAX_TEXELS)
-        u = torch.linspace(-hx, hx, Wt)
+        u = torch.linspace(-hx, hx, Wt, device="cpu")
         rows = []
-        for v in torch.linspace(-hy, hy, Ht).split(256):  # chunks of rows bound the memory
+        for v in torch.linspace(-hy, hy, Ht, device="cpu").split(256):  # chunks of rows bound the memory
             uu, vv = u.repeat(len(v)), v.repeat_interleave(Wt)
             rows.append(torch.stack(texture_rgb(scene, prim.texture, uu, vv)).reshape(3, len(v), Wt))
         _ATLAS_CACHE[key] = torch.cat(rows, dim=1)[None].contiguous(memory_format=torch.channels_last)  # fast reads
@@ -201,7 +201,7 @@ def plane_rgb(scene: Scene, k: int, uv_unit: Tensor) -> Tensor:
 
 def light_local(scene: Scene) -> list[list[float]]:
     """Per primitive the unit light direction in its local frame (light is fixed in each rigid group)."""
-    light = torch.tensor(scene.light_dir, dtype=torch.float64)
+    light = torch.tensor(scene.light_dir, dtype=torch.float64, device="cpu")
     R = torch.stack([p.T_group_prim[:3, :3].double() for p in scene.primitives])  # P,3,3 group <- local
     return (R.transpose(1, 2) @ (light / light.norm())).tolist()
 

@@ -101,7 +101,8 @@ def _depth_camera(cfg: SyntheticConfig, scene: Scene) -> tuple[Scene, Tensor] | 
     if d is None:
         return None
     K = intrinsics_matrix(d["fx"], d["fy"], d["cx"], d["cy"]).to(scene.K.dtype)
-    return replace(scene, K=K, _dirs=None, _xy_flat=None), torch.tensor(d["T_color_depth"], dtype=torch.float64)
+    T_color_depth = torch.tensor(d["T_color_depth"], dtype=torch.float64, device="cpu")
+    return replace(scene, K=K, _dirs=None, _xy_flat=None), T_color_depth
 
 
 def _render_into(cfg: SyntheticConfig, folder: Path, progress: bool) -> None:
