@@ -32,13 +32,17 @@ def with_conf_dir(argv: Sequence[str]) -> list[str]:
         if not path.is_dir():
             raise ValueError(f"{CONF_DIR_KEY}={d}: {path} is not a folder")
         paths.append(f"file://{path}")
-    rest, given = [], []
-    for a in argv:
-        if a.startswith("hydra.searchpath="):
-            given = [p.strip() for p in a.partition("=")[2].strip("[]").split(",") if p.strip()]
-        elif not a.startswith(f"{CONF_DIR_KEY}="):
-            rest.append(a)
-    return [*rest, f"hydra.searchpath=[{','.join(paths + given)}]"]
+    given = [a for a in argv if a.startswith("hydra.searchpath=")]
+    entries = [e.strip() for a in given for e in a.partition("=")[2].strip("[]").split(",") if e.strip()]
+    merged = f"hydra.searchpath=[{','.join(paths + entries)}]"
+    out, placed = [], False
+    for a in argv:  # in the first one's place: Hydra's argparse takes no override after a flag such as --cfg job
+        if a.startswith((f"{CONF_DIR_KEY}=", "hydra.searchpath=")):
+            out += [] if placed else [merged]
+            placed = True
+        else:
+            out.append(a)
+    return out
 
 
 def config_dirs(argv: Sequence[str]) -> list[Path]:

@@ -198,14 +198,16 @@ def _prepared_ahead(tracker, frames):
 
 
 class _Clock:
-    """The batch's tracking time: wall time since ``start`` less the time spent writing outputs (``paused``)."""
+    """The batch's tracking time: wall time since the start less the time spent writing outputs. ``fps`` is read once
+    per step, so that the sequences that end at one step report the same rate."""
 
     def __init__(self) -> None:
-        self.t0, self.paused, self.steps = time.perf_counter(), 0.0, 0
+        self.t0, self.paused, self.steps, self.fps = time.perf_counter(), 0.0, 0, 0.0
 
-    def fps(self) -> float:
-        """Lockstep steps per second of tracking so far (each step is one frame of every active sequence)."""
-        return self.steps / max(time.perf_counter() - self.t0 - self.paused, 1e-9)
+    def tick(self) -> None:
+        """One lockstep step done (one frame of every active sequence): the rate so far."""
+        self.steps += 1
+        self.fps = self.steps / max(time.perf_counter() - self.t0 - self.paused, 1e-9)
 
 
 def run_tracker(
@@ -241,7 +243,7 @@ def run_tracker(
         if failure is not None:
             log.error("%s: failed: %s", sequences[b].name, failure)
         try:
-            results[b] = recs[b].finish(clock.fps(), plots, dropped=cursors[b].dropped, failure=failure)
+            results[b] = recs[b].finish(clock.fps, plots, dropped=cursors[b].dropped, failure=failure)
             if mapper is not None:
                 mapper.finish(b, recs[b].out_dir)
         except Exception as e:  # writing or evaluating this sequence failed: the others still finish
@@ -262,7 +264,7 @@ def run_tracker(
                     if results[b] is None:
                         finish(b, f"tracking failed at step {t}: {type(e).__name__}: {e}")
                 break
-            clock.steps += 1
+            clock.tick()
             if mapper is not None:
                 mapper.add(frame, tracked.result)
             for b in range(len(sequences)):
