@@ -85,7 +85,7 @@ def _per_stream(x: Tensor, b: int, name: str) -> Tensor:
         if x.shape[0] != b:
             raise ValueError(f"{name}: {x.shape[0]} given for {b} streams")
         return x
-    return x.expand(b, *x.shape)
+    return x.expand(b, *x.shape).contiguous()
 
 
 class RGBDTracker:
@@ -146,7 +146,10 @@ class RGBDTracker:
         if self.device.type == "cpu" and wants_ops:  # built before any frame is timed
             from torchtrack.image import lk_op
 
-            lk_op.warm_up() if announce else lk_op.available()
+            if announce:
+                lk_op.warm_up()
+            else:
+                lk_op.available()
         self.reset()
 
     @classmethod
@@ -229,7 +232,7 @@ class RGBDTracker:
         K = _per_stream(self.K, b, "K")
         if timestamp is None:
             timestamp = self._frames / self.fps
-        t = torch.as_tensor(np.asarray(timestamp, dtype=np.float64)).expand(b).clone()
+        t = torch.as_tensor(timestamp, dtype=torch.float64).cpu().expand(b).clone()
         self._frames += 1
         T_cd = self.T_color_depth if self.T_color_depth is not None else torch.eye(4)
         return FrameBatch(
@@ -239,7 +242,7 @@ class RGBDTracker:
             K_depth=_per_stream(self.K_depth, b, "K_depth") if self.K_depth is not None else K.clone(),
             T_color_depth=_per_stream(T_cd, b, "T_color_depth").float(),
             timestamp=t,
-            T_world_color_gt=torch.eye(4, dtype=torch.float64).expand(b, 4, 4),
+            T_world_color_gt=torch.eye(4, dtype=torch.float64).repeat(b, 1, 1),
             gt_valid=torch.zeros(b, dtype=torch.bool),
             active=torch.ones(b, dtype=torch.bool),
             index=torch.full((b,), self._frames - 1, dtype=torch.int64),
