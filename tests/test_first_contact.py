@@ -1,20 +1,28 @@
 """What a new user sees first: the default demo's output (one progress bar, each result line once, log lines not
-glued onto the bar) and its folder, named so that a person can tell what it holds."""
+glued onto the bar, one name for the sequence in the log and on disk), a first-run build of the compiled operators
+announced before the bar and left out of fps, and one fps for a lockstep batch."""
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import re
+import shutil
 import subprocess
 import sys
+import time
 
+import pytest
 from hydra import compose, initialize_config_dir
 
 from torchtrack.config import CONF_DIR
+from torchtrack.data import TumSequence
 from torchtrack.data.synthetic import SyntheticConfig, display_name
 from torchtrack.factory import build_sequences, build_tracker
+from torchtrack.image import lk_op
 from torchtrack.run import run_tracker
+from torchtrack.stream import RGBDTracker
 
 SCENE = ["data.scene.frames=6", "data.scene.width=160", "data.scene.height=120"]
 
@@ -26,8 +34,15 @@ def screen(text: str) -> list[str]:
 
 
 def test_demo_prints_one_bar_and_one_result_line_into_a_named_folder(tmp_path):
-    env = {**os.environ, "TORCHTRACK_CACHE": str(tmp_path / "cache")}
-    args = [sys.executable, "-m", "torchtrack.cli", *SCENE, f"hydra.run.dir={tmp_path / 'run'}"]
+    env = dict(os.environ)  # the compiled operators' build cache shared: a first build is tested below, in-process
+    args = [
+        sys.executable,
+        "-m",
+        "torchtrack.cli",
+        *SCENE,
+        f"data.cache_dir={tmp_path / 'cache'}",
+        f"hydra.run.dir={tmp_path / 'run'}",
+    ]
     done = subprocess.run(args, capture_output=True, env=env, cwd=tmp_path, timeout=300)  # bytes: keep the '\r's
     out, err = done.stdout.decode(), done.stderr.decode()
     assert done.returncode == 0, err
@@ -36,6 +51,8 @@ def test_demo_prints_one_bar_and_one_result_line_into_a_named_folder(tmp_path):
     assert [p.name for p in (tmp_path / "run").iterdir() if p.is_dir() and not p.name.startswith(".")] == [name]
     both = out + err
     assert len(re.findall(rf"{name}: frames=6 ", both)) == 1, both
+    named = re.findall(r"\] - (\S+): \d+ frames", both)  # the load line: the name the run folder has
+    assert named == [name] and not re.search(r"\] - synth-scene-", both), both  # not the cache folder's name
     assert sum("6/6 [" in line for line in screen(err)) == 1, err  # the bar's final state, once
     assert len(re.findall(r"fps=", both)) == 1, both
 
@@ -69,3 +86,38 @@ def test_log_lines_are_not_glued_onto_the_progress_bar(tmp_path, capsys):
     pieces = re.split(r"[\r\n]", err)
     assert "[LOG] a warning while tracking" in pieces, err  # a line of its own, not the tail of a bar
     assert sum("6/6 [" in line for line in screen(err)) == 1, err
+
+
+def _config(tmp_path):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose("config", overrides=[*SCENE, f"data.cache_dir={tmp_path / 'cache'}", "plots=false"])
+
+
+BUILD_S = 3.0  # a stand-in first build: long next to the ~1 s the 6 tiny frames take
+
+
+@pytest.mark.skipif(not lk_op.available(), reason="the compiled operators do not build here")
+def test_a_first_build_is_announced_before_the_bar_and_not_timed(tmp_path, capsys, monkeypatch):
+    """A first build (stood in for by a sleep: the real one is loaded) runs when the tracker is made, says so on one
+    line before the progress bar, and is not in fps: 6 frames at the reported fps take less than the build."""
+    monkeypatch.setattr(lk_op, "_state", {"fake": True})  # not loaded yet, as in a fresh process
+    monkeypatch.setattr(lk_op, "_finished", lambda folder, library: False)
+    monkeypatch.setattr(lk_op, "_build", lambda: time.sleep(BUILD_S) or BUILD_S)
+    cfg = _config(tmp_path)
+    sequences = build_sequences(cfg.data)
+    capsys.readouterr()
+    tracker = RGBDTracker.from_config(cfg)
+    (metrics,) = run_tracker(tracker, sequences, tmp_path / "out", plots=False)
+    err = capsys.readouterr().err
+    line = "torchtrack: building the compiled LK and SIM operators (first run only)... done in 3 s\n"
+    assert err.startswith(line) and err.count("building") == 1 and "tracking:" in err[len(line) :], err
+    assert metrics["frames"] == 6 and metrics["frames"] / metrics["fps"] < BUILD_S
+
+
+def test_a_lockstep_batch_reports_one_fps(tmp_path):
+    cfg = _config(tmp_path)
+    (seq,) = build_sequences(cfg.data)
+    copies = [TumSequence(shutil.copytree(seq.root, tmp_path / name)) for name in ("a", "b")]
+    results = run_tracker(build_tracker(cfg), copies, tmp_path / "out", plots=True)  # plots: the first writes longer
+    written = [json.loads((tmp_path / "out" / n / "metrics.json").read_text())["fps"] for n in ("a", "b")]
+    assert results[0]["fps"] == results[1]["fps"] == written[0] == written[1] > 0

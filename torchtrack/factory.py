@@ -6,6 +6,9 @@ is the front end's pyramid levels, which are the LK tracker's (``flow.levels``).
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import NamedTuple
 
@@ -15,6 +18,19 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from torchtrack.data.errors import DataError
 from torchtrack.data.tum import TumSequence
 from torchtrack.pipeline import Tracker
+
+log = logging.getLogger(__name__)
+
+
+@contextmanager
+def _quiet(logger: logging.Logger) -> Iterator[None]:
+    """``logger`` without its INFO lines (warnings stay) for the ``with`` block."""
+    level = logger.level
+    logger.setLevel(max(level, logging.WARNING))
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
 
 
 class LoadFailure(NamedTuple):
@@ -52,8 +68,13 @@ def load_sequences(data: DictConfig) -> Sequences:
         from torchtrack.data.synthetic import SyntheticConfig, display_name, ensure_sequence
 
         scene = SyntheticConfig(**OmegaConf.to_container(data.scene, resolve=True))
-        seq = TumSequence(ensure_sequence(scene, Path(data.cache_dir).expanduser()), **opts)  # registered
-        seq.name = display_name(scene)  # the run folder's name; the cache folder's carries the digest
+        root = ensure_sequence(scene, Path(data.cache_dir).expanduser())
+        with _quiet(logging.getLogger("torchtrack.data.tum")):  # its load line names the cache folder: said below
+            seq = TumSequence(root, **opts)  # registered
+        seq.name = display_name(scene)  # the run folder's name and the log's; the cache folder's carries the digest
+        log.info(
+            "%s: %d frames, ground truth for %d, rendered into %s", seq.name, len(seq), int(seq.gt_valid.sum()), root
+        )
         return Sequences([seq], [])
     if data.kind != "tum":
         raise DataError(f"data.kind must be 'tum' or 'synthetic', got {data.kind!r}")

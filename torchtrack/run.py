@@ -6,6 +6,11 @@ truth; :mod:`torchtrack.geometry.rig` converts the tracker's depth-camera poses)
 6/7 as an image strip). Every file is written atomically (:func:`torchtrack.io.write_atomic`), so a
 sequence that finished is never lost when a later one fails.
 
+Frames become poses through :meth:`torchtrack.stream.RGBDTracker.step`, the path a Python caller's frames take too;
+each frame is moved to the tracker's device before the front end prepares it. ``fps`` in ``metrics.json`` is the
+batch's lockstep rate: steps per second of tracking (loading and tracking the frames; not writing outputs, not a
+first-run build of the compiled operators), one number for every sequence of a batch.
+
 Faults cost only what failed: output folders are checked for writability before tracking; bad frames are dropped
 (:class:`torchtrack.data.batching.FrameCursor`; ``metrics.json`` lists them); a sequence that fails mid-way becomes
 inactive in the lockstep batch and writes its outputs up to its last good frame with ``"complete": false`` and the
@@ -27,9 +32,9 @@ from tqdm.contrib.logging import logging_redirect_tqdm
 from torchtrack.data.batching import DroppedFrame, FrameCursor, iterate_batched
 from torchtrack.data.tum import TumSequence
 from torchtrack.data.tum_io import write_tum_trajectory
-from torchtrack.geometry.rig import color_poses, tracker_world
 from torchtrack.io import check_writable, write_json, write_text
 from torchtrack.pipeline import StepResult, Tracker
+from torchtrack.stream import RGBDTracker, TrackedFrame
 from torchtrack.viz.overlay import TRAIL, draw_frame, save_strip, snapshot_indices
 
 log = logging.getLogger(__name__)
@@ -45,42 +50,38 @@ class Recorder:
     rows: list[dict] = field(default_factory=list)
     poses: list[np.ndarray] = field(default_factory=list)
     tiles: list[np.ndarray] = field(default_factory=list)
-    T_world_tracker: torch.Tensor | None = None  # (4, 4) the tracker's world in ground truth's, from the first frame
     trail: list[torch.Tensor] = field(default_factory=list)  # (N, 2) pixels of the current model's last frames
 
-    def add(self, b: int, frame, res: StepResult) -> None:
-        i = int(frame.index[b])
-        T_cd = frame.T_color_depth[b]
-        if self.T_world_tracker is None:  # the tracker's world is its first depth camera
-            self.T_world_tracker = tracker_world(frame.T_world_color_gt[b], frame.gt_valid[b], T_cd)
-        self.poses.append(color_poses(self.T_world_tracker, res.T_world_depth[b], T_cd).numpy())  # as ground truth
+    def add(self, b: int, frame, tracked: TrackedFrame) -> None:
+        i, res = int(frame.index[b]), tracked.result
+        self.poses.append(tracked.T_world_color[b].numpy())  # the colour camera's, in ground truth's world
         win = res.winner[b][res.valid[b]]
         self.rows.append(
             {
                 "frame": i,
                 "timestamp": float(frame.timestamp[b]),
-                "features": int(res.n_features[b]),
+                "features": int(tracked.features[b]),
                 "sim_wins": int((win == 1).sum()),
-                "reprojection_px": float(res.reprojection_error[b]),
+                "reprojection_px": float(tracked.reprojection_px[b]),
                 "mean_tim_px": float(res.d_tim[b][res.valid[b]].mean()) if res.valid[b].any() else 0.0,
-                "reselected": bool(res.reselected[b]),
+                "reselected": bool(tracked.reselected[b]),
                 **self._noise_scale(b, res),
                 **self._loss(b, i, res.loss),
             }
         )
         if self.snapshots:
-            self.trail = [*self.trail[-(TRAIL - 1) :], res.pixels[b].clone()]
-        if i in self.snapshots:
-            T_color_obj = frame.T_color_depth[b].double() @ res.T_cam_obj[b]
+            self.trail = [*self.trail[-(TRAIL - 1) :], res.pixels[b].cpu().clone()]
+        if i in self.snapshots:  # drawn from CPU copies, whatever the tracking device
+            T_color_obj = (frame.T_color_depth[b].double() @ res.T_cam_obj[b]).cpu()
             self.tiles.append(
                 draw_frame(
-                    frame.rgb[b],
-                    res.pixels[b],
-                    res.valid[b],
-                    res.winner[b],
-                    frame.K[b],
+                    frame.rgb[b].cpu(),
+                    res.pixels[b].cpu(),
+                    res.valid[b].cpu(),
+                    res.winner[b].cpu(),
+                    frame.K[b].cpu(),
                     T_color_obj,
-                    res.points_obj[b],
+                    res.points_obj[b].cpu(),
                     f"frame {i}",
                     trail=self.trail,
                 )  # fmt: skip
@@ -120,7 +121,7 @@ class Recorder:
         return {"lost": lost, "relocalised": reloc, "interrupted": interrupted}
 
     def finish(
-        self, elapsed_s: float, plots: bool = True, *, dropped: list[DroppedFrame] = (), failure: str | None = None
+        self, fps: float, plots: bool = True, *, dropped: list[DroppedFrame] = (), failure: str | None = None
     ) -> dict:
         """Write the outputs of the frames recorded so far; ``failure`` (one line) marks them incomplete."""
         seq, out = self.sequence, self.out_dir
@@ -131,15 +132,15 @@ class Recorder:
             metrics["error"] = failure
         metrics.update(dropped_frames=len(dropped), dropped_timestamps=[d.timestamp for d in dropped])
         if n > 0:
-            metrics.update(self._write_tracked(elapsed_s, plots))
+            metrics.update(self._write_tracked(fps, plots))
         write_json(out / "metrics.json", metrics)  # last: a sweep counts a job with metrics.json as finished
         return metrics
 
-    def _write_tracked(self, elapsed_s: float, plots: bool) -> dict:
+    def _write_tracked(self, fps: float, plots: bool) -> dict:
         """trajectory.txt, frames.csv and the plots of the recorded frames; returns their metrics."""
         from torchtrack.metrics import trajectory_metrics
 
-        seq, out, n = self.sequence, self.out_dir, len(self.rows)
+        seq, out = self.sequence, self.out_dir
         trusted = np.array([not r["interrupted"] for r in self.rows])  # interrupted poses are not written
         ts = np.array([r["timestamp"] for r in self.rows])[trusted]
         T_est = np.stack(self.poses)[trusted]
@@ -148,7 +149,7 @@ class Recorder:
             "lost_frames": int(sum(r["lost"] for r in self.rows)),
             "relocalisations": int(sum(r["relocalised"] for r in self.rows)),
             "interrupted_frames": int((~trusted).sum()),
-            "fps": n / max(elapsed_s, 1e-9),
+            "fps": fps,
             "reselections": int(sum(r["reselected"] for r in self.rows[1:])),
             "mean_reprojection_px": float(np.mean([r["reprojection_px"] for r in self.rows])),
             "mean_features": float(np.mean([r["features"] for r in self.rows])),
@@ -187,19 +188,40 @@ def unique_names(sequences: list[TumSequence]) -> list[str]:
     return names
 
 
-def _prepared_ahead(tracker: Tracker, frames):
+def _prepared_ahead(tracker, frames):
     """The frames, prepared a step ahead in the front end's thread (``frontend.ahead``; the same results)."""
     ahead = getattr(getattr(tracker, "frontend", None), "prepared_ahead", None)
     return ahead(frames) if ahead is not None else frames
 
 
+class _Clock:
+    """The batch's tracking time: wall time since the start less the time spent writing outputs. ``fps`` is read once
+    per step, so that the sequences that end at one step report the same rate."""
+
+    def __init__(self) -> None:
+        self.t0, self.paused, self.steps, self.fps = time.perf_counter(), 0.0, 0, 0.0
+
+    def tick(self) -> None:
+        """One lockstep step done (one frame of every active sequence): the rate so far."""
+        self.steps += 1
+        self.fps = self.steps / max(time.perf_counter() - self.t0 - self.paused, 1e-9)
+
+
 def run_tracker(
-    tracker: Tracker, sequences: list[TumSequence], out_dir: Path, *, plots: bool = True, mapper=None
+    tracker: RGBDTracker | Tracker,
+    sequences: list[TumSequence],
+    out_dir: Path,
+    *,
+    plots: bool = True,
+    mapper=None,
 ) -> list[dict]:
     """Track B sequences in lockstep; write each one's outputs when it ends. Returns their metrics, one per sequence
     in order; a failed sequence's say ``"complete": False`` and ``"error"``. Raises OSError (one line) before
-    tracking when an output folder is not writable. ``mapper`` (a :class:`torchtrack.mapping.PanoramaMapper` or
+    tracking when an output folder is not writable. ``tracker``: an :class:`~torchtrack.stream.RGBDTracker` (its
+    device), or a built :class:`Tracker` (on the CPU). ``mapper`` (a :class:`torchtrack.mapping.PanoramaMapper` or
     None) is fed every frame and writes each sequence's map when it ends."""
+    stream = tracker if isinstance(tracker, RGBDTracker) else RGBDTracker(tracker=tracker)
+    stream.reset()
     out_dir = Path(out_dir)
     recs = [
         Recorder(s, out_dir / name, snapshot_indices(len(s)) if plots else set())
@@ -210,44 +232,43 @@ def run_tracker(
     cursors = [FrameCursor(s, isolate=True) for s in sequences]
     lengths = [len(s) for s in sequences]
     results: list[dict | None] = [None] * len(sequences)
-    start = time.perf_counter()
+    clock = _Clock()
 
     def finish(b: int, failure: str | None = None) -> None:
+        t0 = time.perf_counter()
         failure = failure or cursors[b].failure
         if failure is not None:
             log.error("%s: failed: %s", sequences[b].name, failure)
         try:
-            results[b] = recs[b].finish(time.perf_counter() - start, plots, dropped=cursors[b].dropped, failure=failure)
+            results[b] = recs[b].finish(clock.fps, plots, dropped=cursors[b].dropped, failure=failure)
             if mapper is not None:
                 mapper.finish(b, recs[b].out_dir)
         except Exception as e:  # writing or evaluating this sequence failed: the others still finish
             log.exception("%s: writing the outputs failed", sequences[b].name)
             results[b] = {"sequence": sequences[b].name, "complete": False, "error": f"{type(e).__name__}: {e}"}
+        clock.paused += time.perf_counter() - t0
 
+    frames = (stream.to_device(f) for f in iterate_batched(sequences, cursors=cursors))
     with torch.inference_mode(), logging_redirect_tqdm():  # log lines above the bar, not glued onto it
         for t, frame in enumerate(
-            tqdm(
-                _prepared_ahead(tracker, iterate_batched(sequences, cursors=cursors)),
-                total=max(lengths),
-                desc="tracking",
-                unit="frame",
-            )  # fmt: skip
+            tqdm(_prepared_ahead(stream.tracker, frames), total=max(lengths), desc="tracking", unit="frame")
         ):
             try:
-                res = tracker.step(frame)
+                tracked = stream.step(frame)
             except Exception as e:  # the batch's step failed: no sequence can go on, but what was tracked is kept
                 log.exception("tracking failed at step %d", t)
                 for b in range(len(sequences)):
                     if results[b] is None:
                         finish(b, f"tracking failed at step {t}: {type(e).__name__}: {e}")
                 break
+            clock.tick()
             if mapper is not None:
-                mapper.add(frame, res)
+                mapper.add(frame, tracked.result)
             for b in range(len(sequences)):
                 if results[b] is not None:
                     continue
                 if bool(frame.active[b]):
-                    recs[b].add(b, frame, res)
+                    recs[b].add(b, frame, tracked)
                 if not bool(frame.active[b]) or int(frame.index[b]) == lengths[b] - 1:
                     finish(b)
     for b in range(len(sequences)):

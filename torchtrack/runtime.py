@@ -1,4 +1,4 @@
-"""Process-level settings for fast per-frame work on CPU."""
+"""Process-level settings for fast per-frame work on CPU, and the device a run tracks on."""
 
 from __future__ import annotations
 
@@ -36,3 +36,23 @@ def configure(threads: int | None) -> None:
     tune_allocator()
     if threads:
         torch.set_num_threads(int(threads))
+
+
+def resolve_device(device: str | torch.device | None) -> torch.device:
+    """The ``torch.device`` that ``device`` names (``cpu``, ``cuda``, ``cuda:N``; None: cpu). ValueError (one line)
+    for another name, or for CUDA where this torch or machine has none."""
+    try:
+        dev = torch.device("cpu" if device is None else device)
+    except (RuntimeError, TypeError) as e:
+        raise ValueError(f"device={device}: not a torch device ({e}); use cpu or cuda") from None
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"device={device}: use cpu or cuda")
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            why = "this torch is built without CUDA" if torch.version.cuda is None else "no CUDA GPU is visible"
+            raise ValueError(
+                f"device={device}: CUDA is not available ({why}, torch {torch.__version__}); use device=cpu"
+            )
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"device={device}: only {torch.cuda.device_count()} CUDA device(s) here")
+    return dev

@@ -9,15 +9,18 @@ and the torch version: a changed source builds anew, an unchanged one loads in m
 (two pytest workers, CI) is safe: torch's loader holds a file baton (``lock`` in the build folder) while one process
 builds; the others wait for it and then load the same library. Nothing is built at pip-install time (an isolated
 build environment would fetch another torch). ``TORCHTRACK_NO_BUILD=1`` disables the build (the fallback, tested).
+A first build takes tens of seconds: :func:`warm_up` runs it before a run's timed loop and says so on one line.
 """
 
 from __future__ import annotations
 
 import hashlib
 import os
+import sys
 import time
 import warnings
 from pathlib import Path
+from typing import TextIO
 
 import torch
 from torch import Tensor
@@ -41,15 +44,25 @@ def build_key() -> str:
     return h.hexdigest()[:16]
 
 
-def _build() -> float:
-    """Build (or load the cached build of) the operator; returns the seconds it took. A finished build (the library
-    there and no build holding the lock) loads directly: torch's loader would import cpp_extension and run the
-    compiler's and ninja's checks first (~0.5-1 s of start-up)."""
+def _library() -> tuple[Path, Path]:
+    """(build folder, library file) of this source's build."""
     key = build_key()
     folder = cache_dir() / "ext" / f"lk_{key}"
+    return folder, folder / f"torchtrack_lk_{key}.so"
+
+
+def _finished(folder: Path, library: Path) -> bool:
+    """A finished build: the library there and no build holding the lock."""
+    return library.is_file() and not (folder / "lock").exists()
+
+
+def _build() -> float:
+    """Build (or load the cached build of) the operator; returns the seconds it took. A finished build loads directly:
+    torch's loader would import cpp_extension and run the compiler's and ninja's checks first (~0.5-1 s of start-up)."""
+    folder, library = _library()
+    key = folder.name[len("lk_") :]
     t0 = time.perf_counter()
-    library = folder / f"torchtrack_lk_{key}.so"
-    if library.is_file() and not (folder / "lock").exists():
+    if _finished(folder, library):
         try:
             torch.ops.load_library(str(library))
             return time.perf_counter() - t0
@@ -78,6 +91,32 @@ def available() -> bool:
             warnings.warn(f"torchtrack: compiled LK operator unavailable ({_state['error']}); using the pure-torch "
                           "LK and SIM (slower)", RuntimeWarning, stacklevel=3)  # fmt: skip
     return _state["ok"]
+
+
+def needs_build() -> bool:
+    """Whether :func:`available` would compile the operators now (first use of this source, torch and flags here)."""
+    if "ok" in _state or os.environ.get("TORCHTRACK_NO_BUILD", "") not in ("", "0"):
+        return False
+    return not _finished(*_library())
+
+
+def warm_up(stream: TextIO | None = None) -> bool:
+    """:func:`available`, before any frame is timed. Where that compiles the operators (tens of seconds, once), one
+    line on ``stream`` (default stderr) says so as it starts and how long it took when it ends."""
+    if not needs_build():
+        return available()
+    stream = stream if stream is not None else sys.stderr
+    print(
+        "torchtrack: building the compiled LK and SIM operators (first run only)... ", end="", file=stream, flush=True
+    )
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():  # this line says it instead
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ok = available()
+    took = time.perf_counter() - t0
+    done = f"done in {took:.0f} s" if ok else f"failed after {took:.0f} s ({error()}); using the pure-torch LK and SIM"
+    print(done, file=stream, flush=True)
+    return ok
 
 
 def error() -> str | None:
