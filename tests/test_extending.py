@@ -26,9 +26,9 @@ from test_train_app import validation_numbers
 
 import torchtrack
 from torchtrack.config import CONF_DIR
-from torchtrack.filter.frame import Observation
 from torchtrack.estimators.backends import RegistrationBackend
 from torchtrack.estimators.horn import HornEstimator
+from torchtrack.filter.frame import Observation
 from torchtrack.filter.weighting import Variances
 from torchtrack.geometry import make_T, so3_exp, transform_points
 from torchtrack.learn.checkpoint import load_checkpoint

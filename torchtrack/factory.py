@@ -15,6 +15,7 @@ from typing import NamedTuple
 from hydra.utils import instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from torchtrack.data.batching import frame_gray
 from torchtrack.data.errors import DataError
 from torchtrack.data.tum import TumSequence
 from torchtrack.pipeline import Tracker
@@ -105,7 +106,7 @@ def build_tracker(cfg: DictConfig, *, record: bool = False) -> Tracker:
     :class:`Tracker`."""
     return instantiate(
         cfg.pipeline,
-        frontend=instantiate(cfg.frontend, levels=cfg.flow.levels),
+        frontend=instantiate(cfg.frontend, levels=cfg.flow.levels, gray=frame_gray),  # the loader's luminance
         flow=instantiate(cfg.flow),
         weighting=instantiate(cfg.weighting),
         backend=instantiate(cfg.tracker),
