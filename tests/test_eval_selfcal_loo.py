@@ -1,4 +1,4 @@
-"""experiments/eval_selfcal_loo.py's pieces: the unlabelled copy of a sequence folder (every entry linked but the
+"""experiments/eval/eval_selfcal_loo.py's pieces: the unlabelled copy of a sequence folder (every entry linked but the
 ground truth) and the held-out NLL per window, whose pooled value must equal training's own validation NLL
 (torchtrack.learn.train.evaluate) on the same windows."""
 

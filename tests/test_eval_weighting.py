@@ -1,4 +1,4 @@
-"""experiments/eval_weighting.py end to end on a tiny rendered sequence: the table holds the numbers of the runs'
+"""experiments/eval/eval_weighting.py end to end on a tiny rendered sequence: the table holds the numbers of the runs'
 metrics.json (read back here independently), the RESULTS section is replaced and nothing else, a missing learned
 model is said and left out."""
 

@@ -3,7 +3,7 @@
 Python frees an object caught in a reference cycle only at a collection of the cycle collector, and a full collection
 runs rarely in a process with many long-lived objects (Python 3.11: when the objects promoted since the last one
 reach a quarter of the long-lived ones). A frame's buffers in a cycle (an LK pyramid referenced by its own sampler
-cache did it) then pile up for thousands of frames: ``experiments/bench_long_run.py`` measured +80 MiB over 9,000
+cache did it) then pile up for thousands of frames: ``experiments/bench/bench_long_run.py`` measured +80 MiB over 9,000
 frames before the fix. The tracker must free every frame's tensors by reference counting alone.
 """
 

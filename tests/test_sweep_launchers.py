@@ -1,4 +1,4 @@
-"""experiments/sweep.py through Hydra's launcher plugins, on the real tracker: Ray (a local cluster started here and
+"""experiments/eval/sweep.py through Hydra's launcher plugins, on the real tracker: Ray (a local cluster started here and
 attached by address) and Submitit (``submitit_local``) give the same metrics.json values as the joblib sweep of the
 same jobs; a Ray sweep whose driver is killed mid-way finishes only the missing jobs when run again.
 

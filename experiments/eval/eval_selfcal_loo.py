@@ -14,7 +14,7 @@ For each of the sequences under ``--data`` (the five shared ones by default):
    the filter with eqs. 11-14 (``paper``), the shipped model and the leave-one-out model; the NLL per used
    measurement pooled over the windows, its spread over the windows (std of the per-window values) and the
    per-window paired difference to ``paper`` (mean +- standard error).
-4. **Held-out ATE**: ``experiments/eval_weighting.py`` on the original folders (with ground truth), in process:
+4. **Held-out ATE**: ``experiments/eval/eval_weighting.py`` on the original folders (with ground truth), in process:
    ``weighting=paper``, ``weighting=learned`` (the shipped model, online scale on) and ``weighting=learned`` with
    the leave-one-out model (``--learned loo=OUT/models/loo-{sequence}.pt``), ``--runs R`` jittered re-runs each for
    the spread (median, mean +- std over the R + 1 runs).
@@ -23,9 +23,9 @@ Writes ``OUT/selfcal_loo.md`` (the tables) and ``OUT/selfcal_loo.json``; the rec
 fold runs (``OUT/folds/<sequence>``: metrics.csv, last.pt; a fold is resumed from its last.pt) and the models
 (``OUT/models/loo-<sequence>.pt``). One heavy run: the folds run one after another on one thread.
 
-    python experiments/eval_selfcal_loo.py --out outputs/selfcal_loo --synthetic OBS_SYNTHETIC
-    python experiments/eval_selfcal_loo.py --max-frames 300 --epochs 8 --runs 1 --synthetic OBS_SYNTHETIC
-    python experiments/eval_selfcal_loo.py --skip-ate ...          # recordings, folds and held-out NLL only
+    python experiments/eval/eval_selfcal_loo.py --out outputs/selfcal_loo --synthetic OBS_SYNTHETIC
+    python experiments/eval/eval_selfcal_loo.py --max-frames 300 --epochs 8 --runs 1 --synthetic OBS_SYNTHETIC
+    python experiments/eval/eval_selfcal_loo.py --skip-ate ...          # recordings, folds and held-out NLL only
 
 ``--synthetic`` is a folder of synthetic recordings (``torchtrack-record +dataset=synthetic out=DIR``; the default is
 torchtrack-train's cache, ``$TORCHTRACK_CACHE/observations/synthetic``); ``--synthetic-windows 0`` trains on the real
@@ -58,7 +58,7 @@ from torchtrack.learn.checkpoint import DEFAULT_CHECKPOINT, build_weighting, loa
 from torchtrack.learn.rollout import concat_windows, rollout
 from torchtrack.learn.train import TrainConfig, fit, select_windows, windows_of
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DATA = REPO.parent / "shared" / "data"
 
 
@@ -185,14 +185,14 @@ def held_out_nll(seq, weightings: dict, ekf, tc: TrainConfig) -> dict:
 
 
 def ate_runs(args, names: list[str]) -> dict:
-    """experiments/eval_weighting.py (a subprocess: scripts do not import scripts) on the labelled folders;
+    """experiments/eval/eval_weighting.py (a subprocess: scripts do not import scripts) on the labelled folders;
     {sequence: {method: [ATE m per run]}}."""
     argv = ["--data", str(args.data), "--variants", "none", "--weightings", "paper,learned",
             "--learned", f"learned={DEFAULT_CHECKPOINT}", "--learned", f"loo={args.out / 'models'}/loo-{{sequence}}.pt",
             "--runs", str(args.runs), "--out", str(args.out / "ate"), "--threads", "1", *(["--reuse"] if args.reuse else [])]  # fmt: skip
     if args.max_frames:
         argv += ["--max-frames", str(args.max_frames)]
-    cmd = [sys.executable, str(REPO / "experiments" / "eval_weighting.py"), *argv, "--", *args.overrides]
+    cmd = [sys.executable, str(REPO / "experiments" / "eval" / "eval_weighting.py"), *argv, "--", *args.overrides]
     if subprocess.run(cmd, cwd=REPO).returncode not in (0, 1):  # 1: some run failed (its cell says so)
         raise SystemExit("eval_selfcal_loo: eval_weighting.py failed")
     rows = json.loads((args.out / "ate" / "weighting.json").read_text())["rows"]
@@ -300,7 +300,7 @@ def main(argv: list[str] | None = None) -> int:
               f"LOO {nll[name]['loo']['nll']:.3f} ({time.perf_counter() - t0:.0f} s)", flush=True)  # fmt: skip
     ates = {} if args.skip_ate else ate_runs(args, names)
     total = time.perf_counter() - t_start
-    command = shlex.join(["python", "experiments/eval_selfcal_loo.py", *argv])
+    command = shlex.join(["python", "experiments/eval/eval_selfcal_loo.py", *argv])
     meta = (f"`{command}`  \ncommit {git_describe()}, torch {torch.__version__}, 1 thread, total {total:.0f} s; "
             f"init {args.init}, {args.epochs} epochs, lr {args.lr}, {args.synthetic_windows} synthetic windows "
             f"per fold, max frames {args.max_frames}, train s per fold: "

@@ -3,19 +3,19 @@ variants (issue 11).
 
 For every sequence folder under ``--data`` and its variants (:mod:`torchtrack.data.perturb`: faster motion,
 reversed playback, photometric change, noisier depth with holes), this runs torchtrack's default tracker exactly as
-the CLI composes it (in-process, ``experiments/evaluate.py``'s ``compose_config`` + ``run_ours``) once per
+the CLI composes it (in-process, ``experiments/eval/evaluate.py``'s ``compose_config`` + ``run_ours``) once per
 weighting, reads ATE, RPE and the mean reprojection error back from each run's ``metrics.json`` and prints a
 markdown table (rows: sequences and variants; columns: each weighting's numbers and the learned / paper ATE ratio)
 with a summary (mean ATE per weighting over the real sequences and over the variants, wins and losses, and the
 target's numbers: the geometric mean of the ATE ratios, the real sequences at their median over the jitter runs, and
 the rows above 1.05).
 
-    python experiments/eval_weighting.py                                   # fixed, paper, learned; 4 variants
-    python experiments/eval_weighting.py --weightings fixed,paper --max-frames 300 --runs 3
-    python experiments/eval_weighting.py --checkpoint runs/train/model.pt  # the learned model to evaluate
-    python experiments/eval_weighting.py --learned all=ckpt/all.pt --learned loo='ckpt/loo-{sequence}.pt'
-    python experiments/eval_weighting.py --results experiments/RESULTS.md -- flow.backend=opencv
-    python experiments/eval_weighting.py --weightings paper --method=default=weighting=paper  # the default vs eqs. 11-14
+    python experiments/eval/eval_weighting.py                                   # fixed, paper, learned; 4 variants
+    python experiments/eval/eval_weighting.py --weightings fixed,paper --max-frames 300 --runs 3
+    python experiments/eval/eval_weighting.py --checkpoint runs/train/model.pt  # the learned model to evaluate
+    python experiments/eval/eval_weighting.py --learned all=ckpt/all.pt --learned loo='ckpt/loo-{sequence}.pt'
+    python experiments/eval/eval_weighting.py --results experiments/RESULTS.md -- flow.backend=opencv
+    python experiments/eval/eval_weighting.py --weightings paper --method=default=weighting=paper  # the default vs eqs. 11-14
 
 Weightings: ``fixed`` = ``weighting=fixed`` (the paper's EKF-3 ablation: the variances of
 conf/weighting/fixed.yaml for every feature), ``paper`` = ``weighting=paper`` (eqs. 11-14 with the default
@@ -63,7 +63,7 @@ from torchtrack.io import write_json, write_text
 
 log = logging.getLogger("eval_weighting")
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CONF = CONF_DIR
 DATA = REPO.parent / "shared" / "data"
 HEADING = "## Learned weighting (issue 11)"
@@ -474,7 +474,7 @@ def main(argv: list[str] | None = None) -> int:
     for src in sources:
         rows += evaluate_source(src, methods, args, overrides, lambda r: print(table_row(r, labels), flush=True))
     total = time.perf_counter() - start
-    command = shlex.join(["python", "experiments/eval_weighting.py", *argv])
+    command = shlex.join(["python", "experiments/eval/eval_weighting.py", *argv])
     meta = (
         f"`{command}`  \ncommit {commit}, torch {torch.__version__}, {torch.get_num_threads()} thread(s), "
         f"{platform.machine()}, {os.cpu_count()} CPUs, overrides: {overrides or 'none (default config)'}, "

@@ -106,7 +106,7 @@ def fuse(
         jacobian: "analytic" (default) uses :func:`~torchtrack.filter.models.measure_analytic`; "forward" /
             "reverse" take ``vmap(jacfwd / jacrev(measure_single))`` by autograd. Equal to 1e-10 (tested);
             analytic is the default for speed: ~0.5 ms vs ~3.5-7 ms for jacfwd at N = 300 on a laptop-class
-            CPU (experiments/bench_ekf.py), which would exceed the filter's 3 ms per-frame budget.
+            CPU (experiments/bench/bench_ekf.py), which would exceed the filter's 3 ms per-frame budget.
     """
     B, N = valid.shape
     if points_obj.shape != (B, N, 3) or points_d.shape != (B, N, 3) or pixels.shape != (B, N, 2):

@@ -29,7 +29,7 @@ class Sampler:
     It keeps the pyramid's buffer and layout, not the pyramid: the pyramid keeps its samplers (``Pyramid.samplers``),
     and a reference back would make each frame's pyramid a reference cycle, freed only by Python's full garbage
     collection, which a process with many long-lived objects runs rarely (the long run's memory grew by the
-    pyramids waiting for it: experiments/bench_long_run.py).
+    pyramids waiting for it: experiments/bench/bench_long_run.py).
     """
 
     def __init__(self, pyr: Pyramid, window: int):
