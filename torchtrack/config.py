@@ -4,15 +4,13 @@ Each YAML file under ``conf/<group>/`` starts from its schema (``defaults: [/sch
 only changes values, so Hydra checks types when the config is composed (``data.depth_scale=abc`` fails there) and the
 schema's ``__post_init__`` checks ranges when :func:`validate` turns a node into its dataclass.
 
-Defaults. Every default lives here, once: the schemas hold torchtrack's defaults (the improvements on), and the
-signatures of the classes and functions they configure read them by reference (``roi_fraction: float | None =
-SelectConfig.roi_fraction``), so a direct call behaves as the CLI does. The paper's values, where they differ, are
-one file: ``conf/method/paper.yaml`` (``+experiment=paper``) and the ``method_*/paper_*.yaml`` beside it
-(``tests/test_config.py`` checks both).
+Defaults. The schemas hold torchtrack's defaults (the improvements on); the classes and functions they configure
+take the same values as literals in their signatures, so that the kernels need no Hydra (``tests/test_config.py``
+and ``tests/test_defaults.py`` keep the two equal). The paper's values are one file, ``conf/experiment/paper.yaml``
+(``+experiment=paper``). The data group's schemas are in :mod:`torchtrack.data.schema`.
 
 Derived knobs are resolved in one place, :func:`torchtrack.factory.build_tracker`: the front end's pyramid levels
-are the LK tracker's (``flow.levels``). The measurement variances belong to the weighting; the filter gets its
-per-feature variances from it and has no nominal ones in the config.
+are the LK tracker's (``flow.levels``). The measurement variances belong to the weighting, not to the filter.
 """
 
 from __future__ import annotations
@@ -25,6 +23,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf
 
 from torchtrack.data.errors import DataError
+from torchtrack.data.schema import SyntheticDataConfig, TumDataConfig
 
 # The Hydra configs: the top-level conf/ of a checkout (also an editable install's); a built wheel carries that folder
 # inside the package as torchtrack/conf (setup.py), which a checkout never has.
@@ -35,82 +34,7 @@ VIEW_SIZE = (480, 640)  # the map views' [H, W] (MappingConfig.view_size; a list
 REGISTRATION_BACKEND = "torchtrack.estimators.backends.RegistrationBackend"
 
 
-# --- data -------------------------------------------------------------------------------------------------------
-
-
-@dataclass
-class TumDataConfig:
-    """A TUM-layout folder, or a list of them tracked together (:class:`torchtrack.data.tum.TumSequence`)."""
-
-    kind: str = "tum"
-    root: Any = None  # a folder or a list of folders
-    camera: str | None = None  # fr1 | fr2 | fr3 | kinect_default when there is no intrinsics.txt
-    intrinsics: list[float] | None = None  # colour [fx, fy, cx, cy] when neither intrinsics.txt nor camera
-    depth_intrinsics: list[float] | None = None  # the depth camera's [fx, fy, cx, cy]; null = the colour ones
-    depth_scale: float | None = None  # depth units per metre (TUM: 5000); overrides intrinsics.txt (logged)
-    max_dt: float = 0.02  # seconds, maximum timestamp difference when associating rgb/depth/groundtruth
-    T_color_depth: list[Any] | None = None  # 4x4 depth-to-colour extrinsic; null = registered
-    depth_alignment: Any = "none"  # none | auto | [dx, dy] | [dx, dy, s] (see conf/data/tum.yaml)
-    intrinsics_camera: str = "colour"  # whose intrinsics the given ones are when a map applies: colour | depth
-    max_frames: int | None = None
-    stride: int = 1
-    on_bad_frame: str = "drop"  # drop (a warning, the filter predicts through the gap) | error (stop the sequence)
-    min_depth_fraction: float = 0.01  # a frame with fewer pixels with depth than this fraction is bad
-    max_bad_fraction: float = 0.25  # a sequence with more bad frames than this fraction of its frames fails
-
-    def __post_init__(self) -> None:
-        _check_common(self)
-        if self.root is not None and (not isinstance(self.root, (str, list)) or self.root in ("", [])):
-            raise DataError(f"data.root must be a folder or a non-empty list of folders, got {self.root!r}")
-        if isinstance(self.root, list) and not all(isinstance(r, str) and r for r in self.root):
-            raise DataError(f"data.root: every entry must be a folder, got {self.root!r}")
-        for key in ("intrinsics", "depth_intrinsics"):
-            k = getattr(self, key)
-            if k is not None and (len(k) != 4 or min(k[0], k[1]) <= 0):
-                raise DataError(f"data.{key} must be [fx, fy, cx, cy] with fx, fy > 0, got {k}")
-        if self.depth_scale is not None and self.depth_scale <= 0:
-            raise DataError(f"data.depth_scale must be > 0, got {self.depth_scale}")
-        if self.max_dt <= 0:
-            raise DataError(f"data.max_dt must be > 0, got {self.max_dt}")
-        T = self.T_color_depth
-        if T is not None and (len(T) != 4 or any(not isinstance(r, list) or len(r) != 4 for r in T) or not _numbers(T)):
-            raise DataError(f"data.T_color_depth must be a 4x4 matrix, got {T}")
-        if self.intrinsics_camera not in ("colour", "depth"):
-            raise DataError(f"data.intrinsics_camera must be colour or depth, got {self.intrinsics_camera!r}")
-
-
-@dataclass
-class SyntheticDataConfig:
-    """The embedded synthetic sequence: ``scene`` is a :class:`torchtrack.data.synthetic.SyntheticConfig`."""
-
-    kind: str = "synthetic"
-    cache_dir: str = "${oc.env:TORCHTRACK_CACHE,${oc.env:HOME}/.cache/torchtrack}/synthetic"
-    max_frames: int | None = None
-    stride: int = 1
-    on_bad_frame: str = "drop"  # as TumDataConfig
-    min_depth_fraction: float = 0.01
-    max_bad_fraction: float = 0.25
-    scene: dict[str, Any] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        _check_common(self)
-
-
-def _numbers(rows: list) -> bool:
-    return all(isinstance(v, (int, float)) and not isinstance(v, bool) for row in rows for v in row)
-
-
-def _check_common(data: TumDataConfig | SyntheticDataConfig) -> None:
-    if data.max_frames is not None and data.max_frames < 1:
-        raise DataError(f"data.max_frames must be >= 1 (or null for all), got {data.max_frames}")
-    if data.stride < 1:
-        raise DataError(f"data.stride must be >= 1, got {data.stride}")
-    if data.on_bad_frame not in ("drop", "error"):
-        raise DataError(f"data.on_bad_frame must be drop or error, got {data.on_bad_frame!r}")
-    for key in ("min_depth_fraction", "max_bad_fraction"):
-        if not 0.0 <= getattr(data, key) <= 1.0:
-            raise DataError(f"data.{key} must be in [0, 1], got {getattr(data, key)}")
-
+# --- data: torchtrack/data/schema.py ---------------------------------------------------------------------------
 
 # --- front end --------------------------------------------------------------------------------------------------
 
