@@ -18,7 +18,7 @@ from torchtrack.learn.dataset import synthetic_variants
 
 # Groups that are wiring, not choices a user makes on the command line (learn's dataset/train, the method's
 # per-weighting and per-estimator values, Hydra's own).
-INTERNAL = {"dataset", "train", "method_tracker", "method_weighting", "weighting_tracker", "hydra"}
+INTERNAL = {"dataset", "train", "hydra"}
 
 
 @pytest.fixture(scope="module")
