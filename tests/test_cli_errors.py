@@ -49,6 +49,28 @@ def test_a_mistyped_name_suggests_the_nearest(override, suggested):
     assert check_overrides("config", [fixed]) is None  # the suggestion composes
 
 
+def test_a_key_of_another_option_is_found_beside_that_options_other_keys(tmp_path):
+    """``data.root`` with the synthetic scene's own keys on the line still points at data=tum."""
+    error = check_overrides("config", [f"data.root={tmp_path}", "data.scene.frames=6"])
+    assert error.endswith("data.root is a key of data=tum: add data=tum"), error
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("filter.iterations=0", "FusionEKF: iterations must be >= 1"),
+        ("flow.mode=foo", "flow.mode must be one of combined, intensity, sim, got 'foo'"),
+        ("flow.lk_backend=cpp2", "flow.lk_backend must be one of auto, cpp, torch, got 'cpp2'"),
+        ("filter.gate=1.5", "FusionEKF: gate is a probability in (0, 1), got 1.5"),
+        ("weighting=learned", None),
+    ],
+)
+def test_a_stage_value_out_of_range_is_one_line_before_any_data(override, message):
+    """The stages' own range checks run in the pre-check (the tracker is built once, without data): one line, the
+    stage's message, instead of a traceback after the sequence is loaded."""
+    assert check_overrides("config", [override]) == message
+
+
 def test_no_suggestion_for_a_name_unlike_any():
     error = check_overrides("config", ["tracker.zzzqqq=1"])
     assert error == "Could not override 'tracker.zzzqqq': Key 'zzzqqq' not in 'EKFBackendConfig'"

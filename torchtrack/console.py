@@ -76,7 +76,27 @@ def compose_config(config_name: str, overrides: Sequence[str] = ()):
             resolve_device(cfg.device)
     except (HydraException, OmegaConfBaseException, DataError) as e:
         raise ValueError(explain(e, config_name, overrides)) from None
+    if "pipeline" in cfg:  # the stages' own range checks (their constructors), before any data is read
+        _check_stages(cfg)
     return cfg
+
+
+def _check_stages(cfg) -> None:
+    """Build the tracker's stages of ``cfg`` once (cheap: no data, no compiled operator), so that a value out of range
+    (``filter.iterations=0``, ``flow.mode=foo``, a weighting class that does not import) is one line now, not a
+    traceback after the data is loaded. ValueError with the innermost cause's message."""
+    from hydra.errors import InstantiationException
+
+    from torchtrack.factory import build_tracker
+
+    try:
+        build_tracker(cfg)
+    except (InstantiationException, ValueError, TypeError, ImportError, FileNotFoundError) as e:
+        cause = e
+        while cause.__cause__ is not None:
+            cause = cause.__cause__
+        text = str(cause).strip().splitlines()
+        raise ValueError(text[0] if text else type(cause).__name__) from None
 
 
 def check_overrides(config_name: str, argv: list[str]) -> str | None:
@@ -151,8 +171,9 @@ def _key_hint(full_key: str, config_name: str, overrides: Sequence[str]) -> str 
     group = full_key.split(".")[0]
     dirs = config_dirs(overrides)
     if parent:
+        others = [o for o in rest if not bare(o).startswith(group + ".")]  # the chosen option's other keys may not fit
         for option in sorted({p.stem for d in dirs for p in (d / group).glob("*.yaml")}):
-            cfg = _quiet_compose(config_name, [*rest, f"{group}={option}"])
+            cfg = _quiet_compose(config_name, [*others, f"{group}={option}"])
             if cfg is not None and OmegaConf.select(cfg, full_key, default=_MISSING) is not _MISSING:
                 return f"{full_key} is a key of {group}={option}: add {group}={option}"
     node = OmegaConf.select(base, parent) if parent else base

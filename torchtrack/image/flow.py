@@ -326,8 +326,11 @@ class CombinedTracker:
         policy: Literal["min_tim", "fallback"] = "fallback",
         lk_backend: Literal["auto", "cpp", "torch"] = "auto",
     ) -> None:
-        if mode not in _CHANNELS or backend not in ("torch", "opencv"):
-            raise ValueError(f"CombinedTracker: bad mode {mode!r} or backend {backend!r}")
+        for key, value, allowed in (("mode", mode, tuple(_CHANNELS)), ("backend", backend, ("torch", "opencv")),
+                                    ("policy", policy, ("min_tim", "fallback")),
+                                    ("lk_backend", lk_backend, ("auto", "cpp", "torch"))):  # fmt: skip
+            if value not in allowed:
+                raise ValueError(f"flow.{key} must be one of {', '.join(allowed)}, got {value!r}")
         self.levels = levels
         self.kwargs = dict(
             mode=mode, tim_threshold=tim_threshold, window=window, levels=levels, iters=iters, eps=eps,

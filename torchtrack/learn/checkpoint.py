@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import logging
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -32,6 +33,7 @@ from torchtrack.filter.cues import CUE_NAMES, CUE_VERSION, check_cue_names
 from torchtrack.io import write_atomic
 from torchtrack.learn.model import LearnedWeighting
 
+log = logging.getLogger(__name__)
 FORMAT = "torchtrack-weighting"
 VERSION = 1  # bump when the layout or the model's fixed definition (e.g. model.CUE_TRANSFORMS) changes
 DEFAULT_CHECKPOINT = Path(__file__).parent / "weights" / "default.pt"
@@ -205,4 +207,6 @@ def learned_weighting(checkpoint: str | Path | None = None, **expected) -> nn.Mo
     if diff := {k: (v, config[k]) for k, v in expected.items() if v != config[k]}:
         pairs = ", ".join(f"{k}: config {a!r} vs checkpoint {b!r}" for k, (a, b) in diff.items())
         raise ValueError(f"learned_weighting: {checkpoint} was trained with other settings ({pairs})")
+    cls = type(model)
+    log.info("weighting: %s.%s from %s", cls.__module__, cls.__qualname__, checkpoint)
     return model.requires_grad_(False)
