@@ -35,6 +35,7 @@ from torchtrack.learn import record
 from torchtrack.learn.cache import load_observations
 from torchtrack.learn.dataset import synthetic_variants
 from torchtrack.learn.record import record_sequences
+from torchtrack.pipeline.state import Measure
 
 CONF = CONF_DIR
 
@@ -279,7 +280,8 @@ def test_survivors_keep_their_age_and_cornerness(seq):
     keep = s().valid[0].clone()
     age, corner = s().age[0][keep], s().cornerness[0][keep]
     assert bool((age == 3).all())  # selected at frame 0, tracked through 3 frames
-    tracker.state, _ = tracker._new_model(s(), frames[-1], s().prev, torch.ones(1, dtype=torch.bool))
+    measure = Measure(s().prev.depth, frames[-1].K, frames[-1].T_color_depth)
+    tracker.state, _ = tracker._new_model(s(), frames[-1], s().prev, measure, torch.ones(1, dtype=torch.bool))
     k = len(age)
     assert torch.equal(s().age[0][:k], age) and torch.equal(s().cornerness[0][:k], corner)
     assert not s().age[0][k:].any(), "new features start at age 0"

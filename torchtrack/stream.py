@@ -204,7 +204,7 @@ class RGBDTracker:
             self._T_world_tracker = tracker_world(frame.T_world_color_gt, frame.gt_valid, frame.T_color_depth)
         T_world_color = color_poses(self._T_world_tracker, res.T_world_depth, frame.T_color_depth).cpu()
         loss = getattr(res, "loss", None)
-        lost = loss.lost.cpu() if loss is not None else torch.zeros(len(T_world_color), dtype=torch.bool)
+        lost = loss.lost.cpu() if loss is not None else torch.zeros(len(T_world_color), dtype=torch.bool, device="cpu")
         return TrackedFrame(
             T_world_color, res.n_features.cpu().long(), res.reprojection_error.cpu(), res.reselected.cpu(), lost, res
         )
@@ -234,7 +234,8 @@ class RGBDTracker:
             timestamp = self._frames / self.fps
         t = torch.as_tensor(timestamp, dtype=torch.float64).cpu().expand(b).clone()
         self._frames += 1
-        T_cd = self.T_color_depth if self.T_color_depth is not None else torch.eye(4)
+        dev = rgb.device  # the frame as given; step moves it to the tracker's device
+        T_cd = self.T_color_depth if self.T_color_depth is not None else torch.eye(4, device=dev)
         return FrameBatch(
             rgb=rgb,
             depth=d,
@@ -242,10 +243,10 @@ class RGBDTracker:
             K_depth=_per_stream(self.K_depth, b, "K_depth") if self.K_depth is not None else K.clone(),
             T_color_depth=_per_stream(T_cd, b, "T_color_depth").float(),
             timestamp=t,
-            T_world_color_gt=torch.eye(4, dtype=torch.float64).repeat(b, 1, 1),
-            gt_valid=torch.zeros(b, dtype=torch.bool),
-            active=torch.ones(b, dtype=torch.bool),
-            index=torch.full((b,), self._frames - 1, dtype=torch.int64),
+            T_world_color_gt=torch.eye(4, dtype=torch.float64, device=dev).repeat(b, 1, 1),
+            gt_valid=torch.zeros(b, dtype=torch.bool, device=dev),
+            active=torch.ones(b, dtype=torch.bool, device=dev),
+            index=torch.full((b,), self._frames - 1, dtype=torch.int64, device=dev),
         )
 
 

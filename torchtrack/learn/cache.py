@@ -159,13 +159,13 @@ def object_poses_gt(
     T = reselected.shape[0]
     if T == 0 or not bool(reselected[0]):
         raise ValueError("object_poses_gt: frame 0 must take the first model (reselected[0] True)")
-    idx = torch.arange(T)
+    idx = torch.arange(T, device="cpu")
     taken = torch.where(reselected, idx, torch.zeros_like(idx))
     model_frame = torch.cat([idx[:1] * 0, taken[:-1]]).cummax(0).values
     G = T_world_depth_from_color(T_world_color_gt, T_color_depth)
     pose = T_inv(G) @ G[model_frame] @ model_T_cam_obj.double()[model_frame]
     valid = gt_valid & gt_valid[model_frame]
-    eye = torch.eye(4, dtype=torch.float64).expand(T, 4, 4)
+    eye = torch.eye(4, dtype=torch.float64, device="cpu").expand(T, 4, 4)
     return model_frame, torch.where(valid[:, None, None], pose, eye), valid
 
 

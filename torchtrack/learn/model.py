@@ -143,8 +143,8 @@ class LearnedWeighting(nn.Module):
         self.depth_var_exponent, self.depth_ref = float(depth_var_exponent), float(depth_ref)
         self.log_ratio_min, self.log_ratio_max = float(log_ratio_min), float(log_ratio_max)
         kind_code = {"id": 0, "log1p": 1, "log": 2}
-        kinds = torch.tensor([kind_code[k] for k, _ in CUE_TRANSFORMS.values()])
-        scales = torch.tensor([s for _, s in CUE_TRANSFORMS.values()])
+        kinds = torch.tensor([kind_code[k] for k, _ in CUE_TRANSFORMS.values()], device="cpu")
+        scales = torch.tensor([s for _, s in CUE_TRANSFORMS.values()], device="cpu")
         # Fixed by the code, not data: kept out of the state dict (see CUE_TRANSFORMS).
         self.register_buffer("cue_kinds", kinds, persistent=False)
         self.register_buffer("cue_scales", scales, persistent=False)

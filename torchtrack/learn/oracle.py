@@ -65,12 +65,12 @@ def oracle_windows(
     pts0 = torch.cat([xy, z[..., None]], -1)
     centroid = pts0.mean(1, keepdim=True)
     X = pts0 - centroid
-    T0 = make_T(torch.eye(3, dtype=F64).expand(B, 3, 3), centroid[:, 0])
+    T0 = make_T(torch.eye(3, dtype=F64, device="cpu").expand(B, 3, 3), centroid[:, 0])
     # smooth motion: constant twist per window (small), in the camera frame about the centroid
     omega = 0.3 * randn(B, 3)  # rad/s
     vel = 0.15 * randn(B, 3)  # m/s
     K = intrinsics_matrix(525.0, 525.0, 319.5, 239.5, dtype=F64).expand(B, 3, 3).clone()
-    T_cd = torch.eye(4, dtype=F64).expand(B, 4, 4).clone()
+    T_cd = torch.eye(4, dtype=F64, device="cpu").expand(B, 4, 4).clone()
     flagged = rand(B, N) < flag_fraction
 
     def pose(t: float) -> Tensor:
@@ -88,24 +88,24 @@ def oracle_windows(
         var_xyz.append(v3)
         var_pix.append(v2)
     points_d, pixels = torch.stack(points_d), torch.stack(pixels)
-    cues = torch.zeros(T, B, N, len(CUE_NAMES))
+    cues = torch.zeros(T, B, N, len(CUE_NAMES), device="cpu")
     cues[..., CUE_INDEX["lk_residual"]] = torch.where(flagged, flag_cue, 0.0).float()
     cues[..., CUE_INDEX["depth"]] = points_d[..., 2].float()
     win = Windows(
         start_T_cam_obj=T0,
-        dt=torch.full((T, B), dt, dtype=F64),
+        dt=torch.full((T, B), dt, dtype=F64, device="cpu"),
         points_obj=X.expand(T, B, N, 3).clone(),
         points_d=points_d,
         pixels=pixels,
-        valid=torch.ones(T, B, N, dtype=torch.bool),
+        valid=torch.ones(T, B, N, dtype=torch.bool, device="cpu"),
         cues=cues,
         K=K,
         T_color_depth=T_cd,
         focal=K[:, 0, 0].clone(),
-        reselected=torch.zeros(T, B, dtype=torch.bool),
-        model_T_cam_obj=torch.eye(4, dtype=F64).expand(T, B, 4, 4).clone(),
+        reselected=torch.zeros(T, B, dtype=torch.bool, device="cpu"),
+        model_T_cam_obj=torch.eye(4, dtype=F64, device="cpu").expand(T, B, 4, 4).clone(),
         T_cam_obj_gt=poses,
-        gt_valid=torch.ones(T, B, dtype=torch.bool),
+        gt_valid=torch.ones(T, B, dtype=torch.bool, device="cpu"),
     )
     return OracleWindows(win, torch.stack(var_pix), torch.stack(var_xyz), flagged)
 

@@ -82,7 +82,7 @@ class ObservationLog:
         self.last_index = i
         if not self.camera:
             self.camera = {k: getattr(frame, k)[b].double() for k in ("K", "K_depth", "T_color_depth")}
-        eye = torch.eye(4, dtype=torch.float64)
+        eye = torch.eye(4, dtype=torch.float64, device="cpu")
         row = dict(
             timestamp=frame.timestamp[b].double(), T_world_color_gt=frame.T_world_color_gt[b].double(),
             gt_valid=frame.gt_valid[b], reselected=res.reselected[b], T_cam_obj_est=res.T_cam_obj[b].double(),
@@ -109,13 +109,13 @@ class ObservationLog:
         features = {}
         for k, c in shapes.items():
             dtype = like[k].dtype if like is not None else (torch.bool if k == "valid" else torch.float32)
-            out = torch.zeros(T, N, *((c,) if c else ()), dtype=dtype)
+            out = torch.zeros(T, N, *((c,) if c else ()), dtype=dtype, device="cpu")
             for t, r in enumerate(rows):
                 if k in r:
                     out[t, : r[k].shape[0]] = r[k]
             features[k] = out
         per_frame = {k: torch.stack([r[k] for r in rows]) for k in rows[0] if k in _PER_FRAME}
-        per_frame["dt"] = torch.stack([r.get("dt", torch.zeros((), dtype=torch.float64)) for r in rows])
+        per_frame["dt"] = torch.stack([r.get("dt", torch.zeros((), dtype=torch.float64, device="cpu")) for r in rows])
         model_frame, T_cam_obj_gt, gt_ok = object_poses_gt(
             per_frame["T_world_color_gt"],
             per_frame["gt_valid"],
