@@ -55,6 +55,7 @@ def variances(F, B, N, seed=1):
     return var_xyz, var_pix
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("jacobian", ["forward", "analytic"])
 def test_gradcheck_one_frame(jacobian):
     """d pose / d variance of one update (gate and refit active, the outlier dropped by them) against finite
@@ -69,6 +70,7 @@ def test_gradcheck_one_frame(jacobian):
     assert torch.autograd.gradcheck(pose, (var_xyz[0].log().requires_grad_(), var_pix[0].log().requires_grad_()))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("state", ["se3", "euler"])
 def test_gradcheck_rollout_of_several_frames(state):
     """Through three frames: the later linearisation points depend on the earlier variances (and, in the SE(3)

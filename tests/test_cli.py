@@ -24,6 +24,8 @@ from tolerances import TRAJ
 
 from torchtrack.metrics import trajectory_metrics
 
+pytestmark = pytest.mark.slow  # integration: whole runs of the console scripts (pytest -m 'not slow' skips them)
+
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 CASTLE = DATA / "visp_castle_simu"
 FRAMES = 10

@@ -19,6 +19,8 @@ from tolerances import TRAJ
 
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 
+pytestmark = pytest.mark.slow  # integration: whole runs of the console scripts (pytest -m 'not slow' skips them)
+
 FRAMES = 8
 MISSING = 3  # the frame whose depth file is deleted
 

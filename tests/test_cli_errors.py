@@ -108,6 +108,7 @@ def test_conf_dir_is_hydras_searchpath(myconf, monkeypatch, tmp_path):
         with_conf_dir(["conf_dir=nowhere"])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("module", ["torchtrack.cli", "torchtrack.learn.train_app"])
 def test_conf_dir_on_the_console_scripts(myconf, module, tmp_path):
     """Every console script takes it through console.py's shared entry: Hydra's --cfg job shows the composed value."""

@@ -161,6 +161,7 @@ app()
 """
 
 
+@pytest.mark.slow
 def test_sweep_end_to_end_with_joblib_resumes_only_missing_jobs(tmp_path):
     """A stand-in Hydra app with the CLI's contract, launched by the real joblib launcher; a 'killed' job is
     the only one re-run."""

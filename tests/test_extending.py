@@ -33,6 +33,8 @@ from torchtrack.filter.weighting import Variances
 from torchtrack.geometry import make_T, so3_exp, transform_points
 from torchtrack.learn.checkpoint import load_checkpoint
 
+pytestmark = pytest.mark.slow  # integration: whole runs of the console scripts (pytest -m 'not slow' skips them)
+
 DOC = Path(__file__).resolve().parents[1] / "docs" / "extending.md"
 FENCE = re.compile(r"^```(\w*)[ \t]*(\S*)[ \t]*\n(.*?)^```[ \t]*$", re.M | re.S)
 SCRIPTS = {"torchtrack": "torchtrack.cli", "torchtrack-train": "torchtrack.learn.train_app"}

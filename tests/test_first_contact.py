@@ -33,6 +33,7 @@ def screen(text: str) -> list[str]:
     return [next((p for p in reversed(line.split("\r")) if p), "") for line in text.split("\n")]
 
 
+@pytest.mark.slow
 def test_demo_prints_one_bar_and_one_result_line_into_a_named_folder(tmp_path):
     env = dict(os.environ)  # the compiled operators' build cache shared: a first build is tested below, in-process
     args = [

@@ -161,6 +161,7 @@ def test_tool_help_defaults_are_the_composed_ones(tool_help):
     assert checked >= (2 if config_name == "record" else 15)
 
 
+@pytest.mark.slow
 def test_tool_help_examples_compose(tool_help):
     tool, config_name, text = tool_help
     examples = [shlex.split(ln.strip())[1:] for ln in section(text, "Examples") if ln.startswith(f"  {tool}")]
@@ -174,6 +175,7 @@ def test_tool_help_examples_compose(tool_help):
                 assert str(_get(cfg, key)) == value, o
 
 
+@pytest.mark.slow
 def test_train_help_states_the_set_sizes():
     """The default set is the 60 sequences the help and the README state; the small example is 2 of them."""
     text = subprocess.run(

@@ -12,6 +12,7 @@ from __future__ import annotations
 import gc
 import weakref
 
+import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
@@ -36,6 +37,7 @@ def cyclic_tensors() -> int:
     return found
 
 
+@pytest.mark.slow
 def test_tracking_leaves_no_tensors_in_reference_cycles(tmp_path):
     cfg = SyntheticConfig(width=160, height=120, frames=40, seed=1, noise="none", trans_step_m=0.03, rot_step_deg=3.0)
     seq = TumSequence(ensure_sequence(cfg, tmp_path))

@@ -37,6 +37,8 @@ from torchtrack.learn.dataset import synthetic_variants
 from torchtrack.learn.record import record_sequences
 from torchtrack.pipeline.state import Measure
 
+pytestmark = pytest.mark.slow  # integration: whole runs of the console scripts (pytest -m 'not slow' skips them)
+
 CONF = CONF_DIR
 
 # Cue version 2, written out from the documented layout (filter/cues.py's comments, DESIGN.md "Learned weighting"):

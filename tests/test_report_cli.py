@@ -159,6 +159,7 @@ def test_errors_are_one_line(tmp_path, capsys, case):
     assert not (tmp_path / "t.csv").exists()
 
 
+@pytest.mark.slow
 def test_a_real_two_setting_multirun_gives_two_rows(tmp_path, capsys):
     """The CLI's multirun over two trackers on a tiny synthetic scene: one table, one row per tracker, holding the
     numbers of the runs' own metrics.json."""

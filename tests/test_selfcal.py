@@ -36,6 +36,8 @@ from torchtrack.learn.rollout import nll_loss, rollout
 from torchtrack.learn.train import sequence_windows
 from torchtrack.learn.train_app import train_from_config
 
+pytestmark = pytest.mark.slow  # integration: whole runs of the console scripts (pytest -m 'not slow' skips them)
+
 SEEDS = (3, 4, 5)
 HELD_OUT = "seq5"
 TRAIN = ["train.epochs=4", "train.window=3", "train.stride=1", "train.batch=4", "train.lr=1e-2", "val_fraction=0.5",

@@ -34,6 +34,8 @@ from torchtrack.learn.record import record_sequences
 from torchtrack.learn.rollout import rollout
 from torchtrack.learn.train import sequence_windows
 
+pytestmark = pytest.mark.slow  # integration: whole runs of the console scripts (pytest -m 'not slow' skips them)
+
 SHARED = ("visp_castle_simu", "visp_rbt_sequence", "sun3d_fragment1", "sun3d_fragment2", "7scenes_redkitchen")
 
 

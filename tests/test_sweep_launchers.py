@@ -26,6 +26,8 @@ from test_experiments import EXPERIMENTS
 
 from torchtrack.data.synthetic import SyntheticConfig, render_sequence
 
+pytestmark = pytest.mark.slow  # integration: whole runs of the console scripts (pytest -m 'not slow' skips them)
+
 METHODS, SEQUENCES = ("fusion_ekf", "horn"), ("s1", "s2")
 JOBS = [(m, s) for m in METHODS for s in SEQUENCES]
 

@@ -85,6 +85,7 @@ def test_switch_on_by_default_and_off_in_paper():
         build_tracker(compose_cfg(*ON, "landmarks.per_keyframe=0"))
 
 
+@pytest.mark.slow
 def test_returning_camera_finds_its_first_pass_accuracy(pan):
     """Back at the start view, the re-acquired landmarks of the first keyframes put the camera about as close to the
     truth as it was at the start; without them the chained models keep their drift.
@@ -103,6 +104,7 @@ def test_returning_camera_finds_its_first_pass_accuracy(pan):
     assert float(off[-2:].mean()) > 2.0 * float(on[-2:].mean())
 
 
+@pytest.mark.slow
 def test_returning_camera_with_the_default_noise_model(pan):
     """The same return under the default (the online noise scale on): the landmarks still roughly halve the error the
     chained models keep. Measured: the last two frames off 6.2 mm, on 3.2 mm (1.9x). Bound: 1.5x."""
@@ -143,6 +145,7 @@ def test_reacquired_landmarks_keep_their_world_positions(pan, monkeypatch):
     assert checked > 50
 
 
+@pytest.mark.slow
 @pytest.mark.equivalence
 def test_batched_equals_looped():
     a, b = out_and_back(25.0, 0.3, frames=24), out_and_back(-20.0, -0.2, frames=24)

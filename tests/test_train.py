@@ -41,6 +41,7 @@ def learned_ratios(model, test):
     return class_ratios(v.var_pix, v.var_xyz, test.flagged, test.windows.points_d[0][..., 2]), v
 
 
+@pytest.mark.slow
 def test_nll_recovers_the_true_variances(data):
     """Self-supervised (innovation likelihood, absolute variances): the flagged/unflagged pixel-variance ratio
     (true 400) within a factor 1.6, the depth exponent (true 4) within 0.6, the absolute pixel variance (true
@@ -57,6 +58,7 @@ def test_nll_recovers_the_true_variances(data):
     assert mean_trans_error_mm(ekf, model, test) < 1.05 * oracle
 
 
+@pytest.mark.slow
 def test_supervised_pose_loss_recovers_the_ratios(data):
     """Supervised (pose error, normalised variances): the depth exponent within 0.5 of 4; the flagged features
     down-weighted at least half as much as the truth (the pose loss bounds the ratio only from below: once they
@@ -72,6 +74,7 @@ def test_supervised_pose_loss_recovers_the_ratios(data):
     assert learned < 0.5 * mean_trans_error_mm(ekf, FixedWeighting(1.0, 4e-6), test)
 
 
+@pytest.mark.slow
 def test_deterministic_and_resume_equals_straight_run(tmp_path):
     """Two epochs, stop, resume to four == four straight (same seed), bit for bit; the run folder has the metrics,
     the loss curve and both checkpoints, and best.pt is the epoch with the lowest validation loss."""

@@ -31,6 +31,8 @@ from torchtrack.learn.model import LearnedWeighting
 from torchtrack.learn.rollout import rollout
 from torchtrack.learn.train import sequence_windows
 
+pytestmark = pytest.mark.slow  # integration: whole runs of the console scripts (pytest -m 'not slow' skips them)
+
 SEQUENCES = ["object_bare-medium-kinect-seed0", "scene-medium-kinect-seed0"]  # conf/dataset/synthetic_tiny.yaml
 
 

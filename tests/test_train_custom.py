@@ -186,6 +186,7 @@ def test_train_model_target_and_arguments_from_the_command_line():
         built(f"train.model._target_={TARGET}", "train.model.mode=absolute")
 
 
+@pytest.mark.slow
 def test_torchtrack_train_with_a_target_that_does_not_import_exits_with_one_line(tmp_path):
     """Before recording anything: exit code 2 and the one line naming the target."""
     import subprocess
