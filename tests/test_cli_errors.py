@@ -127,6 +127,7 @@ def test_help_is_hydras_template_resolved():
     assert tracker_help() == cfg.hydra.help.template + "\n"
 
 
+@pytest.mark.slow
 def test_help_imports_neither_the_pipeline_nor_the_runner():
     """(Hydra itself comes with torchtrack.config, which registers the schemas.)"""
     code = (

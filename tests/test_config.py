@@ -75,7 +75,12 @@ def test_the_groups_are_all_there():
 
 @pytest.mark.parametrize("weighting", WEIGHTINGS)
 @pytest.mark.parametrize("tracker", TRACKERS)
-@pytest.mark.parametrize("experiment", [None, *EXPERIMENTS, "[ekf1,ekf2,ekf3]", "[paper,ekf1,ekf2,ekf3]"])
+@pytest.mark.parametrize(
+    "experiment",
+    [None, "paper"]
+    + [pytest.param(e, marks=pytest.mark.slow) for e in EXPERIMENTS if e != "paper"]
+    + [pytest.param(e, marks=pytest.mark.slow) for e in ("[ekf1,ekf2,ekf3]", "[paper,ekf1,ekf2,ekf3]")],
+)
 def test_every_experiment_composes_with_every_estimator_and_weighting(experiment, tracker, weighting, checkpoint):
     overrides = [f"tracker={tracker}", f"weighting={weighting}"]
     overrides += [f"+experiment={experiment}"] if experiment else []

@@ -12,6 +12,8 @@ import pytest
 
 from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 
+pytestmark = pytest.mark.slow  # the weighting evaluation script end to end
+
 OTHER = "# Results\n\nintro\n\n## Issue 5\n\nkeep me\n\n### sub\n\nme too\n"
 TAIL = "## Generated report\n\nlast\n"
 

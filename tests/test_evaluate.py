@@ -18,6 +18,8 @@ pytest.importorskip("open3d")
 import evaluate  # noqa: E402  (experiments/eval/, on pytest's pythonpath)
 import peers  # noqa: E402
 
+pytestmark = pytest.mark.slow  # the evaluation scripts end to end, peers included
+
 FAST = "o3d_t_p2plane,cv2_rgbd"
 
 

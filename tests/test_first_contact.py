@@ -24,6 +24,8 @@ from torchtrack.image import lk_op
 from torchtrack.run import run_tracker
 from torchtrack.stream import RGBDTracker
 
+pytestmark = pytest.mark.slow  # the demo and the operators' build announcement, end to end
+
 SCENE = ["data.scene.frames=6", "data.scene.width=160", "data.scene.height=120"]
 
 

@@ -117,6 +117,7 @@ def _key_lines(text: str) -> list[str]:
     return [ln for title in ("Keys", "train.* keys") if f"== {title}" in text for ln in section(text, title)]
 
 
+@pytest.mark.slow
 def test_tool_help_is_its_own(tool_help):
     tool, _, text = tool_help
     assert text.startswith(f"{tool}: ")

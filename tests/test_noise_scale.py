@@ -62,7 +62,11 @@ def rmse(poses, oracle) -> tuple[float, float]:
     return float(e_t.square().mean(0).sqrt().mean()), float(e_r.square().mean(0).sqrt().mean())
 
 
-@pytest.mark.parametrize(("block", "k"), [(PIX, 0.25), (PIX, 4.0), (XYZ, 0.25), (XYZ, 4.0)])
+@pytest.mark.parametrize(
+    ("block", "k"),
+    [(PIX, 4.0), pytest.param(PIX, 0.25, marks=pytest.mark.slow), pytest.param(XYZ, 0.25, marks=pytest.mark.slow),
+     pytest.param(XYZ, 4.0, marks=pytest.mark.slow)],
+)  # fmt: skip
 def test_the_scale_finds_a_wrong_block_and_tracks_like_the_true_noise(block, k):
     true_scale = (k, 1.0) if block == PIX else (1.0, k)
     oracle = windows(*true_scale)

@@ -17,6 +17,8 @@ from torchtrack.factory import build_sequences, build_tracker
 from torchtrack.geometry import T_inv, rotation_angle
 from torchtrack.run import run_tracker
 
+pytestmark = pytest.mark.slow  # the object-case script end to end
+
 
 # ---------------------------------------------------------------------------------------------- the preset
 def test_small_object_preset_geometry():

@@ -21,6 +21,8 @@ from torchtrack.factory import build_tracker
 from torchtrack.learn.cache import load_observations
 from torchtrack.learn.record import record_sequences
 
+pytestmark = pytest.mark.slow  # recording observations of whole sequences
+
 GAP = (10, 20)  # frames removed: a jump of 3.6 cm and 8.4 degrees (tests/test_relocalise.py)
 # Recording and a plain run do the same arithmetic on the same shapes; the replay repeats the back end's update on
 # the recorded float32 inputs in float64: 1e-9 (m and rotation entries) is float64 round-off over ~20 updates.

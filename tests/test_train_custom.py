@@ -25,6 +25,8 @@ from torchtrack.learn.model import LearnedWeighting
 from torchtrack.learn.oracle import oracle_windows
 from torchtrack.learn.train import TrainConfig, fit
 
+pytestmark = pytest.mark.slow  # training custom weightings
+
 TARGET = f"{__name__}.TinyWeighting"  # importable: pytest puts tests/ on sys.path
 
 
