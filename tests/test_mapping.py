@@ -387,6 +387,7 @@ def test_mapping_is_off_by_default_and_one_switch_turns_it_on():
     assert build_mapper(compose("mapping=tsdf")).tsdf is not None
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not (DATA / "sun3d_fragment1").is_dir(), reason="../shared/data absent")
 def test_runner_writes_the_map_and_leaves_the_trajectory_unchanged(tmp_path):
     """The runner with a mapper: same trajectory as without; map.ply has the map's points, map.png a picture."""

@@ -148,6 +148,7 @@ def test_survivors_carry_their_estimates_into_the_new_model(synth):  # noqa: F81
     assert bool((s.points_info[0][k:] == 0).all()) and int(s.valid[0].sum()) > k
 
 
+@pytest.mark.slow
 @pytest.mark.equivalence
 def test_tracker_batched_equals_looped(synth):  # noqa: F811
     """Two sequences of different lengths tracked together equal each alone (the estimates are per row)."""

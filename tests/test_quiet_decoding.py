@@ -11,6 +11,9 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
+
+pytestmark = pytest.mark.slow  # subprocesses decoding corrupt files
 
 # A PNG signature followed by garbage: libpng's header check fails, and OpenCV logs it unless silenced.
 CORRUPT_PNG = b"\x89PNG\r\n\x1a\n" + b"not a PNG chunk at all" * 4

@@ -59,12 +59,14 @@ def track(root, out, *overrides):
     return m, csv
 
 
+@pytest.mark.slow
 def test_the_jump_is_large(sequences):
     seq = TumSequence(sequences[0])
     E = T_inv(torch.as_tensor(seq.groundtruth[GAP[0] - 1])) @ torch.as_tensor(seq.groundtruth[GAP[1]])
     assert float(E[:3, 3].norm()) > 0.03 and float(rotation_angle(E[:3, :3]).rad2deg()) > 8
 
 
+@pytest.mark.slow
 def test_jump_is_detected_and_recovered(sequences, tmp_path):
     full, jump = sequences
     m_full, csv_full = track(full, tmp_path / "full")

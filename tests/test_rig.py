@@ -24,6 +24,8 @@ from torchtrack.geometry.rig import T_world_color_from_depth, T_world_depth_from
 from torchtrack.metrics import trajectory_metrics
 from torchtrack.run import run_tracker
 
+pytestmark = pytest.mark.slow  # rendered rigs tracked end to end
+
 SIZE, FRAMES = (320, 240), 16
 
 

@@ -20,6 +20,8 @@ from torchtrack.factory import build_tracker
 from torchtrack.io import FILE_MODE
 from torchtrack.run import run_tracker
 
+pytestmark = pytest.mark.slow  # the runner end to end on broken inputs
+
 
 def make_tracker():
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):

@@ -21,6 +21,8 @@ from torchtrack.factory import build_tracker
 from torchtrack.geometry import T_inv, make_T, so3_exp, transform_points
 from torchtrack.pipeline.landmarks import LandmarkMap
 
+pytestmark = pytest.mark.slow  # whole tracked sequences: a camera that pans away and back
+
 ON = ("landmarks.enabled=true",)
 OFF = ("landmarks.enabled=false",)
 SIZE, FRAMES = (320, 240), 40

@@ -18,6 +18,8 @@ from torchtrack.geometry import euler_to_matrix
 from torchtrack.geometry.rig import color_poses, tracker_world
 from torchtrack.metrics import trajectory_metrics
 
+pytestmark = pytest.mark.slow  # whole tracked sequences against rendered ground truth
+
 CONF = CONF_DIR
 SIZE, FRAMES = (320, 240), 12
 

@@ -25,10 +25,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchtrack.filter.models import measure_points
 from torchtrack.frontend import PreparedFrame
 from torchtrack.geometry import T_inv, rotation_angle
 from torchtrack.pipeline.keyframes import KeyframeStore
+from torchtrack.pipeline.state import Measure
 
 
 class Health(NamedTuple):
@@ -215,7 +215,7 @@ class Relocaliser:
     def _points(frame, cur: PreparedFrame, b: int, pixels: np.ndarray) -> tuple[Tensor, Tensor]:
         """3D points (M, 3) in sequence b's depth camera at colour ``pixels`` (M, 2), and has-depth (M,)."""
         px = torch.from_numpy(pixels)[None].to(cur.depth.device)
-        p, ok = measure_points(cur.depth[b : b + 1], frame.K[b : b + 1], frame.T_color_depth[b : b + 1], px)
+        p, ok = Measure(cur.depth[b : b + 1], frame.K[b : b + 1], frame.T_color_depth[b : b + 1])(px)
         return p[0].double(), ok[0]
 
     def _describe(self, frame, cur: PreparedFrame, b: int, T_world_depth: Tensor) -> Keyframe | None:

@@ -95,7 +95,7 @@ class SyntheticConfig:
     ``background`` (object mode only): the room behind the object, else empty space (depth 0).
     ``object`` (object mode only): ``"compound"`` (box, sphere, two cylinders, ~30 cm, seen from 0.9 m) or
     ``"small"`` (an ~18 cm textured box with a sphere and a cylinder, seen from ``object_distance_m``, 0.55 m by
-    default: it fills about 5-10 % of the image, the object case of issue 12).
+    default: it fills about 5-10 % of the image, the object case).
     ``object_distance_m``: camera-to-object-centre distance in metres (None: the object's default).
     Intrinsics left as None are derived from the image size (525 px focal at 640 x 480, centre
     ``(W - 1) / 2, (H - 1) / 2``). Motion: smooth sums of sinusoids whose RMS step per frame is
