@@ -126,7 +126,8 @@ class Tracker:
             obs = Observation(_dt(frame, s).to(points_d.dtype), s.points_obj, points_d, track.points, valid, frame.K,
                               frame.T_color_depth)  # fmt: skip
             est = self.backend.step(obs, var, active=frame.active)  # eqs. (2)-(7), (15)
-            tracked = self._advanced(s, frame, cur, track.points, valid, est.T_cam_obj.double(), points_d, var)
+            T_cam_obj = est.T_cam_obj.double()
+            tracked = self._advanced(s, frame, cur, track.points, valid, T_cam_obj, points_d, var)  # outliers, eq. (16)
             reselect = self.reselect.needed(tracked.valid, tracked.n_model, frame.active)  # too few survive
             self.state, model = self._reselected(tracked, frame, cur, measure, reselect)  # §III-B
             res = _result(tracked, track.winner, track.d_tim, reselect, observation=obs, variances=var, cues=cues,
