@@ -1,7 +1,7 @@
 """Per-frame preparation shared by every tracker, computed once per frame.
 
-Depth is registered to the colour camera first (z-buffered forward warp with the depth-to-colour
-extrinsic; a no-op for registered depth), so that intensity, depth and the Shape Index Map share one
+Depth is registered to the colour camera first (each colour pixel's ray intersected with the depth camera's
+surface, :func:`torchtrack.geometry.rig.register_depth`; a no-op for registered depth), so that intensity, depth and the Shape Index Map share one
 pixel grid: a feature tracked at colour pixel x reads its depth and its SIM at x.
 """
 
@@ -16,7 +16,7 @@ from typing import Protocol
 import torch
 from torch import Tensor
 
-from torchtrack.geometry import warp_depth
+from torchtrack.geometry.rig import register_depth
 from torchtrack.image.flow import FlowFrame, prepare_frame
 from torchtrack.image.shape_index import SIM, compute_sim
 
@@ -60,7 +60,7 @@ def depth_in_colour(frame: FrameBatch) -> Tensor:
     if is_registered(frame):
         return frame.depth
     H, W = frame.rgb.shape[-2:]
-    return warp_depth(frame.depth, frame.K_depth, frame.K, frame.T_color_depth, (H, W))
+    return register_depth(frame.depth, frame.K_depth, frame.K, frame.T_color_depth, (H, W))
 
 
 class FrontEnd:
