@@ -180,3 +180,11 @@ def test_a_real_two_setting_multirun_gives_two_rows(tmp_path, capsys):
         row = table[tracker.split("=")[1]]
         assert float(row["ate_rmse_mm"]) == pytest.approx(1e3 * metrics["ate_rmse_m"])
         assert int(row["frames"]) == metrics["frames"] == 4
+
+
+def test_an_escaped_interpolation_reads_as_written():
+    """Hydra records ``data.root=DATA/${seq}`` as ``DATA/$\\{seq\\}`` in overrides.yaml; the table shows what was typed."""
+    from torchtrack.report import parse_override
+
+    assert parse_override(r"data.root=/d/$\{seq\}") == ("data.root", "/d/${seq}")
+    assert parse_override("+seed=3") == ("seed", "3") and parse_override("~landmarks") == ("landmarks", "<deleted>")

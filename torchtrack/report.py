@@ -88,6 +88,7 @@ class Table:
 def parse_override(text: str) -> tuple[str, str]:
     """``key=value`` -> (key, value) with Hydra's ``+``, ``++``, ``~`` prefixes dropped (a deletion reads ``<deleted>``)."""
     key, eq, value = str(text).partition("=")
+    value = value.replace("\\{", "{").replace("\\}", "}")  # Hydra escapes an interpolation's braces when it records it
     if key.startswith("~"):
         return key.lstrip("~"), value if eq else "<deleted>"
     return key.lstrip("+"), value
