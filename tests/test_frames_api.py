@@ -137,6 +137,8 @@ def test_bad_input_raises_one_clear_error(render):
         RGBDTracker(K[:2])
     with pytest.raises(ValueError, match="Could not find 'weighting/paperr'; available options"):
         RGBDTracker(K, overrides=["weighting=paperr"])
+    with pytest.raises(ValueError, match="^FusionEKF: iterations must be >= 1$"):  # a stage's own range check
+        RGBDTracker(K, overrides=["filter.iterations=0"])
     tracker.track(color, depth)
     with pytest.raises(ValueError, match="call reset\\(\\)"):
         tracker.track(np.stack([color, color]), np.stack([depth, depth]))

@@ -16,7 +16,6 @@ import json
 import pkgutil
 import subprocess
 import sys
-from collections import Counter
 from pathlib import Path
 
 import pytest
@@ -62,26 +61,28 @@ print(json.dumps(out))
 """
 
 
+def loaded(modules: list[str], app: tuple[str, ...]) -> dict[str, list[str]]:
+    """{module: the ``app`` modules it loaded} for ``modules`` imported in turn in one fresh interpreter."""
+    probe = PROBE.format(app=app, modules=modules)
+    res = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, check=False)
+    assert res.returncode == 0, res.stderr[-2000:]
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
 def test_kernels_import_no_application_layer():
     """One fresh interpreter imports every kernel module in turn; a module that brings in an application module (of
     its own or through another kernel module it imports first) is named with what it loaded. A module that loads none
     here loads none alone either (the union of imports would hold it)."""
     modules = kernel_modules()
     assert "torchtrack.image.lk" in modules and "torchtrack.frontend" in modules
-    probe = PROBE.format(app=APP, modules=modules)
-    res = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, check=False)
-    assert res.returncode == 0, res.stderr[-2000:]
-    assert json.loads(res.stdout.strip().splitlines()[-1]) == {}
+    assert loaded(modules, APP) == {}
 
 
 def test_stages_import_no_configs():
     """The pipeline's stages and the map take plain keyword arguments: Hydra and the schemas stay in the app layer."""
     modules = kernel_modules(STAGES)
     assert "torchtrack.pipeline.tracker" in modules and "torchtrack.mapping.panorama" in modules
-    probe = PROBE.format(app=STAGE_APP, modules=modules)
-    res = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, check=False)
-    assert res.returncode == 0, res.stderr[-2000:]
-    assert json.loads(res.stdout.strip().splitlines()[-1]) == {}
+    assert loaded(modules, STAGE_APP) == {}
 
 
 def test_importing_torchtrack_loads_nothing_else():
@@ -93,11 +94,6 @@ def test_importing_torchtrack_loads_nothing_else():
 
 # ------------------------------------------------------------------------------------------------ device audit
 FACTORIES = {"zeros", "ones", "eye", "full", "empty", "tensor", "arange", "linspace"}
-KERNEL_DIRS = ("geometry/", "image/", "filter/", "estimators/", "frontend.py")
-# Bare factories in modules outside the kernels, by "file::function: torch.factory" and count: known, and left to
-# their owners (pipeline, mapping, data, learn, metrics, viz). Each owner removes its rows as it fixes them; a row
-# that no longer matches fails below, so that the list only shrinks. The lead's estimators modules are listed too.
-DEVICE_KNOWN: dict[str, int] = {}  # every factory names its device; a host tensor on purpose says device="cpu"
 
 
 def bare_factories(path: Path) -> list[str]:
@@ -120,16 +116,9 @@ def bare_factories(path: Path) -> list[str]:
 
 def test_tensors_are_created_on_the_inputs_device():
     """Every torch.zeros/ones/eye/full/empty/tensor/arange/linspace call in torchtrack names its device (the inputs',
-    or ``"cpu"`` for host arithmetic such as a chi-square quantile), so no stage is CPU-only by construction: none in
-    the kernels, and outside them only the known rows above."""
-    found = Counter(h for p in sorted(ROOT.rglob("*.py")) for h in bare_factories(p))
-    kernels = sorted(h for h in found if h.startswith(KERNEL_DIRS) and h not in DEVICE_KNOWN)
-    assert kernels == [], kernels
-    others = {h: n for h, n in found.items() if not h.startswith(KERNEL_DIRS) or h in DEVICE_KNOWN}
-    new = {h: n for h, n in others.items() if n > DEVICE_KNOWN.get(h, 0)}
-    assert new == {}, f"bare tensor factories (name the device): {new}"
-    stale = {h: n for h, n in DEVICE_KNOWN.items() if found.get(h, 0) < n}
-    assert stale == {}, f"fixed: lower or remove these rows of DEVICE_KNOWN: {stale}"
+    or ``"cpu"`` for host arithmetic such as a chi-square quantile), so no stage is CPU-only by construction."""
+    bare = [h for p in sorted(ROOT.rglob("*.py")) for h in bare_factories(p)]
+    assert bare == [], f"bare tensor factories (name the device): {bare}"
 
 
 def _frame(seed: int, H: int = 96, W: int = 128):

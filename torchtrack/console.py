@@ -76,21 +76,19 @@ def compose_config(config_name: str, overrides: Sequence[str] = ()):
             resolve_device(cfg.device)
     except (HydraException, OmegaConfBaseException, DataError) as e:
         raise ValueError(explain(e, config_name, overrides)) from None
-    if "pipeline" in cfg:  # the stages' own range checks (their constructors), before any data is read
-        _check_stages(cfg)
     return cfg
 
 
-def _check_stages(cfg) -> None:
-    """Build the tracker's stages of ``cfg`` once (cheap: no data, no compiled operator), so that a value out of range
-    (``filter.iterations=0``, ``flow.mode=foo``, a weighting class that does not import) is one line now, not a
-    traceback after the data is loaded. ValueError with the innermost cause's message."""
+def build_checked(cfg):
+    """The tracker of ``cfg`` (:func:`torchtrack.factory.build_tracker`; cheap: no data, no compiled operator); a
+    stage's own range check (``filter.iterations=0``, ``flow.mode=foo``, a weighting class that does not import) is a
+    ValueError with the innermost cause's one line, not Hydra's instantiation traceback."""
     from hydra.errors import InstantiationException
 
     from torchtrack.factory import build_tracker
 
     try:
-        build_tracker(cfg)
+        return build_tracker(cfg)
     except (InstantiationException, ValueError, TypeError, ImportError, FileNotFoundError) as e:
         cause = e
         while cause.__cause__ is not None:
@@ -106,7 +104,9 @@ def check_overrides(config_name: str, argv: list[str]) -> str | None:
     if any(a.startswith("-") for a in argv):
         return None
     try:
-        compose_config(config_name, argv)
+        cfg = compose_config(config_name, argv)
+        if "pipeline" in cfg:  # the stages' range checks, before any data is read
+            build_checked(cfg)
     except ValueError as e:
         return str(e)
     return None

@@ -123,11 +123,10 @@ class RGBDTracker:
     ) -> None:
         cfg = None
         if tracker is None:
-            from torchtrack.console import compose_config
-            from torchtrack.factory import build_tracker
+            from torchtrack.console import build_checked, compose_config
 
             cfg = compose_config("config", list(overrides))
-            tracker = build_tracker(cfg)
+            tracker = build_checked(cfg)
         elif overrides:
             raise ValueError("RGBDTracker: give overrides or a built tracker, not both")
         self.tracker = tracker
