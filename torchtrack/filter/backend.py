@@ -64,7 +64,8 @@ class EKFBackend:
         their noise scales (the result's ``noise`` is the back end's after the frame)."""
         if self.state is None:
             raise ValueError("EKFBackend: call reset(T_cam_obj, mask) before the first frame")
-        out = ekf_frame(self.ekf, self.state, obs, var, gate=self.ekf.gate, refit=self.ekf.refit, noise_scale=self.ekf.noise,
+        ekf = self.ekf
+        out = ekf_frame(ekf, self.state, obs, var, gate=ekf.gate, refit=ekf.refit, noise_scale=ekf.noise,
                         scale_state=self.scale_state)  # fmt: skip
         self.state = out.posterior if active is None else out.posterior.select(active, self.state)
         if out.noise is not None:
