@@ -306,3 +306,22 @@ def test_reacquisition_batched_over_slots_equals_slot_by_slot(rendered):
     # the stack kept up to date by copies equals the stack built from the slots' images (pyrDown: rounding only)
     fresh = prepare_frame(lm.gray.flatten(0, 1), lm.sim.flatten(0, 1), lm.stack.pyramid.levels).pyramid
     torch.testing.assert_close(lm.stack.pyramid.flat, fresh.flat, atol=1e-6, rtol=0)
+
+
+def test_a_full_store_drops_the_most_redundant_keyframe_not_the_oldest():
+    """Once full, a new model keyframe replaces the stored one nearest in pose to another (|dt| + 0.3 m/rad angle),
+    the older of a tie, never the newest: keyframes at x = 0, 1, 1.05 m and a new one at 1.1 m drop the one at 1 m (the
+    ring would drop x = 0, the only keyframe of that place); equal poses fall back to the ring's order (the oldest)."""
+    store = KeyframeStore(size=3, every=0)
+    store.reset(1)
+
+    def at(x):
+        T = torch.eye(4, dtype=torch.float64)[None].clone()
+        T[0, 0, 3] = x
+        return T
+
+    one = torch.ones(1, dtype=torch.bool)
+    slots = [int(store.add(torch.full((1,), float(k)), at(x), one, one)) for k, x in enumerate([0.0, 1.0, 1.05, 1.1])]
+    assert slots == [0, 1, 2, 1] and store.T_world_kf[0, :3, 0, 3].tolist() == [0.0, 1.1, 1.05]
+    slot = int(store.add(torch.full((1,), 4.0), at(5.0), one, one))  # 1.05 and 1.1 are the closest pair: the older
+    assert slot == 2 and store.T_world_kf[0, :3, 0, 3].tolist() == [0.0, 1.1, 5.0]

@@ -67,7 +67,7 @@ class KeyframeStore:
         """Take the current frame (time stamps (B,), camera ``T_world_depth`` (B, 4, 4)) as a keyframe of the sequences
         in ``mask`` (B,): a model keyframe where ``model`` (B,), else the tracked one. Returns (B,) long the slot each
         got (-1 where not in ``mask``), for the stages to fill."""
-        slot = torch.where(mask, torch.where(model, self.models % self.size, self.size), -1)
+        slot = torch.where(mask, torch.where(model, self._model_slot(T_world_depth), self.size), -1)
         rows = mask.nonzero().squeeze(1)
         s = slot[rows]
         self.T_world_kf[rows, s] = T_world_depth.double()[rows]
@@ -78,6 +78,23 @@ class KeyframeStore:
         self.models = self.models + (mask & model).long()
         self.since = torch.where(mask, 0, self.since)
         return slot
+
+    def _model_slot(self, T_world_depth: Tensor) -> Tensor:
+        """(B,) the slot a new model keyframe at ``T_world_depth`` (B, 4, 4) takes: a free one while there is one; else
+        the most redundant stored keyframe, the one nearest in pose to another (stored or the new one; distance
+        ``|d t| + 0.3 m/rad |d angle|``; ties: the older), never the newest: the store covers the places the camera
+        has been, not only the last ``size`` of them."""
+        S, B = self.size, self.count.shape[0]
+        T = torch.cat([self.T_world_kf[:, :S], T_world_depth.double()[:, None]], 1)  # B,S+1,4,4
+        R = T[..., :3, :3]
+        cos = ((torch.einsum("bsij,btij->bst", R, R) - 1) / 2).clamp(-1, 1)
+        d = torch.cdist(T[..., :3, 3], T[..., :3, 3]) + 0.3 * torch.arccos(cos)  # B,S+1,S+1
+        d = d + torch.eye(S + 1, dtype=d.dtype, device=d.device) * 1e9
+        nearest = d[:, :S].amin(-1)  # B,S: each stored keyframe's nearest other
+        newest = self.stamp[:, :S].argmax(1)
+        nearest[torch.arange(B, device=d.device), newest] = float("inf")
+        key = nearest + 1e-9 * self.stamp[:, :S].double()  # ties: the older
+        return torch.where(self.models < S, self.models % S, key.argmin(1))
 
     def newest_first(self, b: int) -> list[int]:
         """Sequence b's live slots, newest keyframe first."""
