@@ -88,9 +88,9 @@ class RegistrationBackend:
             raise ValueError("RegistrationBackend: call reset(T_cam_obj, mask) before the first frame")
         weights = 1.0 / var.var_xyz.clamp_min(1e-12) if self.weighted else None
         T_prev = self.T_prev.to(obs.points_obj.dtype)
-        T = self.estimator(obs.points_obj, obs.points_d, obs.valid, T_prev, weights)
+        T = self.estimator(obs.points_obj, obs.points_d, obs.valid_xyz, T_prev, weights)
         self.T_prev = T if active is None else torch.where(active[:, None, None], T, T_prev)
-        return Registration(T, obs.valid, weights)
+        return Registration(T, obs.valid_xyz, weights)
 
 
 __all__ = ["BackendResult", "Observation", "PoseBackend", "Registration", "RegistrationBackend"]

@@ -29,9 +29,11 @@ class Observation:
         points_obj: (B, N, 3) model points X_o in the (centroid-centred) object frame.
         points_d: (B, N, 3) measured 3D points X_d in the depth camera, eq. (6).
         pixels: (B, N, 2) measured pixels in the colour image, eq. (7).
-        valid: (B, N) bool.
+        valid: (B, N) bool: the feature was tracked (its pixel is a measurement, eq. 7).
         K: (B, 3, 3) colour intrinsics.
         T_color_depth: (B, 4, 4) depth-to-colour extrinsic (R_dv, t_dv).
+        has_depth: (B, N) bool: its 3D point was measured too (eq. 6); None: wherever ``valid``. A tracked feature
+            without depth (a hole, an edge, a band the depth camera does not see) still measures its pixel.
     """
 
     dt: Tensor
@@ -41,6 +43,12 @@ class Observation:
     valid: Tensor
     K: Tensor
     T_color_depth: Tensor
+    has_depth: Tensor | None = None
+
+    @property
+    def valid_xyz(self) -> Tensor:
+        """(B, N) bool: the features whose 3D point is a measurement."""
+        return self.valid if self.has_depth is None else self.valid & self.has_depth
 
 
 class FrameUpdate(NamedTuple):
@@ -138,10 +146,12 @@ def ekf_frame(
     var5 = torch.cat([var.var_xyz[..., None].expand(-1, -1, 3), var.var_pix[..., None].expand(-1, -1, 2)], -1).to(dt)
     h, H = ekf.linearize_at(prior, points_obj, K, T_cd)  # at the prediction, once per frame
     s_prior = var5 + torch.einsum("bnms,bst,bnmt->bnm", H, prior.cov, H)  # diag(H P- H^T) + R
-    xyz = pix = obs.valid
+    measured = xyz = obs.valid_xyz
+    pix = obs.valid
+    z = torch.cat([torch.where(xyz[..., None], z[..., :3], h[..., :3].detach()), z[..., 3:]], -1)  # no 3D point: none
     if gate is not None:
         with torch.no_grad():
-            xyz, pix = _keep(xyz, pix, *_chi2_tests(z, h, s_prior, gate))
+            xyz, pix = _keep(xyz, pix, *_chi2_tests(z, h, s_prior, gate), measured)
 
     def update(xyz: Tensor, pix: Tensor):
         return ekf.updated(
@@ -163,7 +173,7 @@ def ekf_frame(
     if refit is not None:
         with torch.no_grad():
             h_post = measure_pose(posterior.T_cam_obj, points_obj, K, T_cd)
-            xyz_new, pix_new = _keep(xyz, pix, *_chi2_tests(z, h_post, var5, refit))
+            xyz_new, pix_new = _keep(xyz, pix, *_chi2_tests(z, h_post, var5, refit), measured)
         if bool(((xyz_new != xyz) | (pix_new != pix)).any()):
             xyz, pix = xyz_new, pix_new
             post = update(xyz, pix)  # same prior, fewer measurements: the same linearisation
@@ -175,7 +185,7 @@ def ekf_frame(
     noise = None
     if noise_scale is not None:
         with torch.no_grad():
-            valid5 = obs.valid[..., None].expand_as(used)
+            valid5 = torch.cat([obs.valid_xyz[..., None].expand(-1, -1, 3), obs.valid[..., None].expand(-1, -1, 2)], -1)
             residual = torch.where(valid5, z - h, torch.zeros_like(h)) - torch.einsum(
                 "bnms,bs->bnm", H, post.mean - prior.mean
             )  # linearised at x-
@@ -210,11 +220,11 @@ def innovation_nll(prior_cov: Tensor, H: Tensor, innovation: Tensor, var5: Tenso
     return 0.5 * (quad + logdet + used.sum((1, 2)) * math.log(2.0 * math.pi))
 
 
-def _keep(xyz: Tensor, pix: Tensor, ok_xyz: Tensor, ok_pix: Tensor) -> tuple[Tensor, Tensor]:
-    """A failing 3D point is dropped; a pixel only with its 3D point. The 3D variances (eq. 14) are metric, the pixel
-    variances of eq. (11) only relative (scaled to a mean), so a pixel test alone is not calibrated: dropping pixels
-    on it alone was measured worse (7-Scenes ATE 106 vs 53-69 mm)."""
-    return xyz & ok_xyz, pix & (ok_pix | ok_xyz)
+def _keep(xyz: Tensor, pix: Tensor, ok_xyz: Tensor, ok_pix: Tensor, measured: Tensor) -> tuple[Tensor, Tensor]:
+    """A failing 3D point is dropped; a pixel only with its 3D point, or on its own test where it has none. The 3D
+    variances (eq. 14) are metric, the pixel variances of eq. (11) only relative (scaled to a mean), so a pixel test
+    alone is not calibrated: dropping pixels on it alone was measured worse (7-Scenes ATE 106 vs 53-69 mm)."""
+    return xyz & ok_xyz, pix & (ok_pix | (ok_xyz & measured))
 
 
 def _chi2_tests(z: Tensor, h: Tensor, s: Tensor, p: float) -> tuple[Tensor, Tensor]:

@@ -94,7 +94,7 @@ class ObservationLog:
                 raise ValueError("ObservationLog: the tracker did not compute cues (build it with record=True)")
             row |= dict(
                 dt=obs.dt[b].double(), points_obj=obs.points_obj[b], points_d=obs.points_d[b], pixels=obs.pixels[b],
-                valid=obs.valid[b], cues=res.cues[b], var_pix=res.variances.var_pix[b],
+                valid=obs.valid_xyz[b], cues=res.cues[b], var_pix=res.variances.var_pix[b],
                 var_xyz=res.variances.var_xyz[b],
             )  # fmt: skip
         self.rows.append({k: v.detach().clone() for k, v in row.items()})

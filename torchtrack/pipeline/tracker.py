@@ -65,6 +65,9 @@ class Tracker:
         predict_init: improvement (False = paper): each feature's LK starts where the model point projects under the
             constant-velocity prediction of the pose (``TrackerState.velocity``), not at its previous pixel: under
             fast motion the displacement left to LK is the prediction's error, not the whole motion.
+        pixel_only: improvement (False = paper): a tracked feature without depth at its pixel this frame (a hole, an
+            edge, a band a separate depth camera does not see) stays in the model and measures its pixel only (eq. 7);
+            a re-selection counts the features measured with depth. The paper drops it (eq. 6 needs the depth).
         record: compute the per-feature cues (:mod:`torchtrack.filter.cues`) of every frame into
             ``StepResult.cues`` even when the weighting does not need them (for the observation cache). Poses are
             the same with and without; a weighting with ``needs_cues = True`` gets them in any case.
@@ -89,6 +92,7 @@ class Tracker:
         landmarks: LandmarkMap | None = None,
         relocaliser: Relocaliser | None = None,
         predict_init: bool = True,
+        pixel_only: bool = True,
         record: bool = False,
     ) -> None:
         self.frontend, self.flow, self.weighting, self.backend = frontend, flow, weighting, backend
@@ -96,7 +100,7 @@ class Tracker:
         self.outliers = outliers if outliers is not None else ResidualDrop()
         self.keyframes = keyframes if keyframes is not None else KeyframeStore()
         self.landmarks, self.relocaliser = landmarks, relocaliser
-        self.predict_init, self.record = predict_init, record
+        self.predict_init, self.pixel_only, self.record = predict_init, pixel_only, record
         self.state = TrackerState()
 
     def reset(self) -> None:
@@ -119,16 +123,19 @@ class Tracker:
         else:
             track = self._tracked(s, frame, cur)  # LK on intensity and on the SIM, the TIM check, eq. (10)
             points_d, has_depth = measure(track.points)  # eq. (6)
-            valid = track.valid & has_depth & frame.active[:, None]
-            cues = self._cues(s, cur, track, points_d, valid) if self.wants_cues else None
-            var = self.weighting(WeightingInputs(track.d_tim, points_d[..., 2], points_d, valid, frame.K_depth[:, 0, 0],
-                                                 cues=cues))  # eqs. (11)-(14)  # fmt: skip
+            valid_xyz = track.valid & has_depth & frame.active[:, None]
+            valid = (track.valid & frame.active[:, None]) if self.pixel_only else valid_xyz  # a tracked pixel: eq. (7)
+            cues = self._cues(s, cur, track, points_d, valid_xyz) if self.wants_cues else None
+            var = self.weighting(WeightingInputs(track.d_tim, points_d[..., 2], points_d, valid_xyz,
+                                                 frame.K_depth[:, 0, 0], cues=cues))  # eqs. (11)-(14)  # fmt: skip
+            var = _pixel_only(var, valid, valid_xyz)
             obs = Observation(_dt(frame, s).to(points_d.dtype), s.points_obj, points_d, track.points, valid, frame.K,
-                              frame.T_color_depth)  # fmt: skip
+                              frame.T_color_depth, has_depth=has_depth)  # fmt: skip
             est = self.backend.step(obs, var, active=frame.active)  # eqs. (2)-(7), (15)
             T_cam_obj = est.T_cam_obj.double()
-            tracked = self._advanced(s, frame, cur, track.points, valid, T_cam_obj, points_d, var)  # outliers, eq. (16)
-            reselect = self.reselect.needed(tracked.valid, tracked.n_model, frame.active)  # too few survive
+            tracked = self._advanced(s, frame, cur, track.points, valid, valid_xyz, T_cam_obj, points_d,
+                                     var)  # outliers, eq. (16)  # fmt: skip
+            reselect = self.reselect.needed(tracked.valid & valid_xyz, tracked.n_model, frame.active)  # few with depth
             self.state, model = self._reselected(tracked, frame, cur, measure, reselect)  # §III-B
             res = _result(tracked, track.winner, track.d_tim, reselect, observation=obs, variances=var, cues=cues,
                           model_T_cam_obj=model, estimate=est)  # fmt: skip
@@ -175,10 +182,11 @@ class Tracker:
         return torch.where(valid[..., None], cues, 0.0)
 
     def _advanced(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, pixels: Tensor, valid: Tensor,
-                  T_cam_obj: Tensor, points_d: Tensor, var: Variances) -> TrackerState:  # fmt: skip
+                  valid_xyz: Tensor, T_cam_obj: Tensor, points_d: Tensor, var: Variances) -> TrackerState:  # fmt: skip
         """The state after this frame's update: the new pose (ended sequences keep theirs) and tracks, one frame
         older; features that do not fit the pose dropped (eq. 16, the outlier stage); with ``reselect.point_mean`` the
-        kept features' depth samples ``points_d`` (B, N, 3) fused into their model points' estimates."""
+        kept features' depth samples ``points_d`` (B, N, 3) (where ``valid_xyz``) fused into their model points'
+        estimates."""
         T_cam_obj = torch.where(frame.active[:, None, None], T_cam_obj, s.T_cam_obj)
         velocity = se3_log(T_cam_obj @ T_inv(s.T_cam_obj)) / _dt(frame, s)[:, None]  # this frame's motion, per second
         velocity = torch.where(frame.active[:, None], velocity, s.velocity)
@@ -188,7 +196,7 @@ class Tracker:
         if not self.reselect.estimates_points:
             return s
         est = PointEstimate(s.points_mean, s.points_info)
-        est = self.reselect.fused(est, T_cam_obj, points_d, var.var_xyz, s.valid)
+        est = self.reselect.fused(est, T_cam_obj, points_d, var.var_xyz, s.valid & valid_xyz)
         return replace(s, points_mean=est.mean, points_info=est.info)
 
     def _loss_check(self, frame: FrameBatch, cur: PreparedFrame, measure: Measure, res: StepResult,
@@ -327,6 +335,18 @@ class Tracker:
 def _dt(frame: FrameBatch, s: TrackerState) -> Tensor:
     """(B,) float64 seconds since the previous frame (at least 1 ms: repeated time stamps)."""
     return (frame.timestamp - s.timestamp).double().clamp_min(1e-3)
+
+
+def _pixel_only(var: Variances, valid: Tensor, valid_xyz: Tensor) -> Variances:
+    """``var`` with the features tracked without depth (``valid`` (B, N), not ``valid_xyz``) at their sequence's mean
+    pixel variance over the features with depth (eq. 11 normalises over those; the nominal ``sigma2_pix``)."""
+    only = valid & ~valid_xyz
+    if not bool(only.any()):
+        return var
+    w = valid_xyz.to(var.var_pix.dtype)
+    mean = (var.var_pix * w).sum(1, keepdim=True) / w.sum(1, keepdim=True).clamp_min(1)
+    mean = torch.where(valid_xyz.any(1, keepdim=True), mean, var.var_pix.new_ones(()))
+    return Variances(torch.where(only, mean.expand_as(var.var_pix), var.var_pix), var.var_xyz)
 
 
 def _result(s: TrackerState, winner: Tensor | None, d_tim: Tensor | None, reselected: Tensor, **extra) -> StepResult:
