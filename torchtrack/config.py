@@ -227,6 +227,7 @@ class PipelineConfig:
     _target_: str = "torchtrack.pipeline.Tracker"
     predict_init: bool = True  # improvement (false = paper): LK starts at the constant-velocity prediction
     pixel_only: bool = True  # improvement (false = paper): a tracked feature without depth still measures its pixel
+    flat_depth: float | None = None  # a tracked pixel on a depth step above this fraction (5x5) measures its pixel only
     record: bool = False  # compute every frame's per-feature cues (torchtrack-record)
 
 

@@ -93,6 +93,7 @@ class Tracker:
         relocaliser: Relocaliser | None = None,
         predict_init: bool = True,
         pixel_only: bool = True,
+        flat_depth: float | None = None,
         record: bool = False,
     ) -> None:
         self.frontend, self.flow, self.weighting, self.backend = frontend, flow, weighting, backend
@@ -101,6 +102,7 @@ class Tracker:
         self.keyframes = keyframes if keyframes is not None else KeyframeStore()
         self.landmarks, self.relocaliser = landmarks, relocaliser
         self.predict_init, self.pixel_only, self.record = predict_init, pixel_only, record
+        self.flat_depth = flat_depth
         self.state = TrackerState()
 
     def reset(self) -> None:
@@ -124,6 +126,8 @@ class Tracker:
             track = self._tracked(s, frame, cur)  # LK on intensity and on the SIM, the TIM check, eq. (10)
             points_d, has_depth = measure(track.points)  # eq. (6)
             valid_xyz = track.valid & has_depth & frame.active[:, None]
+            if self.flat_depth is not None:  # a pixel on a depth step measures its pixel only
+                valid_xyz = valid_xyz & _flat_depth(cur.depth, track.points, self.flat_depth)
             valid = (track.valid & frame.active[:, None]) if self.pixel_only else valid_xyz  # a tracked pixel: eq. (7)
             cues = self._cues(s, cur, track, points_d, valid_xyz) if self.wants_cues else None
             var = self.weighting(WeightingInputs(track.d_tim, points_d[..., 2], points_d, valid_xyz,
@@ -335,6 +339,22 @@ class Tracker:
 def _dt(frame: FrameBatch, s: TrackerState) -> Tensor:
     """(B,) float64 seconds since the previous frame (at least 1 ms: repeated time stamps)."""
     return (frame.timestamp - s.timestamp).double().clamp_min(1e-3)
+
+
+def _flat_depth(depth: Tensor, pixels: Tensor, max_rel_step: float, radius: int = 2) -> Tensor:
+    """(B, N) bool: the depth samples in the (2r+1)^2 window at each pixel's nearest pixel span at most
+    ``max_rel_step`` of the centre's depth (holes ignored): not on an occlusion boundary."""
+    B, _, H, W = depth.shape
+    r = torch.arange(-radius, radius + 1, device=depth.device)
+    u = (pixels[..., 0].round().long()[..., None, None] + r[None, :]).clamp(0, W - 1)  # B,N,1,k
+    v = (pixels[..., 1].round().long()[..., None, None] + r[:, None]).clamp(0, H - 1)  # B,N,k,1
+    idx = (v * W + u).flatten(2)  # B,N,k*k
+    d = depth.flatten(1).gather(1, idx.flatten(1)).view(idx.shape)
+    has = d > 0
+    hi = torch.where(has, d, 0.0).amax(-1)
+    lo = torch.where(has, d, float("inf")).amin(-1)
+    c = d[..., d.shape[-1] // 2]
+    return (hi - lo) <= max_rel_step * c
 
 
 def _pixel_only(var: Variances, valid: Tensor, valid_xyz: Tensor) -> Variances:
