@@ -3,6 +3,7 @@
 from torchtrack.geometry.camera import (
     backproject,
     backproject_depth,
+    depth_along_rays,
     intrinsics_matrix,
     pixel_grid,
     project,
@@ -34,7 +35,7 @@ from torchtrack.geometry.se3 import (
 )
 
 __all__ = [
-    "T_inv", "backproject", "backproject_depth", "euler_to_matrix", "hat", "intrinsics_matrix",
+    "T_inv", "backproject", "backproject_depth", "depth_along_rays", "euler_to_matrix", "hat", "intrinsics_matrix",
     "make_T", "matrix_to_euler", "matrix_to_quat_xyzw", "pixel_grid", "point_jacobian", "pose_from_euler", "project",
     "quat_xyzw_to_matrix", "rigid", "rotation_angle", "sample_depth", "sample_depth_bilinear", "se3_exp", "se3_log", "so3_exp",
     "so3_left_jacobian", "so3_log", "transform_points", "vee", "warp_depth",

@@ -9,6 +9,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchtrack.geometry.se3 import T_inv
+
 
 def intrinsics_matrix(
     fx: float,
@@ -113,3 +115,34 @@ def sample_depth_bilinear(depth: Tensor, pixels: Tensor, max_rel_step: float = 0
     smooth = (zmin > 0) & (zmax - zmin <= max_rel_step * zmin)
     nearest = sample_depth(depth, pixels)
     return torch.where(smooth & (nearest > 0), (w * z).sum(-1), nearest)
+
+
+def depth_along_rays(depth: Tensor, K_depth: Tensor, K: Tensor, T_color_depth: Tensor, pixels: Tensor, z0: Tensor,
+                     iterations: int = 4, tol: float = 1e-3) -> Tensor:  # fmt: skip
+    """The colour camera's depth (B, N) where the rays of colour pixels (B, N, 2) meet the surface a separate depth
+    camera sees, 0 where they do not settle on one.
+
+    A forward warp (:func:`warp_depth`) gives each colour pixel the depth of the nearest depth sample that lands
+    there: half a pixel off on a slope and the wrong surface beside an edge. Instead each ray is intersected with the
+    depth image itself: from the warped depth ``z0`` (B, N), the ray's point at colour depth z is moved into the
+    depth camera (``inv(T_color_depth)``), projected (``K_depth``), the depth image read there (bilinear on
+    continuous surfaces, nearest across edges: :func:`sample_depth_bilinear`), and z moved to the ray's point with
+    that depth-camera depth; ``iterations`` fixed-point steps, kept where the last one moved z by at most ``tol``
+    of it (a ray that grazes an edge or meets a hole does not settle: no depth, the pixel is measured without it).
+    depth: (B, 1, H_d, W_d) the depth camera's image (m, 0 = none); K_depth, K (B, 3, 3); T_color_depth (B, 4, 4).
+    """
+    dt = z0.dtype
+    T_dc = T_inv(T_color_depth.to(dt))
+    ray = backproject(K.to(dt), pixels.to(dt), torch.ones_like(z0))  # the colour ray at colour depth 1
+    a = ray @ T_dc[:, :3, :3].transpose(-1, -2)  # B,N,3: the ray's direction in the depth camera
+    t = T_dc[:, None, :3, 3]  # B,1,3: the colour centre there
+    az = a[..., 2]
+    z, settled = z0, torch.zeros_like(z0, dtype=torch.bool)
+    for _ in range(iterations):
+        X = z[..., None] * a + t
+        front = X[..., 2] > 1e-3
+        zd = sample_depth_bilinear(depth, project(K_depth.to(dt), torch.where(front[..., None], X, 1.0)))
+        step = torch.where(front & (zd > 0) & (az.abs() > 1e-6), (zd - t[..., 2]) / az, torch.zeros_like(z))
+        settled = (step > 0) & ((step - z).abs() <= tol * step)
+        z = step
+    return torch.where(settled, z, torch.zeros_like(z))

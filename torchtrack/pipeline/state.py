@@ -14,7 +14,7 @@ from torchtrack.filter.frame import Observation
 from torchtrack.filter.models import measure_points
 from torchtrack.filter.weighting import Variances
 from torchtrack.frontend import PreparedFrame
-from torchtrack.geometry import T_inv
+from torchtrack.geometry import T_inv, backproject, depth_along_rays, sample_depth_bilinear, transform_points
 
 
 class Measure(NamedTuple):
@@ -22,15 +22,25 @@ class Measure(NamedTuple):
     to colour at colour pixels (B, N, 2) and back-projects it into the depth camera; returns (X_d (B, N, 3), has_depth
     (B, N)). The tracker makes one per frame; every stage that needs a point of this frame calls it.
 
-    depth: (B, 1, H, W) registered depth, m; K: (B, 3, 3) colour intrinsics; T_color_depth: (B, 4, 4).
+    depth: (B, 1, H, W) registered depth, m; K: (B, 3, 3) colour intrinsics; T_color_depth: (B, 4, 4). With a separate
+    depth camera (``raw``: its (B, 1, H_d, W_d) image, ``K_depth`` its intrinsics) each pixel's ray is intersected with
+    the surface the depth camera sees (:func:`~torchtrack.geometry.depth_along_rays`, from the registered depth), not
+    read from the forward warp: the warp puts the wrong surface's depth beside edges and is half a pixel off on slopes.
     """
 
     depth: Tensor
     K: Tensor
     T_color_depth: Tensor
+    raw: Tensor | None = None
+    K_depth: Tensor | None = None
 
     def __call__(self, pixels: Tensor) -> tuple[Tensor, Tensor]:
-        return measure_points(self.depth, self.K, self.T_color_depth, pixels)
+        if self.raw is None:
+            return measure_points(self.depth, self.K, self.T_color_depth, pixels)
+        z0 = sample_depth_bilinear(self.depth, pixels)
+        z = depth_along_rays(self.raw, self.K_depth, self.K, self.T_color_depth, pixels, z0)
+        points = transform_points(T_inv(self.T_color_depth), backproject(self.K, pixels, z))
+        return points, z > 0
 
 
 @dataclass

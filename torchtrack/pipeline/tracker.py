@@ -28,7 +28,7 @@ from torchtrack.estimators.base import masked_mean
 from torchtrack.filter.cues import stack_cues, window_cues
 from torchtrack.filter.frame import Observation
 from torchtrack.filter.weighting import Variances, WeightingInputs
-from torchtrack.frontend import FrontEnd, PreparedFrame
+from torchtrack.frontend import FrontEnd, PreparedFrame, is_registered
 from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, se3_log, transform_points
 from torchtrack.image.flow import TrackResult
 from torchtrack.pipeline.keyframes import KeyframeStore
@@ -117,7 +117,8 @@ class Tracker:
         """One frame of every sequence, in the paper's order (§III)."""
         s = self.state
         cur = self.frontend(frame)  # prepare: depth in the colour camera, SIM (eq. 8), LK pyramids
-        measure = Measure(cur.depth, frame.K, frame.T_color_depth)  # a pixel's 3D point X_d, eq. (6)
+        raw = None if is_registered(frame) else frame.depth  # a separate depth camera: rays meet its surface
+        measure = Measure(cur.depth, frame.K, frame.T_color_depth, raw, frame.K_depth)  # a pixel's 3D point, eq. (6)
         if not s.started:
             res = self._start(frame, cur, measure)
         else:
