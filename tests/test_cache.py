@@ -47,7 +47,8 @@ def random_observations(T: int = 5, N: int = 7, seed: int = 0) -> SequenceObserv
         timestamp=torch.rand(T, generator=g, dtype=torch.float64), dt=torch.rand(T, generator=g, dtype=torch.float64),
         K=torch.rand(3, 3, generator=g, dtype=torch.float64), K_depth=torch.rand(3, 3, generator=g, dtype=torch.float64),
         T_color_depth=T_cd, points_obj=f32(T, N, 3), points_d=f32(T, N, 3), pixels=f32(T, N, 2),
-        valid=torch.rand(T, N, generator=g) < 0.7, cues=f32(T, N, len(CUE_NAMES)), var_pix=f32(T, N),
+        valid=torch.rand(T, N, generator=g) < 0.7, has_depth=torch.rand(T, N, generator=g) < 0.8,
+        cues=f32(T, N, len(CUE_NAMES)), var_pix=f32(T, N),
         var_xyz=f32(T, N), reselected=reselected, model_T_cam_obj=M, model_frame=model_frame, T_world_color_gt=G,
         gt_valid=gt_valid, T_cam_obj_gt=T_gt, T_cam_obj_gt_valid=gt_ok, T_cam_obj_est=random_pose(g, T),
     )  # fmt: skip

@@ -126,7 +126,7 @@ def test_cue_layout_is_version_2():
 def test_cues_follow_their_definitions(recorded):
     obs = recorded
     c = columns(obs)
-    valid = obs.valid
+    valid = obs.valid & obs.has_depth  # cues are computed for the features measured with depth
     assert obs.cues.dtype == torch.float32 and bool(torch.isfinite(obs.cues).all())
     assert not obs.cues[~valid].any(), "cues of invalid features are zeros"
     v = valid
@@ -162,6 +162,11 @@ def depth_at(depth: np.ndarray, u: float, v: float, max_rel_step: float = 0.02) 
     return float(nearest)
 
 
+def measured(obs):
+    """(T, N) the features measured with their 3D point: the cues are theirs (zeros for pixel-only features)."""
+    return obs.valid & obs.has_depth
+
+
 def test_depth_cue_is_the_depth_image_at_the_feature(seq, recorded):
     """The depth cue against the depth PNG read here (TUM: uint16 / depth_scale; registered depth, so the colour
     pixel is the depth pixel). float32 tracker arithmetic on ~1-3 m: rtol 1e-6 (~8 float32 epsilons)."""
@@ -170,7 +175,8 @@ def test_depth_cue_is_the_depth_image_at_the_feature(seq, recorded):
     checked = 0
     for t in range(1, obs.frames):
         depth = np.asarray(Image.open(seq.depth_paths[t]), dtype=np.float64) / seq.depth_scale
-        for (u, v), z in zip(obs.pixels[t][obs.valid[t]].double().tolist(), c["depth"][t][obs.valid[t]].tolist(),
+        m = measured(obs)[t]
+        for (u, v), z in zip(obs.pixels[t][m].double().tolist(), c["depth"][t][m].tolist(),
                              strict=True):  # fmt: skip
             assert z == pytest.approx(depth_at(depth, u, v), rel=1e-6, abs=0), (t, u, v)
             checked += 1
@@ -184,14 +190,15 @@ def test_window_cues_are_the_depth_png_around_the_feature(seq, recorded):
     checked = 0
     for t in range(1, obs.frames):
         depth = np.pad(np.asarray(Image.open(seq.depth_paths[t]), dtype=np.float64) / seq.depth_scale, 2)
-        for (u, v), s, h in zip(obs.pixels[t][obs.valid[t]].double().tolist(), c["depth_step"][t][obs.valid[t]].tolist(),
-                                c["depth_holes"][t][obs.valid[t]].tolist(), strict=True):  # fmt: skip
+        m = measured(obs)[t]
+        for (u, v), s, h in zip(obs.pixels[t][m].double().tolist(), c["depth_step"][t][m].tolist(),
+                                c["depth_holes"][t][m].tolist(), strict=True):  # fmt: skip
             win = depth[round(v) : round(v) + 5, round(u) : round(u) + 5]
             ok = win[win > 0]
             assert s == pytest.approx(ok.max() - ok.min(), abs=1e-6) and h == pytest.approx(1 - ok.size / 25, abs=1e-6)
             checked += 1
-    assert checked >= 50 and bool((c["depth_step"][obs.valid] > 0).all())
-    v = obs.valid
+    assert checked >= 50 and bool((c["depth_step"][measured(obs)] > 0).all())
+    v = measured(obs)
     torch.testing.assert_close(c["fb_error"][v], torch.minimum(c["d_tim_int"], c["d_tim_sim"])[v], atol=0, rtol=0)
     assert bool((c["lk_min_eig"][v] > 0).all())
 
@@ -217,7 +224,7 @@ def test_sim_cue_is_the_shape_index_map_at_the_nearest_pixel(seq):
             res = tracker.step(frame)
             if t == 0:
                 continue
-            ok = res.observation.valid[0]
+            ok = res.observation.valid_xyz[0]
             u, v = res.observation.pixels[0][ok].double().round().unbind(-1)  # torch rounds half to even, as rint
             expected = (v * 160 + u) / (160 * 120) + t
             got = res.cues[0][ok][:, COL["sim_value"]].double()
@@ -234,7 +241,7 @@ def test_d_tim_cues_follow_the_fallback_policy(recorded):
     track passed."""
     flow = config().flow
     assert flow.policy == "fallback" and flow.tim_threshold == TIM_THRESHOLD
-    c, v = columns(recorded), recorded.valid
+    c, v = columns(recorded), measured(recorded)
     assert bool(((c["sim_won"] == 0) | (c["sim_won"] == 1)).all())
     by_int, by_sim = v & (c["sim_won"] == 0), v & (c["sim_won"] == 1)
     assert bool((c["d_tim_int"][by_int] >= 0).all()) and bool((c["d_tim_int"][by_int] <= TIM_THRESHOLD).all())
@@ -258,10 +265,12 @@ def test_age_cornerness_and_previous_residual_follow_the_feature(recorded):
             continue
         prev = {tuple(p): j for j, p in enumerate(obs.points_obj[t - 1].tolist()) if obs.valid[t - 1, j]}
         T = T_cd @ obs.T_cam_obj_est[t - 1].numpy()
-        for i in obs.valid[t].nonzero().squeeze(1).tolist():
+        for i in measured(obs)[t].nonzero().squeeze(1).tolist():
             j = prev.get(tuple(obs.points_obj[t, i].tolist()))
             if j is None:
                 assert c["track_age"][t, i] == 1 and c["prev_reproj"][t, i] == 0, (t, i)
+                continue
+            if not obs.has_depth[t - 1, j]:  # tracked without depth at t-1: no cues there
                 continue
             assert c["track_age"][t, i] == c["track_age"][t - 1, j] + 1, (t, i)
             for name in ("cornerness_int", "cornerness_sim"):

@@ -113,6 +113,19 @@ def paper_variances(
     return Variances(var_pix, var_xyz)
 
 
+def pixel_only_variances(var: Variances, valid: Tensor, valid_xyz: Tensor) -> Variances:
+    """``var`` (the weighting's, over the features with depth ``valid_xyz`` (B, N)) with the features tracked without
+    depth (``valid`` and not ``valid_xyz``) at their sequence's mean pixel variance over the features with depth (eq.
+    11 normalises over those: the nominal ``sigma2_pix``; 1 px^2 where none has depth)."""
+    only = valid & ~valid_xyz
+    if not bool(only.any()):
+        return var
+    w = valid_xyz.to(var.var_pix.dtype)
+    mean = (var.var_pix * w).sum(-1, keepdim=True) / w.sum(-1, keepdim=True).clamp_min(1)
+    mean = torch.where(valid_xyz.any(-1, keepdim=True), mean, torch.ones_like(mean))
+    return Variances(torch.where(only, mean.expand_as(var.var_pix), var.var_pix), var.var_xyz)
+
+
 class PaperWeighting:
     """Eqs. (11)–(14) as a module: ``PaperWeighting(sigma2_pix, sigma2_xyz)(inputs) -> Variances``.
 

@@ -25,6 +25,7 @@ points_obj             (T, N, 3)     float32   model points X_o in ``obj``, m (t
 points_d               (T, N, 3)     float32   measured points X_d in ``cam``, m, eq. (6)
 pixels                 (T, N, 2)     float32   tracked pixels in the colour image, px, eq. (7)
 valid                  (T, N)        bool      the feature is measured (row 0, the first selection: all False)
+has_depth              (T, N)        bool      ... with its 3D point (eq. 6); valid and not has_depth: its pixel only
 cues                   (T, N, C)     float32   :data:`~torchtrack.filter.cues.CUE_NAMES`; zeros where not valid
 var_pix, var_xyz       (T, N)        float32   the recording weighting's variances, px^2 and m^2 (0 in row 0)
 reselected             (T,)          bool      a new model was taken at the END of frame t (row 0: the first model)
@@ -41,8 +42,8 @@ T_cam_obj_est          (T, 4, 4)     float64   the tracker's estimate (the back 
 =====================  ============  ========  =========================================================================
 
 Rows t >= 1 are the back end's input exactly as the tracker passed it (``points_obj``, ``points_d``, ``pixels``,
-``valid``, ``dt``, ``K``, ``T_color_depth``: :meth:`SequenceObservations.observation`), with its variances
-(:meth:`SequenceObservations.variances`). A frame t with ``reselected[t]`` is an update of the OLD model (its row
+``valid``, ``has_depth``, ``dt``, ``K``, ``T_color_depth``: :meth:`SequenceObservations.observation`), with its
+variances (:meth:`SequenceObservations.variances`). A frame t with ``reselected[t]`` is an update of the OLD model (its row
 belongs to model ``model_frame[t]``); the back end is reset to ``model_T_cam_obj[t]`` after it. Replaying the back
 end thus reproduces ``T_cam_obj_est``.
 
@@ -68,7 +69,7 @@ from torchtrack.geometry.rig import T_world_depth_from_color
 from torchtrack.io import write_atomic
 
 FORMAT = "torchtrack-observations"
-VERSION = 2  # 2: T_world_color_gt (was T_world_cam_gt); T_cam_obj_gt from the depth camera's ground truth
+VERSION = 3  # 3: has_depth (pixel-only features); 2: T_world_color_gt, T_cam_obj_gt from the depth camera's
 _META = ("sequence", "source", "config", "weighting")
 
 
@@ -89,6 +90,7 @@ class SequenceObservations:
     points_d: Tensor
     pixels: Tensor
     valid: Tensor
+    has_depth: Tensor
     cues: Tensor
     var_pix: Tensor
     var_xyz: Tensor
@@ -127,7 +129,7 @@ class SequenceObservations:
         dtype, s = self.points_obj.dtype, slice(t, t + 1)
         return Observation(
             self.dt[s].to(dtype), self.points_obj[s], self.points_d[s], self.pixels[s], self.valid[s],
-            self.K[None].to(dtype), self.T_color_depth[None].to(dtype),
+            self.K[None].to(dtype), self.T_color_depth[None].to(dtype), has_depth=self.has_depth[s],
         )  # fmt: skip
 
     def variances(self, t: int) -> Variances:
@@ -176,7 +178,8 @@ def _shapes(T: int, N: int) -> dict[str, tuple[tuple[int, ...], str]]:
     per_frame |= {k: ((T,), "b") for k in ("reselected", "gt_valid", "T_cam_obj_gt_valid")}
     per_frame |= {k: ((T, 4, 4), "f") for k in ("model_T_cam_obj", "T_world_color_gt", "T_cam_obj_gt", "T_cam_obj_est")}
     features = {"points_obj": ((T, N, 3), "f"), "points_d": ((T, N, 3), "f"), "pixels": ((T, N, 2), "f")}
-    features |= {"valid": ((T, N), "b"), "cues": ((T, N, C), "f"), "var_pix": ((T, N), "f"), "var_xyz": ((T, N), "f")}
+    features |= {"valid": ((T, N), "b"), "has_depth": ((T, N), "b"), "cues": ((T, N, C), "f")}
+    features |= {"var_pix": ((T, N), "f"), "var_xyz": ((T, N), "f")}
     const = {"K": ((3, 3), "f"), "K_depth": ((3, 3), "f"), "T_color_depth": ((4, 4), "f")}
     return {**per_frame, **features, **const, "model_frame": ((T,), "i")}
 

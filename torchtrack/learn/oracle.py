@@ -98,6 +98,7 @@ def oracle_windows(
         points_d=points_d,
         pixels=pixels,
         valid=torch.ones(T, B, N, dtype=torch.bool, device="cpu"),
+        has_depth=torch.ones(T, B, N, dtype=torch.bool, device="cpu"),
         cues=cues,
         K=K,
         T_color_depth=T_cd,

@@ -94,7 +94,7 @@ class ObservationLog:
                 raise ValueError("ObservationLog: the tracker did not compute cues (build it with record=True)")
             row |= dict(
                 dt=obs.dt[b].double(), points_obj=obs.points_obj[b], points_d=obs.points_d[b], pixels=obs.pixels[b],
-                valid=obs.valid_xyz[b], cues=res.cues[b], var_pix=res.variances.var_pix[b],
+                valid=obs.valid[b], has_depth=obs.valid_xyz[b], cues=res.cues[b], var_pix=res.variances.var_pix[b],
                 var_xyz=res.variances.var_xyz[b],
             )  # fmt: skip
         self.rows.append({k: v.detach().clone() for k, v in row.items()})
@@ -104,11 +104,13 @@ class ObservationLog:
         rows, T = self.rows, len(self.rows)
         N = max((r["valid"].shape[0] for r in rows if "valid" in r), default=0)
         like = next((r for r in rows if "valid" in r), None)
-        shapes = {"points_obj": 3, "points_d": 3, "pixels": 2, "valid": 0, "cues": len(CUE_NAMES)}
+        shapes = {"points_obj": 3, "points_d": 3, "pixels": 2, "valid": 0, "has_depth": 0, "cues": len(CUE_NAMES)}
         shapes |= {"var_pix": 0, "var_xyz": 0}
         features = {}
         for k, c in shapes.items():
-            dtype = like[k].dtype if like is not None else (torch.bool if k == "valid" else torch.float32)
+            dtype = (
+                like[k].dtype if like is not None else (torch.bool if k in ("valid", "has_depth") else torch.float32)
+            )
             out = torch.zeros(T, N, *((c,) if c else ()), dtype=dtype, device="cpu")
             for t, r in enumerate(rows):
                 if k in r:

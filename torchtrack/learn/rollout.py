@@ -24,7 +24,7 @@ from torch import Tensor
 from torchtrack.filter.cues import CUE_INDEX
 from torchtrack.filter.frame import Observation, ekf_frame
 from torchtrack.filter.fusion import FusionEKF
-from torchtrack.filter.weighting import Variances, WeightingInputs
+from torchtrack.filter.weighting import Variances, WeightingInputs, pixel_only_variances
 from torchtrack.geometry import T_inv
 
 
@@ -36,6 +36,7 @@ class Windows:
         start_T_cam_obj: (B, 4, 4) the filter's starting pose at the frame before the window (the model's pose, its
             ground truth, or the tracker's recorded estimate where it has none).
         dt: (T, B) seconds; points_obj, points_d: (T, B, N, 3); pixels: (T, B, N, 2); valid: (T, B, N) bool;
+        has_depth: (T, B, N) bool, the valid ones measured with their 3D point (the others: pixel only);
         cues: (T, B, N, C) (:data:`torchtrack.filter.cues.CUE_NAMES`).
         K: (B, 3, 3) colour intrinsics; T_color_depth: (B, 4, 4); focal: (B,) depth focal length (eq. 12's f).
         reselected: (T, B) bool, the model was re-selected after frame t's update; model_T_cam_obj: (T, B, 4, 4)
@@ -49,6 +50,7 @@ class Windows:
     points_d: Tensor
     pixels: Tensor
     valid: Tensor
+    has_depth: Tensor
     cues: Tensor
     K: Tensor
     T_color_depth: Tensor
@@ -64,7 +66,7 @@ class Windows:
 
     def observation(self, t: int) -> Observation:
         return Observation(self.dt[t], self.points_obj[t], self.points_d[t], self.pixels[t], self.valid[t], self.K,
-                           self.T_color_depth)  # fmt: skip
+                           self.T_color_depth, has_depth=self.has_depth[t])  # fmt: skip
 
     def weighting_inputs(self, t: int) -> WeightingInputs:
         """What a weighting sees at frame t: the winner's d_TIM (eq. 10) rebuilt from the cues, and the cues."""
@@ -73,7 +75,8 @@ class Windows:
             c[..., CUE_INDEX["sim_won"]] > 0.5, c[..., CUE_INDEX["d_tim_sim"]], c[..., CUE_INDEX["d_tim_int"]]
         )
         points_d = self.points_d[t]
-        return WeightingInputs(d_tim.to(points_d.dtype), points_d[..., 2], points_d, self.valid[t], self.focal, cues=c)
+        valid = self.valid[t] & self.has_depth[t]  # the weighting sees the features with depth, as in the tracker
+        return WeightingInputs(d_tim.to(points_d.dtype), points_d[..., 2], points_d, valid, self.focal, cues=c)
 
 
 def concat_windows(parts: list[Windows]) -> Windows:
@@ -82,7 +85,7 @@ def concat_windows(parts: list[Windows]) -> Windows:
     out = {}
     for f in fields(Windows):
         vals = [getattr(p, f.name) for p in parts]
-        if f.name in ("points_obj", "points_d", "pixels", "valid", "cues"):
+        if f.name in ("points_obj", "points_d", "pixels", "valid", "has_depth", "cues"):
             vals = [_pad_features(v, n) for v in vals]
         out[f.name] = torch.cat(vals, dim=0 if f.name in PER_WINDOW else 1)  # per window: (B, ...); else (T, B, ...)
     return Windows(**out)
@@ -129,7 +132,7 @@ def rollout(
     state = ekf.initial_state(win.start_T_cam_obj)
     poses, nll, n_used, vp, vx = [], [], [], [], []
     for t in range(win.frames):
-        var = weighting(win.weighting_inputs(t))
+        var = pixel_only_variances(weighting(win.weighting_inputs(t)), win.valid[t], win.valid[t] & win.has_depth[t])
         out = ekf_frame(ekf, state, win.observation(t), var, gate=gate, refit=refit, with_nll=with_nll)
         poses.append(out.T_cam_obj)
         nll.append(out.nll)

@@ -124,6 +124,7 @@ def sequence_windows(
         points_d=seq.points_d[rows],
         pixels=seq.pixels[rows],
         valid=seq.valid[rows],
+        has_depth=seq.has_depth[rows],
         cues=seq.cues[rows],
         K=seq.K.expand(B, 3, 3),
         T_color_depth=seq.T_color_depth.expand(B, 4, 4),

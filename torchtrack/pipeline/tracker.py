@@ -27,7 +27,7 @@ from torchtrack.estimators.backends import PoseBackend
 from torchtrack.estimators.base import masked_mean
 from torchtrack.filter.cues import stack_cues, window_cues
 from torchtrack.filter.frame import Observation
-from torchtrack.filter.weighting import Variances, WeightingInputs
+from torchtrack.filter.weighting import Variances, WeightingInputs, pixel_only_variances
 from torchtrack.frontend import FrontEnd, PreparedFrame, is_registered
 from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, se3_log, transform_points
 from torchtrack.image.flow import TrackResult
@@ -129,7 +129,7 @@ class Tracker:
             cues = self._cues(s, cur, track, points_d, valid_xyz) if self.wants_cues else None
             var = self.weighting(WeightingInputs(track.d_tim, points_d[..., 2], points_d, valid_xyz,
                                                  frame.K_depth[:, 0, 0], cues=cues))  # eqs. (11)-(14)  # fmt: skip
-            var = _pixel_only(var, valid, valid_xyz)
+            var = pixel_only_variances(var, valid, valid_xyz)
             obs = Observation(_dt(frame, s).to(points_d.dtype), s.points_obj, points_d, track.points, valid, frame.K,
                               frame.T_color_depth, has_depth=has_depth)  # fmt: skip
             est = self.backend.step(obs, var, active=frame.active)  # eqs. (2)-(7), (15)
@@ -336,18 +336,6 @@ class Tracker:
 def _dt(frame: FrameBatch, s: TrackerState) -> Tensor:
     """(B,) float64 seconds since the previous frame (at least 1 ms: repeated time stamps)."""
     return (frame.timestamp - s.timestamp).double().clamp_min(1e-3)
-
-
-def _pixel_only(var: Variances, valid: Tensor, valid_xyz: Tensor) -> Variances:
-    """``var`` with the features tracked without depth (``valid`` (B, N), not ``valid_xyz``) at their sequence's mean
-    pixel variance over the features with depth (eq. 11 normalises over those; the nominal ``sigma2_pix``)."""
-    only = valid & ~valid_xyz
-    if not bool(only.any()):
-        return var
-    w = valid_xyz.to(var.var_pix.dtype)
-    mean = (var.var_pix * w).sum(1, keepdim=True) / w.sum(1, keepdim=True).clamp_min(1)
-    mean = torch.where(valid_xyz.any(1, keepdim=True), mean, var.var_pix.new_ones(()))
-    return Variances(torch.where(only, mean.expand_as(var.var_pix), var.var_pix), var.var_xyz)
 
 
 def _result(s: TrackerState, winner: Tensor | None, d_tim: Tensor | None, reselected: Tensor, **extra) -> StepResult:

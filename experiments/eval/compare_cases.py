@@ -1,6 +1,6 @@
-"""Per-case ATE of several bench.sh labels side by side, each as a ratio to the first, and their geometric means.
+"""Per-case ATE of several bench_cases.sh labels side by side, each as a ratio to the first, and their geometric means.
 
-python compare.py BASE LABEL [LABEL ...]     # reads $BENCH/LABEL/summary.txt (default /tmp/bench)
+python compare_cases.py BASE LABEL [LABEL ...]     # reads $BENCH/LABEL/summary.txt (default /tmp/bench)
 """
 
 import math
