@@ -128,10 +128,10 @@ def test_unregistered_trajectory_matches_ground_truth_without_alignment(tracked)
 
 
 def test_unregistered_tracks_within_1_3x_the_registered(tracked):
-    """The default configuration. Measured: ATE (SE(3)-aligned) 0.66 vs 0.86 mm (0.77x). Before the features'
-    depth was read where their rays meet the depth camera's surface (:func:`torchtrack.geometry.depth_along_rays`),
-    from the forward warp instead: 1.83 vs 0.86 mm (2.1x; 1.42 vs 1.23 with the online noise scale off): the warp's
-    resampling errors, which are not white, weighed too much once the scale had learned how exact this render is."""
+    """The default configuration. Measured: ATE (SE(3)-aligned) 0.66 vs 0.86 mm (0.77x), each feature's depth read
+    where its ray meets the depth camera's surface (:func:`torchtrack.geometry.depth_along_rays`). Read from the
+    forward warp instead: 1.83 vs 0.86 mm (2.1x; 1.42 vs 1.23 with the online noise scale off): the warp's resampling
+    errors, which are not white, weigh too much once the scale has learned how exact this render is."""
     gt, out = tracked
     t = np.arange(FRAMES) / 30.0
     reg, unreg = (trajectory_metrics(t, out[k][0], gt)["ate_rmse_m"] for k in ("registered", "unregistered"))

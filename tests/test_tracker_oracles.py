@@ -76,8 +76,8 @@ def test_unregistered_depth_end_to_end(renders):
 
     Measured (noise-free, 320 x 240, 12 frames, ATE of the colour camera's poses, torchtrack.geometry.rig; the default
     configuration): registered 0.80 mm, unregistered 0.76 mm (each feature's depth where its ray meets the depth
-    camera's surface, :func:`torchtrack.geometry.depth_along_rays`), unregistered read as registered 3.66 mm. Before
-    that, with the depth read from the z-buffered forward warp: 1.68 mm (2.1x; its resampling errors, which are not
+    camera's surface, :func:`torchtrack.geometry.depth_along_rays`), unregistered read as registered 3.66 mm. With
+    the features' depth read from the z-buffered forward warp instead: 1.68 mm (2.1x; its resampling errors, which are not
     white, weighed too much under the online noise scale; 1.60 vs 1.09 mm with the scale off). Bound: the registered
     accuracy within 2x, and half the error of ignoring the second camera
     (tests/test_rig.py holds a 10 cm lever arm to 1.3x, unaligned).

@@ -4,13 +4,12 @@ Each YAML file under ``conf/<group>/`` starts from its schema (``defaults: [/sch
 only changes values, so Hydra checks types when the config is composed (``data.depth_scale=abc`` fails there) and the
 schema's ``__post_init__`` checks ranges when :func:`validate` turns a node into its dataclass.
 
-Defaults. The schemas hold torchtrack's defaults (the improvements on); the classes and functions they configure
-take the same values as literals in their signatures, so that the kernels need no Hydra (``tests/test_config.py``
-and ``tests/test_defaults.py`` keep the two equal). The paper's values are one file, ``conf/experiment/paper.yaml``
-(``+experiment=paper``). The data group's schemas are in :mod:`torchtrack.data.schema`.
-
-Derived knobs are resolved in one place, :func:`torchtrack.factory.build_tracker`: the front end's pyramid levels
-are the LK tracker's (``flow.levels``). The measurement variances belong to the weighting, not to the filter.
+Defaults. The schemas hold torchtrack's defaults (the improvements on); the classes and functions they configure take
+the same values as literals in their signatures, so that the kernels need no Hydra (``tests/test_config.py`` and
+``tests/test_defaults.py`` keep the two equal). The paper's values are one file, ``conf/experiment/paper.yaml``
+(``+experiment=paper``). The data group's schemas are in :mod:`torchtrack.data.schema`. Derived knobs are resolved in
+one place, :func:`torchtrack.factory.build_tracker`: the front end's pyramid levels are the LK tracker's
+(``flow.levels``). The measurement variances belong to the weighting, not to the filter.
 """
 
 from __future__ import annotations

@@ -132,7 +132,8 @@ def rollout(
     state = ekf.initial_state(win.start_T_cam_obj)
     poses, nll, n_used, vp, vx = [], [], [], [], []
     for t in range(win.frames):
-        var = pixel_only_variances(weighting(win.weighting_inputs(t)), win.valid[t], win.valid[t] & win.has_depth[t])
+        inputs = win.weighting_inputs(t)  # over the features with depth, as in the tracker
+        var = pixel_only_variances(weighting(inputs), win.valid[t], inputs.valid)
         out = ekf_frame(ekf, state, win.observation(t), var, gate=gate, refit=refit, with_nll=with_nll)
         poses.append(out.T_cam_obj)
         nll.append(out.nll)

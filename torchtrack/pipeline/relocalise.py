@@ -199,31 +199,27 @@ class Relocaliser:
         loss = decision.loss
         return ~loss.interrupted & (~loss.lost | loss.relocalised)
 
-    def add(self, slot: Tensor, frame, cur: PreparedFrame, T_world_depth: Tensor) -> None:
+    def add(self, slot: Tensor, cur: PreparedFrame, measure: Measure, T_world_depth: Tensor) -> None:
         """Attach the ORB descriptors of the current frame (prepared as ``cur``, camera ``T_world_depth`` (B, 4, 4)) and
-        their 3D points in the tracker's world to the keyframes ``slot`` (B,) the store just took (-1: none); only
-        when relocalisation is on (``recover``)."""
+        their 3D points (the frame's ``measure``, eq. 6) in the tracker's world to the keyframes ``slot`` (B,) the store
+        just took (-1: none); only when relocalisation is on (``recover``)."""
         for b in (slot >= 0).nonzero()[:, 0].tolist():
-            self.orb[b][int(slot[b])] = self._describe(frame, cur, b, T_world_depth[b]) if self.recover else None
+            kf = self._describe(cur, measure.row(b), b, T_world_depth[b]) if self.recover else None
+            self.orb[b][int(slot[b])] = kf
 
     # ---------------------------------------------------------------------------------------------- internals
     def _agrees(self, T_a: Tensor, T_b: Tensor) -> bool:
         E = T_inv(T_a.double()) @ T_b.double()
         return bool(E[:3, 3].norm() <= self.agree_m) and bool(rotation_angle(E[:3, :3]) <= self.agree_rad)
 
-    @staticmethod
-    def _points(frame, cur: PreparedFrame, b: int, pixels: np.ndarray) -> tuple[Tensor, Tensor]:
-        """3D points (M, 3) in sequence b's depth camera at colour ``pixels`` (M, 2), and has-depth (M,)."""
-        px = torch.from_numpy(pixels)[None].to(cur.depth.device)
-        p, ok = Measure(cur.depth[b : b + 1], frame.K[b : b + 1], frame.T_color_depth[b : b + 1])(px)
-        return p[0].double(), ok[0]
-
-    def _describe(self, frame, cur: PreparedFrame, b: int, T_world_depth: Tensor) -> Keyframe | None:
-        """Sequence b's current frame (a keyframe) as ORB descriptors and world points; None with too few."""
+    def _describe(self, cur: PreparedFrame, measure: Measure, b: int, T_world_depth: Tensor) -> Keyframe | None:
+        """Sequence b's current frame (a keyframe; ``measure``: its measurement, B = 1) as ORB descriptors and world
+        points; None with too few."""
         pixels, desc = orb_features(cur.gray[b, 0], self.n_orb)
         if desc is None:
             return None
-        points, ok = self._points(frame, cur, b, pixels)
+        points, ok = measure(torch.from_numpy(pixels)[None].to(cur.depth.device))
+        points, ok = points[0].double(), ok[0]
         world = (points @ T_world_depth[:3, :3].T.double() + T_world_depth[:3, 3].double())[ok].cpu().numpy()
         return Keyframe(desc[ok.cpu().numpy()], world) if len(world) >= self.min_inliers else None
 

@@ -42,6 +42,10 @@ class Measure(NamedTuple):
         points = transform_points(T_inv(self.T_color_depth), backproject(self.K, pixels, z))
         return points, z > 0
 
+    def row(self, b: int) -> Measure:
+        """The measurement of sequence b alone (B = 1)."""
+        return Measure(*(None if x is None else x[b : b + 1] for x in self))
+
 
 @dataclass
 class StepResult:

@@ -133,15 +133,14 @@ class Tracker:
             obs = Observation(_dt(frame, s).to(points_d.dtype), s.points_obj, points_d, track.points, valid, frame.K,
                               frame.T_color_depth, has_depth=has_depth)  # fmt: skip
             est = self.backend.step(obs, var, active=frame.active)  # eqs. (2)-(7), (15)
-            T_cam_obj = est.T_cam_obj.double()
-            tracked = self._advanced(s, frame, cur, track.points, valid, valid_xyz, T_cam_obj, points_d,
+            tracked = self._advanced(s, frame, cur, track.points, valid, valid_xyz, est.T_cam_obj.double(), points_d,
                                      var)  # outliers, eq. (16)  # fmt: skip
             reselect = self.reselect.needed(tracked.valid & valid_xyz, tracked.n_model, frame.active)  # few with depth
             self.state, model = self._reselected(tracked, frame, cur, measure, reselect)  # §III-B
             res = _result(tracked, track.winner, track.d_tim, reselect, observation=obs, variances=var, cues=cues,
                           model_T_cam_obj=model, estimate=est)  # fmt: skip
         res, trusted = self._loss_check(frame, cur, measure, res, s)
-        self._keyframe(frame, cur, self.keyframes.due(res.reselected, frame.active) & trusted, res.reselected)
+        self._keyframe(frame, cur, measure, self.keyframes.due(res.reselected, frame.active) & trusted, res.reselected)
         return res
 
     # ---------------------------------------------------------------------------------------------- per frame
@@ -316,7 +315,8 @@ class Tracker:
         landmarks = Kept(acq.pixels, points, found, torch.zeros_like(found, dtype=torch.long), acq.cornerness)
         return kept.cat(landmarks), found.sum(1), T_world_depth
 
-    def _keyframe(self, frame: FrameBatch, cur: PreparedFrame, due: Tensor, reselected: Tensor) -> None:
+    def _keyframe(self, frame: FrameBatch, cur: PreparedFrame, measure: Measure, due: Tensor,
+                  reselected: Tensor) -> None:  # fmt: skip
         """The current frame of the sequences in ``due`` (B,) becomes a keyframe at the camera pose of the state (where
         ``reselected`` (B,) a model keyframe, with the new model's features); the landmarks (model keyframes) and the
         relocaliser (every keyframe) attach their content to it."""
@@ -329,7 +329,7 @@ class Tracker:
             self.landmarks.add(self.keyframes, torch.where(reselected, slot, -1), cur, s.pixels, world, s.cornerness,
                                s.valid)  # fmt: skip
         if self.relocaliser is not None:
-            self.relocaliser.add(slot, frame, cur, s.T_world_depth)
+            self.relocaliser.add(slot, cur, measure, s.T_world_depth)
 
 
 # ---------------------------------------------------------------------------------------------- helpers
