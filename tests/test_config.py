@@ -42,6 +42,7 @@ from torchtrack.learn.checkpoint import save_checkpoint
 from torchtrack.learn.model import LearnedWeighting
 from torchtrack.mapping import PanoramaMapper
 from torchtrack.pipeline import Tracker
+from torchtrack.pipeline.dense_map import DenseMap
 from torchtrack.pipeline.keyframes import KeyframeStore
 from torchtrack.pipeline.landmarks import LandmarkMap
 from torchtrack.pipeline.outliers import ResidualDrop
@@ -169,7 +170,7 @@ def test_paper_values_stay_reachable():
     assert list(values.pop("defaults")) == [{"override /weighting": "paper_as_written"}]
     weighting.pop("defaults")
     values.weighting = weighting
-    assert len(values) == 9 and paper.filter.state == "euler"  # groups
+    assert len(values) == 10 and paper.filter.state == "euler"  # groups
     for group, node in values.items():
         for key, value in node.items():
             assert paper[group][key] == value and ours[group][key] != value, f"{group}.{key}"
@@ -319,11 +320,11 @@ def test_pipeline_stages_and_mapper_direct_equal_cli(cli):
     stages with its policy stages left to their defaults."""
     per_frame = dict(region=cli.reselect.region, select=cli.reselect.select)
     stages = dict(frontend=cli.frontend, flow=cli.flow, weighting=cli.weighting, backend=cli.backend,
-                  reselect=Reselection(**per_frame), landmarks=cli.landmarks, relocaliser=cli.relocaliser)  # fmt: skip
+                  reselect=Reselection(**per_frame), landmarks=cli.landmarks, relocaliser=cli.relocaliser, dense=cli.dense)  # fmt: skip
     assert _state(Tracker(**stages)) == _state(cli)
     assert _state(Reselection(**per_frame)) == _state(cli.reselect)
     assert _state(ResidualDrop()) == _state(cli.outliers) and _state(KeyframeStore()) == _state(cli.keyframes)
-    assert _state(LandmarkMap()) == _state(cli.landmarks)
+    assert _state(LandmarkMap()) == _state(cli.landmarks) and _state(DenseMap()) == _state(cli.dense)
     assert _state(Relocaliser()) == _state(cli.relocaliser)
     assert _state(PanoramaMapper()) == _state(build_mapper(config("mapping=panorama")))
 

@@ -159,6 +159,10 @@ def test_voxel_map_equals_a_direct_numpy_computation():
         np.testing.assert_array_equal(got.count.numpy(), count)  # key order = (i, j, k) order
         np.testing.assert_allclose(got.xyz.numpy(), xyz, atol=1e-12)
         np.testing.assert_allclose(got.rgb.numpy(), rgb, atol=1e-6)
+        loose = m.points(s, ordered=False)  # the same points, the sort saved: the same rows, permuted
+        order = torch.argsort(loose.xyz[:, 0] * 1e6 + loose.xyz[:, 1] * 1e3 + loose.xyz[:, 2])
+        same = torch.argsort(got.xyz[:, 0] * 1e6 + got.xyz[:, 1] * 1e3 + got.xyz[:, 2])
+        assert torch.equal(loose.xyz[order], got.xyz[same]) and torch.equal(loose.count[order], got.count[same])
 
 
 def test_clear_releases_one_map_and_keeps_the_others():

@@ -33,9 +33,7 @@ VIEW_SIZE = (480, 640)  # the map views' [H, W] (MappingConfig.view_size; a list
 REGISTRATION_BACKEND = "torchtrack.estimators.backends.RegistrationBackend"
 
 
-# --- data: torchtrack/data/schema.py ---------------------------------------------------------------------------
-
-# --- front end --------------------------------------------------------------------------------------------------
+# --- data: torchtrack/data/schema.py; front end -----------------------------------------------------------------------
 
 
 @dataclass
@@ -84,9 +82,7 @@ class FlowConfig:
     min_eig: float = 1.0e-4  # minimum eigenvalue of the 2x2 gradient matrix (normalised, as OpenCV)
     ic_iters: int = 3  # inverse-compositional iterations before Newton steps
     backend: str = "torch"  # torch | opencv (cv2.calcOpticalFlowPyrLK, reference)
-    lk_backend: str = (
-        "auto"  # auto | cpp | torch: torch LK as the compiled operator (auto: where it builds) or pure torch
-    )
+    lk_backend: str = "auto"  # auto | cpp | torch: LK as the compiled operator (auto: where it builds) or pure torch
     policy: str = "fallback"  # improvement (paper: min_tim): the SIM tracker only where the intensity tracker failed
 
 
@@ -97,9 +93,7 @@ class FrontendConfig:
     _target_: str = "torchtrack.frontend.FrontEnd"
     use_sim: bool = True  # compute the SIM (SIM-assisted tracking, lambda < 1 selection)
     sim_kwargs: dict[str, Any] | None = None
-    sim_backend: str = (
-        "auto"  # auto | cpp | torch: the SIM as the compiled operator (auto: where it builds) or pure torch
-    )
+    sim_backend: str = "auto"  # auto | cpp | torch: the SIM as the compiled operator (auto: where it builds) or torch
     ahead: bool = True  # prepare the next frame (SIM, pyramids) in a thread while this one is tracked; same results
 
 
@@ -120,12 +114,8 @@ class FilterConfig:
     init_sigma_lin_vel: float = 0.5  # m/s
     iterations: int = 1  # 1 = the paper's EKF; > 1 = iterated EKF
     form: str = "information"  # information (fast) | gain (the paper's eq. 15, slow)
-    # analytic (closed form, ~10x faster; equal to autograd to 1e-10, same trajectories) | forward (torch.func.jacfwd)
-    # | reverse (jacrev)
-    jacobian: str = "analytic"
-    # se3 (improvement: a local error state on SE(3), regular at every attitude) | euler (the paper's eq. 2: Euler
-    # angles, singular at 90 deg pitch; +experiment=paper)
-    state: str = "se3"
+    jacobian: str = "analytic"  # analytic (closed form, ~10x faster, = autograd to 1e-10) | forward | reverse
+    state: str = "se3"  # improvement: an error state on SE(3), regular everywhere | euler (the paper's eq. 2)
     gate: float | None = 0.999  # improvement (null = paper): chi-square gate on each feature's innovations
     refit: float | None = 0.999  # improvement (null = paper): re-update without features failing this quantile
     noise_scale: bool = True  # improvement (false = paper): online R scale per block (pix, 3D), from the residuals
@@ -239,9 +229,8 @@ class ReselectConfig:
     edge_step: float | None = 0.03  # improvement (null = paper): no features where depth jumps > 3% in 5x5 px
     keep_survivors: bool = True  # improvement (false = paper): a re-selection keeps the features still tracked
     min_separation_px: float = 8.0  # ... and adds new ones only this far from a survivor (or a re-acquired landmark)
-    # improvement (off = paper: a model point is the selection's one depth sample): each model point is the
-    # information-weighted mean of its feature's depth samples, moved into the model frame by the filter's pose;
-    # survivors carry it into the next model (torchtrack.pipeline.reselect.fuse_points)
+    # improvement (off = paper: one depth sample): a model point is the information-weighted mean of its feature's
+    # depth samples in the model frame; survivors carry it (torchtrack.pipeline.reselect.fuse_points)
     point_mean: str = "reselect"
 
 
@@ -290,6 +279,17 @@ class LandmarkConfig:
 
 
 @dataclass
+class DenseMapConfig:
+    """:class:`torchtrack.pipeline.dense_map.DenseMap`: the keyframes' depth as a map, the model's world pose aligned to
+    it (the tracker's ``dense``; none when ``enabled`` is false)."""
+
+    _target_: str = "torchtrack.pipeline.dense_map.DenseMap"
+    enabled: bool = True  # improvement (false = paper): the model placed on a dense map, not only chained
+    voxel_size: float = 0.01  # m, the map's voxel edge (one point per occupied voxel)
+    every: int = 10  # the camera aligned to the map at a re-selection and this many frames after the last alignment
+
+
+@dataclass
 class RelocaliseConfig:
     """:class:`torchtrack.pipeline.relocalise.Relocaliser`: the loss check after each frame and relocalisation by ORB
     matches against recent model frames + PnP RANSAC (the tracker's ``relocaliser``)."""
@@ -334,9 +334,8 @@ class MappingConfig:
             if getattr(self, key) <= 0:
                 raise DataError(f"mapping.{key} must be > 0, got {getattr(self, key)}")
         if self.pixel_stride < 1 or (self.every is not None and self.every < 1):
-            raise DataError(
-                f"mapping.pixel_stride and mapping.every must be >= 1, got {self.pixel_stride}, {self.every}"
-            )
+            raise DataError(f"mapping.pixel_stride and mapping.every must be >= 1, got {self.pixel_stride}, "
+                            f"{self.every}")  # fmt: skip
         if not 0 <= self.min_depth < self.max_depth or len(self.view_size) != 2 or min(self.view_size) < 16:
             raise DataError(f"mapping: need 0 <= min_depth < max_depth and view_size [H, W] >= 16, got "
                             f"{self.min_depth}, {self.max_depth}, {self.view_size}")  # fmt: skip
@@ -357,6 +356,7 @@ SCHEMAS: dict[str, dict[str, type]] = {
     "outliers": {"outliers": OutlierConfig},
     "keyframes": {"keyframes": KeyframeConfig},
     "landmarks": {"landmarks": LandmarkConfig},
+    "dense": {"dense": DenseMapConfig},
     "relocalise": {"relocalise": RelocaliseConfig},
     "mapping": {"mapping": MappingConfig},
 }

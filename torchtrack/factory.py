@@ -115,6 +115,7 @@ def build_tracker(cfg: DictConfig, *, record: bool = False) -> Tracker:
         keyframes=instantiate(cfg.keyframes),
         landmarks=build_landmarks(cfg),
         relocaliser=build_relocaliser(cfg),
+        dense=build_dense(cfg),
         record=record or cfg.pipeline.record,
     )
 
@@ -122,7 +123,17 @@ def build_tracker(cfg: DictConfig, *, record: bool = False) -> Tracker:
 def build_landmarks(cfg: DictConfig):
     """The tracker's landmark stage (:class:`torchtrack.pipeline.landmarks.LandmarkMap`) from ``cfg.landmarks``, or
     None when ``landmarks.enabled`` is false."""
-    node = cfg.get("landmarks")
+    return _enabled(cfg.get("landmarks"))
+
+
+def build_dense(cfg: DictConfig):
+    """The tracker's dense map (:class:`torchtrack.pipeline.dense_map.DenseMap`) from ``cfg.dense``, or None when
+    ``dense.enabled`` is false."""
+    return _enabled(cfg.get("dense"))
+
+
+def _enabled(node: DictConfig | None):
+    """The stage of ``node`` without its ``enabled`` key, or None when there is no node or it is not enabled."""
     if node is None or not node.enabled:
         return None
     kwargs = OmegaConf.to_container(node, resolve=True)

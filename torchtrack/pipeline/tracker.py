@@ -31,6 +31,7 @@ from torchtrack.filter.weighting import Variances, WeightingInputs, pixel_only_v
 from torchtrack.frontend import FrontEnd, PreparedFrame, is_registered
 from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, se3_log, transform_points
 from torchtrack.image.flow import TrackResult
+from torchtrack.pipeline.dense_map import DenseMap
 from torchtrack.pipeline.keyframes import KeyframeStore
 from torchtrack.pipeline.landmarks import LandmarkMap
 from torchtrack.pipeline.outliers import ResidualDrop, feature_residuals
@@ -91,6 +92,7 @@ class Tracker:
         keyframes: KeyframeStore | None = None,
         landmarks: LandmarkMap | None = None,
         relocaliser: Relocaliser | None = None,
+        dense: DenseMap | None = None,
         predict_init: bool = True,
         pixel_only: bool = True,
         record: bool = False,
@@ -99,7 +101,7 @@ class Tracker:
         self.reselect = reselect
         self.outliers = outliers if outliers is not None else ResidualDrop()
         self.keyframes = keyframes if keyframes is not None else KeyframeStore()
-        self.landmarks, self.relocaliser = landmarks, relocaliser
+        self.landmarks, self.relocaliser, self.dense = landmarks, relocaliser, dense
         self.predict_init, self.pixel_only, self.record = predict_init, pixel_only, record
         self.state = TrackerState()
 
@@ -136,6 +138,7 @@ class Tracker:
             tracked = self._advanced(s, frame, cur, track.points, valid, valid_xyz, est.T_cam_obj.double(), points_d,
                                      var)  # outliers, eq. (16)  # fmt: skip
             reselect = self.reselect.needed(tracked.valid & valid_xyz, tracked.n_model, frame.active)  # few with depth
+            tracked = self._placed(tracked, frame, cur, reselect)  # the model's world pose, on the dense map
             self.state, model = self._reselected(tracked, frame, cur, measure, reselect)  # §III-B
             res = _result(tracked, track.winner, track.d_tim, reselect, observation=obs, variances=var, cues=cues,
                           model_T_cam_obj=model, estimate=est)  # fmt: skip
@@ -199,6 +202,25 @@ class Tracker:
         est = self.reselect.fused(est, T_cam_obj, points_d, var.var_xyz, s.valid & valid_xyz)
         return replace(s, points_mean=est.mean, points_info=est.info)
 
+    def _placed(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, reselect: Tensor) -> TrackerState:
+        """``s`` with the model moved in the world (``T_world_obj``) so that the camera is where the dense map puts it
+        (:meth:`DenseMap.align`), in the sequences it is due for (a re-selection anchors the new model there); the
+        model's pose in the camera, hence the features and the filter, unchanged."""
+        if self.dense is None:
+            return s
+        due = self.dense.due(reselect, frame.active)
+        if not due.any():
+            return s
+        T_cd = frame.T_color_depth.double()
+        al = self.dense.align(self._region_depth(cur), frame.K, s.T_world_depth @ T_inv(T_cd), due)
+        T_world_depth = torch.where(al.applied[:, None, None], al.T_world_color @ T_cd, s.T_world_depth)
+        return replace(s, T_world_obj=T_world_depth @ s.T_cam_obj)
+
+    def _region_depth(self, cur: PreparedFrame) -> Tensor:
+        """(B, 1, H, W) the registered depth inside the model's region (the object, or the scene), 0 elsewhere: what
+        the dense map holds (a moving object's background must not pull its pose)."""
+        return torch.where(self.reselect.region(cur.depth), cur.depth, torch.zeros_like(cur.depth))
+
     def _loss_check(self, frame: FrameBatch, cur: PreparedFrame, measure: Measure, res: StepResult,
                     before: TrackerState) -> tuple[StepResult, Tensor]:  # fmt: skip
         """The relocaliser's loss check of this frame (``before``: the state the frame was tracked from) and its
@@ -240,6 +262,8 @@ class Tracker:
             self.landmarks.reset()
         if self.relocaliser is not None:
             self.relocaliser.reset(B, self.keyframes.slots, dev)
+        if self.dense is not None:
+            self.dense.reset(B, dev)
         everyone = torch.ones(B, dtype=torch.bool, device=dev)
         self.state, model_T_cam_obj = self._new_model(s, frame, cur, measure, everyone)
         return _result(self.state, None, None, everyone, model_T_cam_obj=model_T_cam_obj)
@@ -330,6 +354,9 @@ class Tracker:
                                s.valid)  # fmt: skip
         if self.relocaliser is not None:
             self.relocaliser.add(slot, cur, measure, s.T_world_depth)
+        if self.dense is not None:
+            T_world_color = s.T_world_depth @ T_inv(frame.T_color_depth.double())
+            self.dense.add(self._region_depth(cur), frame.K, T_world_color, due)
 
 
 # ---------------------------------------------------------------------------------------------- helpers

@@ -1,0 +1,211 @@
+"""A dense map that remembers, and the model placed on it (frame-to-model, point-to-plane).
+
+The map (:class:`DenseMap`) is one :class:`~torchtrack.mapping.voxel_grid.VoxelPointMap` per sequence: the depth of
+the keyframes, placed by their poses, averaged per voxel (one point per occupied voxel, so memory grows with the
+volume seen, not with the frames; an index in space). Every ``every`` frames and at every re-selection, the tracker's
+current camera is aligned to it (:meth:`DenseMap.align`): the map points predicted visible from the camera are
+projected into the current depth image and each is paired with the surface point seen at its pixel; Gauss-Newton on
+the point-to-plane distances ``n . (T p - v)`` (n the current frame's normal at v), Huber-weighted, with the tracker's
+camera as a prior, gives the posterior camera. The tracker then moves its model in the world (``T_world_obj``) so that
+the camera is there: the features and the filter are untouched (they measure the camera against the model), and the
+model's world pose, which a chain of re-selections would only accumulate, is estimated against everything the camera
+saw before, however long ago.
+
+Frames: ``world`` is the tracker's world (its first depth camera); the alignment works in the colour camera, whose
+grid the registered depth is in.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchtrack.geometry import T_inv, backproject_depth, rotation_angle, se3_exp, transform_points
+from torchtrack.mapping.voxel_grid import VoxelPointMap
+
+
+class Alignment(NamedTuple):
+    """T_world_color (B, 4, 4) float64 the aligned colour cameras (the input where not ``applied``); applied (B,)
+    bool; pairs (B,) long the map points paired with the surface in the last iteration (0 where not aligned)."""
+
+    T_world_color: Tensor
+    applied: Tensor
+    pairs: Tensor
+
+
+def surface(depth: Tensor, K: Tensor, stride: int, max_step: float = 0.05) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The surface of a depth image (B, 1, H, W) at every ``stride``-th pixel: vertices (B, h, w, 3) in the camera of
+    K (B, 3, 3), unit normals (B, h, w, 3) (the cross product of the central differences), valid (B, h, w) (depth
+    there and at the four neighbours, none farther than ``max_step`` x z in depth: no normal across a depth step),
+    and the intrinsics of the strided grid (B, 3, 3)."""
+    d = depth[:, :, ::stride, ::stride]
+    Ks = K.to(d.dtype).clone()
+    Ks[:, :2] /= stride  # pixel (i, j) of the grid is pixel (i, j) x stride of the image
+    V = backproject_depth(Ks, d)
+    z = d[:, 0]
+    n = torch.linalg.cross(V[:, 1:-1, 2:] - V[:, 1:-1, :-2], V[:, 2:, 1:-1] - V[:, :-2, 1:-1])
+    zc = z[:, 1:-1, 1:-1]
+
+    def near(a: Tensor) -> Tensor:
+        return (a > 0) & ((a - zc).abs() <= max_step * zc)
+
+    N = torch.zeros_like(V)
+    N[:, 1:-1, 1:-1] = n / torch.linalg.vector_norm(n, dim=-1, keepdim=True).clamp_min(1e-12)
+    valid = torch.zeros_like(z, dtype=torch.bool)
+    valid[:, 1:-1, 1:-1] = (zc > 0) & near(z[:, 1:-1, 2:]) & near(z[:, 1:-1, :-2]) & near(z[:, 2:, 1:-1])
+    valid[:, 1:-1, 1:-1] &= near(z[:, :-2, 1:-1])
+    return V, N, valid, Ks
+
+
+class DenseMap:
+    """B dense point maps of the keyframes' depth, and a camera aligned to them.
+
+    Args:
+        voxel_size: map voxel edge, metres (one point per occupied voxel: the mean of the points that fell in it).
+        every: the tracker aligns its camera at every re-selection and every this many frames (:meth:`due`).
+        stride: the depth is used at every ``stride``-th pixel (map and alignment).
+        max_points: at most this many visible map points per alignment (evenly thinned).
+        iterations: Gauss-Newton iterations.
+        max_distance_m: a pair farther apart along the normal (or twice this in space) is not used: occluded, or
+            another surface.
+        huber_m: Huber threshold of the point-to-plane distance.
+        sigma_m: the point-to-plane distance's standard deviation at 1 m, times max(1, z^2) (the depth noise).
+        prior_m, prior_deg: standard deviations of the tracker's camera as the prior (translation, rotation).
+        min_pairs: fewer pairs at the end: no correction.
+        max_correction_m, max_correction_deg: a larger correction is not applied (a wrong fit, not drift).
+        max_depth: depth beyond this (metres) enters neither the map nor the alignment.
+        converged: a correction is applied only when the last Gauss-Newton step's largest component is below this
+            (metres and radians): else the fit was in a wrong basin, or still on its way.
+    """
+
+    def __init__(
+        self,
+        *,
+        voxel_size: float = 0.01,
+        every: int = 10,
+        stride: int = 4,
+        max_points: int = 10000,
+        iterations: int = 8,
+        max_distance_m: float = 0.05,
+        huber_m: float = 0.01,
+        sigma_m: float = 0.005,
+        prior_m: float = 0.05,
+        prior_deg: float = 3.0,
+        min_pairs: int = 500,
+        max_correction_m: float = 0.1,
+        max_correction_deg: float = 5.0,
+        max_depth: float = 4.0,
+        converged: float = 1e-3,
+    ) -> None:
+        if voxel_size <= 0 or every < 1 or stride < 1 or iterations < 1 or max_points < 1:
+            raise ValueError(f"DenseMap: need voxel_size > 0 and every, stride, iterations, max_points >= 1; got "
+                             f"{voxel_size}, {every}, {stride}, {iterations}, {max_points}")  # fmt: skip
+        self.voxel_size, self.every, self.stride, self.max_points = voxel_size, every, stride, max_points
+        self.iterations, self.max_distance_m, self.huber_m, self.sigma_m = iterations, max_distance_m, huber_m, sigma_m
+        self.prior_m, self.prior_deg, self.min_pairs = prior_m, prior_deg, min_pairs
+        self.max_correction_m, self.max_correction_deg, self.max_depth = max_correction_m, max_correction_deg, max_depth
+        self.converged = converged
+        self.map: VoxelPointMap | None = None
+        self.since: Tensor | None = None  # frames since each sequence's last alignment
+
+    def reset(self, B: int, device: torch.device | str = "cpu") -> None:
+        """Empty maps for B sequences."""
+        self.map = VoxelPointMap(voxel_size=self.voxel_size, batch_size=B, device=device)
+        self.since = torch.zeros(B, dtype=torch.long, device=device)
+
+    def due(self, reselect: Tensor, active: Tensor) -> Tensor:
+        """(B,) bool: the ``active`` (B,) sequences whose camera is aligned this frame: a new model is taken
+        (``reselect`` (B,)) or ``every`` frames passed since the last alignment. Counts the frame."""
+        if self.since is None:
+            raise ValueError("DenseMap: call reset(B) before due")
+        self.since = self.since + active.long()
+        out = active & (reselect | (self.since >= self.every))
+        self.since = torch.where(out, 0, self.since)
+        return out
+
+    def add(self, depth: Tensor, K: Tensor, T_world_color: Tensor, mask: Tensor) -> None:
+        """Fuse the registered depth (B, 1, H, W) of the sequences in ``mask`` (B,), seen through the colour
+        intrinsics K (B, 3, 3) from ``T_world_color`` (B, 4, 4), into their maps (0 depth: nothing)."""
+        if self.map is None:
+            raise ValueError("DenseMap: call reset(B) before add")
+        Ks = K.double().clone()
+        Ks[:, :2] /= self.stride
+        V = backproject_depth(Ks, depth[:, :, :: self.stride, :: self.stride].double()).flatten(1, 2)
+        ok = (V[..., 2] > 0) & (V[..., 2] <= self.max_depth) & mask[:, None]
+        world = transform_points(T_world_color.double(), V)[ok].to(self.map.device)
+        b = torch.arange(len(mask), device=ok.device)[:, None].expand_as(ok)[ok].to(self.map.device)
+        self.map.add(world, torch.zeros_like(world), b)
+
+    def align(self, depth: Tensor, K: Tensor, T_world_color: Tensor, mask: Tensor) -> Alignment:
+        """The colour cameras ``T_world_color`` (B, 4, 4) of the sequences in ``mask`` (B,) aligned to their maps
+        through the current registered depth (B, 1, H, W) and the colour intrinsics K (B, 3, 3)."""
+        if self.map is None:
+            raise ValueError("DenseMap: call reset(B) before align")
+        B = len(mask)
+        T_out = T_world_color.double().clone()
+        applied = torch.zeros(B, dtype=torch.bool, device=mask.device)
+        pairs = torch.zeros(B, dtype=torch.long, device=mask.device)
+        if not bool(mask.any()):
+            return Alignment(T_out, applied, pairs)
+        V, N, valid, Ks = surface(depth.double(), K.double(), self.stride)
+        for b in mask.nonzero().squeeze(1).tolist():
+            world = self.map.points(b, ordered=False).xyz.to(V.device)
+            if len(world) < self.min_pairs:
+                continue
+            T_cw, pairs[b], seen, step = self._fit(world, V[b], N[b], valid[b], Ks[b], T_inv(T_out[b]))
+            delta = T_cw @ T_out[b]  # the correction, in the camera
+            applied[b] = (
+                int(pairs[b]) >= max(self.min_pairs, seen // 2)  # most of the visible map on the surface ...
+                and step < self.converged  # ... and converged: else a wrong basin, or a partial correction
+                and float(delta[:3, 3].norm()) <= self.max_correction_m
+                and float(rotation_angle(delta[None, :3, :3])[0]) <= math.radians(self.max_correction_deg)
+            )
+            if applied[b]:
+                T_out[b] = T_inv(T_cw)
+        return Alignment(T_out, applied, pairs)
+
+    def _fit(self, world: Tensor, V: Tensor, N: Tensor, valid: Tensor, K: Tensor,
+             T_cw: Tensor) -> tuple[Tensor, int, int, float]:  # fmt: skip
+        """Gauss-Newton on the world-to-camera pose from ``T_cw`` (4, 4), the map points ``world`` (M, 3) against the
+        surface (V, N, valid) of the grid of K: (the pose, the pairs of the last iteration, the map points predicted
+        visible, the last step's size: its largest component, metres and radians)."""
+        h, w = valid.shape
+        world = world[:: max(1, len(world) // (8 * self.max_points))]  # evenly thinned before the visibility test
+        x, y, z = transform_points(T_cw.float(), world.float()).unbind(-1)
+        fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+        u, v = fx * x + cx * z, fy * y + cy * z  # the pixel times z: no division
+        seen = (z > 0.1) & (z <= self.max_depth) & (u > -0.5 * z) & (v > -0.5 * z) & (u < (w - 0.5) * z)
+        world = world[seen & (v < (h - 0.5) * z)]
+        if len(world) > self.max_points:
+            world = world[torch.linspace(0, len(world) - 1, self.max_points, device=world.device).long()]
+        rad = math.radians(self.prior_deg)
+        prior = torch.tensor([self.prior_m**-2] * 3 + [rad**-2] * 3, dtype=torch.float64, device=world.device).diag()
+        xi = torch.zeros(6, dtype=torch.float64, device=world.device)  # the correction so far (the prior's residual)
+        step = torch.full_like(xi, math.inf)
+        Vf, Nf, okf = V.reshape(-1, 3), N.reshape(-1, 3), valid.reshape(-1)
+        n_pairs = 0
+        for _ in range(self.iterations):
+            p = torch.addmm(T_cw[:3, 3], world, T_cw[:3, :3].T)
+            z = p[:, 2]
+            u = (p[:, 0] / z.clamp_min(1e-6) * fx + cx).round().long()
+            v = (p[:, 1] / z.clamp_min(1e-6) * fy + cy).round().long()
+            ok = (u >= 0) & (u < w) & (v >= 0) & (v < h) & (z > 0.1)
+            idx = v.clamp(0, h - 1) * w + u.clamp(0, w - 1)
+            q, n = Vf[idx], Nf[idx]
+            r = ((p - q) * n).sum(-1)
+            ok &= okf[idx] & (r.abs() <= self.max_distance_m)
+            ok &= torch.linalg.vector_norm(p - q, dim=-1) <= 2 * self.max_distance_m
+            n_pairs = int(ok.sum())
+            if n_pairs < 6:
+                return T_cw, n_pairs, len(world), math.inf
+            huber = torch.where(r.abs() <= self.huber_m, 1.0, self.huber_m / r.abs().clamp_min(1e-12))
+            wgt = huber * ok / (self.sigma_m * z.square().clamp_min(1.0)) ** 2
+            J = torch.cat([n, torch.linalg.cross(p, n)], -1)  # d r / d xi = n^T [I, -[p]x] (left perturbation)
+            Jw = J * wgt[:, None]
+            step = -torch.linalg.solve(Jw.T @ J + prior, Jw.T @ r + prior @ xi)
+            xi = xi + step
+            T_cw = se3_exp(step[None])[0] @ T_cw
+        return T_cw, n_pairs, len(world), float(step.abs().max())
