@@ -152,10 +152,10 @@ class VoxelPointMap:
         order = torch.argsort(torch.cat(keys))
         return torch.cat(rows)[order]
 
-    def points(self, b: int = 0, ordered: bool = True) -> MapPoints:
+    def points(self, b: int = 0, ordered: bool = True, every: int = 1) -> MapPoints:
         """Sequence b's map: one point per voxel, the mean position and colour of its points; sorted by voxel key
-        (``ordered``; else in an order that saves the sort)."""
-        sums = self._sums[self._rows(b, ordered)]
+        (``ordered``; else in an order that saves the sort); ``every``: only every so many of them, in that order."""
+        sums = self._sums[self._rows(b, ordered)[::every]]
         n = sums[:, 6:]
         return MapPoints(sums[:, :3] / n, (sums[:, 3:6] / n).float(), n[:, 0].long())
 

@@ -88,7 +88,7 @@ class DenseMap:
         every: int = 10,
         stride: int = 4,
         max_points: int = 10000,
-        iterations: int = 8,
+        iterations: int = 12,
         max_distance_m: float = 0.05,
         huber_m: float = 0.01,
         sigma_m: float = 0.005,
@@ -98,7 +98,7 @@ class DenseMap:
         max_correction_m: float = 0.1,
         max_correction_deg: float = 5.0,
         max_depth: float = 4.0,
-        converged: float = 1e-3,
+        converged: float = 3e-3,
     ) -> None:
         if voxel_size <= 0 or every < 1 or stride < 1 or iterations < 1 or max_points < 1:
             raise ValueError(f"DenseMap: need voxel_size > 0 and every, stride, iterations, max_points >= 1; got "
@@ -152,14 +152,15 @@ class DenseMap:
             return Alignment(T_out, applied, pairs)
         V, N, valid, Ks = surface(depth.double(), K.double(), self.stride)
         for b in mask.nonzero().squeeze(1).tolist():
-            world = self.map.points(b, ordered=False).xyz.to(V.device)
-            if len(world) < self.min_pairs:
+            M = self.map.size(b)
+            if M < self.min_pairs:
                 continue
-            T_cw, pairs[b], seen, step = self._fit(world, V[b], N[b], valid[b], Ks[b], T_inv(T_out[b]))
+            world = self.map.points(b, ordered=False, every=max(1, M // (8 * self.max_points))).xyz.to(V.device)
+            T_cw, pairs[b], step = self._fit(world, V[b], N[b], valid[b], Ks[b], T_inv(T_out[b]))
             delta = T_cw @ T_out[b]  # the correction, in the camera
             applied[b] = (
-                int(pairs[b]) >= max(self.min_pairs, seen // 2)  # most of the visible map on the surface ...
-                and step < self.converged  # ... and converged: else a wrong basin, or a partial correction
+                int(pairs[b]) >= self.min_pairs
+                and step < self.converged  # else a wrong basin, or a partial correction
                 and float(delta[:3, 3].norm()) <= self.max_correction_m
                 and float(rotation_angle(delta[None, :3, :3])[0]) <= math.radians(self.max_correction_deg)
             )
@@ -168,12 +169,12 @@ class DenseMap:
         return Alignment(T_out, applied, pairs)
 
     def _fit(self, world: Tensor, V: Tensor, N: Tensor, valid: Tensor, K: Tensor,
-             T_cw: Tensor) -> tuple[Tensor, int, int, float]:  # fmt: skip
-        """Gauss-Newton on the world-to-camera pose from ``T_cw`` (4, 4), the map points ``world`` (M, 3) against the
-        surface (V, N, valid) of the grid of K: (the pose, the pairs of the last iteration, the map points predicted
-        visible, the last step's size: its largest component, metres and radians)."""
+             T_cw: Tensor) -> tuple[Tensor, int, float]:  # fmt: skip
+        """Gauss-Newton on the world-to-camera pose from ``T_cw`` (4, 4), the map points ``world`` (M, 3) (the map
+        evenly thinned to about 8 ``max_points``, before the visibility test) against the
+        surface (V, N, valid) of the grid of K: (the pose, the pairs of the last iteration, the last step's size: its
+        largest component, metres and radians)."""
         h, w = valid.shape
-        world = world[:: max(1, len(world) // (8 * self.max_points))]  # evenly thinned before the visibility test
         x, y, z = transform_points(T_cw.float(), world.float()).unbind(-1)
         fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
         u, v = fx * x + cx * z, fy * y + cy * z  # the pixel times z: no division
@@ -200,7 +201,7 @@ class DenseMap:
             ok &= torch.linalg.vector_norm(p - q, dim=-1) <= 2 * self.max_distance_m
             n_pairs = int(ok.sum())
             if n_pairs < 6:
-                return T_cw, n_pairs, len(world), math.inf
+                return T_cw, n_pairs, math.inf
             huber = torch.where(r.abs() <= self.huber_m, 1.0, self.huber_m / r.abs().clamp_min(1e-12))
             wgt = huber * ok / (self.sigma_m * z.square().clamp_min(1.0)) ** 2
             J = torch.cat([n, torch.linalg.cross(p, n)], -1)  # d r / d xi = n^T [I, -[p]x] (left perturbation)
@@ -208,4 +209,4 @@ class DenseMap:
             step = -torch.linalg.solve(Jw.T @ J + prior, Jw.T @ r + prior @ xi)
             xi = xi + step
             T_cw = se3_exp(step[None])[0] @ T_cw
-        return T_cw, n_pairs, len(world), float(step.abs().max())
+        return T_cw, n_pairs, float(step.abs().max())

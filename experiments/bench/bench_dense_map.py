@@ -1,0 +1,79 @@
+"""What the dense map costs per frame: the default tracker with and without it (``dense.enabled=false``) over the same
+decoded frames, in one process, runs alternating; and the map's own calls (align, add) timed from the outside.
+
+    python experiments/bench/bench_dense_map.py ../shared/data/7scenes_redkitchen --frames 300 --repeats 2
+
+Prints, per configuration, the median ms per frame over the repeats, their ratio, and for the dense map: the calls to
+``DenseMap.align`` and ``DenseMap.add`` (count, ms per call, ms per frame) and its voxels at the end. One torch thread
+(the CLI's), frames decoded before timing (the tracker is measured, not the loader); wall clock on a shared machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+import torch
+from hydra import compose, initialize_config_dir
+
+from torchtrack.config import CONF_DIR
+from torchtrack.data import TumSequence, iterate_batched
+from torchtrack.factory import build_tracker
+
+
+def timed(obj, name: str, log: list[float]) -> None:
+    """Wrap ``obj.name`` so that each call's seconds are appended to ``log``."""
+    inner = getattr(obj, name)
+
+    def call(*args, **kwargs):
+        t = time.perf_counter()
+        out = inner(*args, **kwargs)
+        log.append(time.perf_counter() - t)
+        return out
+
+    setattr(obj, name, call)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("root", type=Path, help="a sequence in TUM layout")
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--repeats", type=int, default=2)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(1)
+    seq = TumSequence(args.root, max_frames=args.frames)
+    batches = list(iterate_batched([seq], prefetch=False))
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfgs = {"dense map": compose("config"), "without": compose("config", overrides=["dense.enabled=false"])}
+    ms: dict[str, list[float]] = {k: [] for k in cfgs}
+    calls: dict[str, list[float]] = {"align": [], "add": []}
+    for r in range(args.repeats):
+        for name, cfg in cfgs.items():
+            tracker = build_tracker(cfg)
+            if tracker.dense is not None and r == args.repeats - 1:
+                for k, log in calls.items():
+                    timed(tracker.dense, k, log)
+            t = time.perf_counter()
+            for frame in batches:
+                tracker.step(frame)
+            ms[name].append((time.perf_counter() - t) / len(batches) * 1e3)
+            if tracker.dense is not None:
+                voxels = tracker.dense.map.size(0)
+    med = {k: statistics.median(v) for k, v in ms.items()}
+    print(f"{seq.name}, {len(batches)} frames, {args.repeats} repeats, 1 thread")
+    for k, v in med.items():
+        print(f"  {k:10s} {v:7.2f} ms/frame  (runs: {', '.join(f'{x:.2f}' for x in ms[k])})")
+    print(
+        f"  ratio {med['dense map'] / med['without']:.3f}, difference {med['dense map'] - med['without']:+.2f} ms/frame"
+    )
+    for k, log in calls.items():
+        per = sum(log) / len(batches) * 1e3
+        print(f"  DenseMap.{k}: {len(log)} calls, {sum(log) / max(len(log), 1) * 1e3:.1f} ms each, {per:.2f} ms/frame")
+    print(f"  map: {voxels} voxels")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
