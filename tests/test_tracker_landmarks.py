@@ -25,6 +25,9 @@ pytestmark = pytest.mark.slow  # whole tracked sequences: a camera that pans awa
 
 ON = ("landmarks.enabled=true",)
 OFF = ("landmarks.enabled=false",)
+# the landmarks' own effect: without the dense map, which also pulls a returning camera back (with it on, this render's
+# last two frames: landmarks on 2.7 / 5.7 mm, off 3.2 / 2.3 mm; see RESULTS, "A dense map that remembers")
+NO_MAP = ("dense.enabled=false",)
 SIZE, FRAMES = (320, 240), 40
 
 
@@ -98,8 +101,8 @@ def test_returning_camera_finds_its_first_pass_accuracy(pan):
     """
     poses, frames = pan
     fixed = "filter.noise_scale=false"  # the landmarks under the weighting's own R (with the scale: the docstring)
-    off, _ = run(frames, poses, *OFF, fixed)
-    on, tracker = run(frames, poses, *ON, fixed)
+    off, _ = run(frames, poses, *OFF, fixed, *NO_MAP)
+    on, tracker = run(frames, poses, *ON, fixed, *NO_MAP)
     assert int(tracker.state.reacquired_total.sum()) > 50  # measured: 133
     first_pass = float(on[1:4].mean())
     assert float(on[-2:].mean()) < 1.5 * first_pass
@@ -111,8 +114,8 @@ def test_returning_camera_with_the_default_noise_model(pan):
     """The same return under the default (the online noise scale on): the landmarks still roughly halve the error the
     chained models keep. Measured: the last two frames off 6.2 mm, on 3.2 mm (1.9x). Bound: 1.5x."""
     poses, frames = pan
-    off, _ = run(frames, poses, *OFF)
-    on, _ = run(frames, poses, *ON)
+    off, _ = run(frames, poses, *OFF, *NO_MAP)
+    on, _ = run(frames, poses, *ON, *NO_MAP)
     assert float(off[-2:].mean()) > 1.5 * float(on[-2:].mean()), (off[-2:], on[-2:])
 
 

@@ -37,10 +37,12 @@ def timed(obj, name: str, log: list[float]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
     ap.add_argument("root", type=Path, help="a sequence in TUM layout")
-    ap.add_argument("--frames", type=int, default=300)
-    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--frames", type=int, default=300, help="its first frames tracked")
+    ap.add_argument("--repeats", type=int, default=2, help="runs of each configuration, alternating")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     seq = TumSequence(args.root, max_frames=args.frames)

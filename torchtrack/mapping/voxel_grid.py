@@ -44,6 +44,15 @@ def voxel_keys(points: Tensor, batch: Tensor, voxel_size: float) -> tuple[Tensor
     return keys, inside
 
 
+def spatial_hash(keys: Tensor) -> Tensor:
+    """(P,) int64 >= 0: a hash of the voxels of ``keys`` (P,) that mixes the three axes (Teschner et al.'s primes), so
+    that ``spatial_hash(keys) % k == 0`` picks about one voxel in k with no pattern along an axis; it depends on the
+    voxel only, not on the order or the company the keys come in."""
+    mask = (1 << AXIS_BITS) - 1
+    ix, iy, iz = (keys >> (2 * AXIS_BITS)) & mask, (keys >> AXIS_BITS) & mask, keys & mask
+    return (ix * 73856093) ^ (iy * 19349663) ^ (iz * 83492791)
+
+
 class VoxelPointMap:
     """B voxel-grid point maps fused point by point.
 
@@ -136,8 +145,9 @@ class VoxelPointMap:
         new[: self._n] = self._sums[: self._n]
         self._sums = new
 
-    def _rows(self, b: int, ordered: bool = True) -> Tensor:
-        """(M_b,) buffer rows of sequence b's voxels, in key order (``ordered``; else run by run)."""
+    def _rows(self, b: int, ordered: bool = True, every: int = 1) -> Tensor:
+        """(M_b,) buffer rows of sequence b's voxels, in key order (``ordered``; else run by run); ``every`` > 1: only
+        the voxels whose :func:`spatial_hash` is a multiple of it."""
         lo, hi = b << (3 * AXIS_BITS), (b + 1) << (3 * AXIS_BITS) if b + 1 < MAX_BATCH else torch.iinfo(torch.int64).max
         bounds = torch.tensor([lo, hi], dtype=torch.int64, device=self.device)
         keys, rows = [], []
@@ -147,15 +157,17 @@ class VoxelPointMap:
             rows.append(run_rows[i:j])
         if not keys:
             return torch.empty(0, dtype=torch.int64, device=self.device)
-        if not ordered:
-            return torch.cat(rows)
-        order = torch.argsort(torch.cat(keys))
-        return torch.cat(rows)[order]
+        keys, rows = torch.cat(keys), torch.cat(rows)
+        if every > 1:
+            pick = spatial_hash(keys) % every == 0
+            keys, rows = keys[pick], rows[pick]
+        return rows[torch.argsort(keys)] if ordered else rows
 
     def points(self, b: int = 0, ordered: bool = True, every: int = 1) -> MapPoints:
         """Sequence b's map: one point per voxel, the mean position and colour of its points; sorted by voxel key
-        (``ordered``; else in an order that saves the sort); ``every``: only every so many of them, in that order."""
-        sums = self._sums[self._rows(b, ordered)[::every]]
+        (``ordered``; else in an order that saves the sort). ``every`` > 1: about one voxel in ``every``, the same ones
+        whatever the other sequences in the map and the order they were added in (:func:`spatial_hash`)."""
+        sums = self._sums[self._rows(b, ordered, every)]
         n = sums[:, 6:]
         return MapPoints(sums[:, :3] / n, (sums[:, 3:6] / n).float(), n[:, 0].long())
 

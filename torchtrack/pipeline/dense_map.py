@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from torchtrack.geometry import T_inv, backproject_depth, rotation_angle, se3_exp, transform_points
-from torchtrack.mapping.voxel_grid import VoxelPointMap
+from torchtrack.mapping.voxel_grid import VoxelPointMap, voxel_keys
 
 
 class Alignment(NamedTuple):
@@ -92,8 +92,8 @@ class DenseMap:
         max_distance_m: float = 0.05,
         huber_m: float = 0.01,
         sigma_m: float = 0.005,
-        prior_m: float = 0.05,
-        prior_deg: float = 3.0,
+        prior_m: float = 0.01,
+        prior_deg: float = 1.0,
         min_pairs: int = 500,
         max_correction_m: float = 0.1,
         max_correction_deg: float = 5.0,
@@ -170,8 +170,8 @@ class DenseMap:
 
     def _fit(self, world: Tensor, V: Tensor, N: Tensor, valid: Tensor, K: Tensor,
              T_cw: Tensor) -> tuple[Tensor, int, float]:  # fmt: skip
-        """Gauss-Newton on the world-to-camera pose from ``T_cw`` (4, 4), the map points ``world`` (M, 3) (the map
-        evenly thinned to about 8 ``max_points``, before the visibility test) against the
+        """Gauss-Newton on the world-to-camera pose from ``T_cw`` (4, 4), the map points ``world`` (M, 3) (about 8
+        ``max_points`` of the map's voxels, before the visibility test) against the
         surface (V, N, valid) of the grid of K: (the pose, the pairs of the last iteration, the last step's size: its
         largest component, metres and radians)."""
         h, w = valid.shape
@@ -180,6 +180,8 @@ class DenseMap:
         u, v = fx * x + cx * z, fy * y + cy * z  # the pixel times z: no division
         seen = (z > 0.1) & (z <= self.max_depth) & (u > -0.5 * z) & (v > -0.5 * z) & (u < (w - 0.5) * z)
         world = world[seen & (v < (h - 0.5) * z)]
+        world = world[torch.argsort(voxel_keys(world, torch.zeros_like(world[:, 0], dtype=torch.long),
+                                               self.voxel_size)[0])]  # fmt: skip  # one order, however the map grew
         if len(world) > self.max_points:
             world = world[torch.linspace(0, len(world) - 1, self.max_points, device=world.device).long()]
         rad = math.radians(self.prior_deg)
