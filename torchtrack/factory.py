@@ -115,8 +115,20 @@ def build_tracker(cfg: DictConfig, *, record: bool = False) -> Tracker:
         keyframes=instantiate(cfg.keyframes),
         landmarks=build_landmarks(cfg),
         relocaliser=build_relocaliser(cfg),
+        dense=_proto_dense(),
         record=record or cfg.pipeline.record,
     )
+
+
+def _proto_dense():
+    import json
+    import os
+
+    if not os.environ.get("TT_DENSE"):
+        return None
+    from torchtrack.pipeline.dense_map import DenseMap
+
+    return DenseMap(**json.loads(os.environ["TT_DENSE"]))
 
 
 def build_landmarks(cfg: DictConfig):

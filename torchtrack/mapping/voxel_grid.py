@@ -136,8 +136,8 @@ class VoxelPointMap:
         new[: self._n] = self._sums[: self._n]
         self._sums = new
 
-    def _rows(self, b: int) -> Tensor:
-        """(M_b,) buffer rows of sequence b's voxels, in key order."""
+    def _rows(self, b: int, ordered: bool = True) -> Tensor:
+        """(M_b,) buffer rows of sequence b's voxels, in key order (``ordered``; else run by run)."""
         lo, hi = b << (3 * AXIS_BITS), (b + 1) << (3 * AXIS_BITS) if b + 1 < MAX_BATCH else torch.iinfo(torch.int64).max
         bounds = torch.tensor([lo, hi], dtype=torch.int64, device=self.device)
         keys, rows = [], []
@@ -147,18 +147,21 @@ class VoxelPointMap:
             rows.append(run_rows[i:j])
         if not keys:
             return torch.empty(0, dtype=torch.int64, device=self.device)
+        if not ordered:
+            return torch.cat(rows)
         order = torch.argsort(torch.cat(keys))
         return torch.cat(rows)[order]
 
-    def points(self, b: int = 0) -> MapPoints:
-        """Sequence b's map: one point per voxel, the mean position and colour of its points."""
-        sums = self._sums[self._rows(b)]
+    def points(self, b: int = 0, ordered: bool = True) -> MapPoints:
+        """Sequence b's map: one point per voxel, the mean position and colour of its points; sorted by voxel key
+        (``ordered``; else in an order that saves the sort)."""
+        sums = self._sums[self._rows(b, ordered)]
         n = sums[:, 6:]
         return MapPoints(sums[:, :3] / n, (sums[:, 3:6] / n).float(), n[:, 0].long())
 
     def size(self, b: int) -> int:
         """Occupied voxels of sequence b."""
-        return len(self._rows(b))
+        return len(self._rows(b, ordered=False))
 
     def clear(self, b: int) -> None:
         """Forget sequence b's map and compact the buffer (a finished sequence's memory is released)."""

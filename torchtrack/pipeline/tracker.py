@@ -91,6 +91,7 @@ class Tracker:
         keyframes: KeyframeStore | None = None,
         landmarks: LandmarkMap | None = None,
         relocaliser: Relocaliser | None = None,
+        dense=None,
         predict_init: bool = True,
         pixel_only: bool = True,
         record: bool = False,
@@ -99,7 +100,7 @@ class Tracker:
         self.reselect = reselect
         self.outliers = outliers if outliers is not None else ResidualDrop()
         self.keyframes = keyframes if keyframes is not None else KeyframeStore()
-        self.landmarks, self.relocaliser = landmarks, relocaliser
+        self.landmarks, self.relocaliser, self.dense = landmarks, relocaliser, dense
         self.predict_init, self.pixel_only, self.record = predict_init, pixel_only, record
         self.state = TrackerState()
 
@@ -240,6 +241,8 @@ class Tracker:
             self.landmarks.reset()
         if self.relocaliser is not None:
             self.relocaliser.reset(B, self.keyframes.slots, dev)
+        if self.dense is not None:
+            self.dense.reset(B, dev)
         everyone = torch.ones(B, dtype=torch.bool, device=dev)
         self.state, model_T_cam_obj = self._new_model(s, frame, cur, measure, everyone)
         return _result(self.state, None, None, everyone, model_T_cam_obj=model_T_cam_obj)
@@ -252,6 +255,10 @@ class Tracker:
         The model frame is the camera moved to the features' centroid; the back end starts over there. Returns (the
         new state, the pose (B, 4, 4) the back end was reset to, meaningful where ``mask``)."""
         T_world_depth = s.T_world_depth if T_world_depth is None else T_world_depth
+        if self.dense is not None:
+            T_cd = frame.T_color_depth.double()
+            al = self.dense.align(cur.depth, frame.K, T_world_depth @ T_inv(T_cd), mask)
+            T_world_depth = torch.where(al.applied[:, None, None], al.T_world_color @ T_cd, T_world_depth)
         kept, n_found, T_world_depth = self._anchors(s, cur, measure, mask, T_world_depth)
         feats = self.reselect.select(cur.gray, cur.depth, frame.K, roi=self.reselect.roi(cur.depth), sim=cur.sim)
         pixels, cornerness = feats.pixels, torch.stack([feats.cornerness_int, feats.cornerness_sim], -1)
@@ -320,9 +327,16 @@ class Tracker:
         """The current frame of the sequences in ``due`` (B,) becomes a keyframe at the camera pose of the state (where
         ``reselected`` (B,) a model keyframe, with the new model's features); the landmarks (model keyframes) and the
         relocaliser (every keyframe) attach their content to it."""
+        import os
+        s = self.state
+        if self.dense is not None and os.environ.get("TT_DENSE_KF"):
+            T_cd = frame.T_color_depth.double()
+            m = (frame.active if os.environ.get("TT_DENSE_KF") == "all" else due) & ~reselected
+            al = self.dense.align(cur.depth, frame.K, s.T_world_depth @ T_inv(T_cd), m)
+            T_wd = torch.where(al.applied[:, None, None], al.T_world_color @ T_cd, s.T_world_depth)
+            self.state = s = replace(s, T_world_obj=T_wd @ s.T_cam_obj)
         if not due.any():
             return
-        s = self.state
         slot = self.keyframes.add(frame.timestamp, s.T_world_depth, due, reselected)
         if self.landmarks is not None:  # a model keyframe's features are landmarks at their world positions
             world = transform_points(s.T_world_obj, s.points_obj.double())
@@ -330,6 +344,8 @@ class Tracker:
                                s.valid)  # fmt: skip
         if self.relocaliser is not None:
             self.relocaliser.add(slot, cur, measure, s.T_world_depth)
+        if self.dense is not None:
+            self.dense.add(cur.depth, frame.K, s.T_world_depth @ T_inv(frame.T_color_depth.double()), due)
 
 
 # ---------------------------------------------------------------------------------------------- helpers
