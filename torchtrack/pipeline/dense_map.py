@@ -36,16 +36,21 @@ class Alignment(NamedTuple):
     pairs: Tensor
 
 
+def strided_points(depth: Tensor, K: Tensor, stride: int) -> tuple[Tensor, Tensor]:
+    """The points (B, h, w, 3) float64 of every ``stride``-th pixel of a depth image (B, 1, H, W) seen through K
+    (B, 3, 3), in its camera (0 depth: the origin), and the intrinsics (B, 3, 3) of that strided grid."""
+    Ks = K.double().clone()
+    Ks[:, :2] /= stride  # pixel (i, j) of the grid is pixel (i, j) x stride of the image
+    return backproject_depth(Ks, depth[:, :, ::stride, ::stride].double()), Ks
+
+
 def surface(depth: Tensor, K: Tensor, stride: int, max_step: float = 0.05) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The surface of a depth image (B, 1, H, W) at every ``stride``-th pixel: vertices (B, h, w, 3) in the camera of
     K (B, 3, 3), unit normals (B, h, w, 3) (the cross product of the central differences), valid (B, h, w) (depth
     there and at the four neighbours, none farther than ``max_step`` x z in depth: no normal across a depth step),
-    and the intrinsics of the strided grid (B, 3, 3)."""
-    d = depth[:, :, ::stride, ::stride]
-    Ks = K.to(d.dtype).clone()
-    Ks[:, :2] /= stride  # pixel (i, j) of the grid is pixel (i, j) x stride of the image
-    V = backproject_depth(Ks, d)
-    z = d[:, 0]
+    and the intrinsics of the strided grid (B, 3, 3); float64."""
+    V, Ks = strided_points(depth, K, stride)
+    z = V[..., 2]
     n = torch.linalg.cross(V[:, 1:-1, 2:] - V[:, 1:-1, :-2], V[:, 2:, 1:-1] - V[:, :-2, 1:-1])
     zc = z[:, 1:-1, 1:-1]
 
@@ -131,9 +136,7 @@ class DenseMap:
         intrinsics K (B, 3, 3) from ``T_world_color`` (B, 4, 4), into their maps (0 depth: nothing)."""
         if self.map is None:
             raise ValueError("DenseMap: call reset(B) before add")
-        Ks = K.double().clone()
-        Ks[:, :2] /= self.stride
-        V = backproject_depth(Ks, depth[:, :, :: self.stride, :: self.stride].double()).flatten(1, 2)
+        V = strided_points(depth, K, self.stride)[0].flatten(1, 2)
         ok = (V[..., 2] > 0) & (V[..., 2] <= self.max_depth) & mask[:, None]
         world = transform_points(T_world_color.double(), V)[ok].to(self.map.device)
         b = torch.arange(len(mask), device=ok.device)[:, None].expand_as(ok)[ok].to(self.map.device)
@@ -150,7 +153,7 @@ class DenseMap:
         pairs = torch.zeros(B, dtype=torch.long, device=mask.device)
         if not bool(mask.any()):
             return Alignment(T_out, applied, pairs)
-        V, N, valid, Ks = surface(depth.double(), K.double(), self.stride)
+        V, N, valid, Ks = surface(depth, K, self.stride)
         for b in mask.nonzero().squeeze(1).tolist():
             M = self.map.size(b)
             if M < self.min_pairs:

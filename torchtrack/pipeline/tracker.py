@@ -30,6 +30,7 @@ from torchtrack.filter.frame import Observation
 from torchtrack.filter.weighting import Variances, WeightingInputs, pixel_only_variances
 from torchtrack.frontend import FrontEnd, PreparedFrame, is_registered
 from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, se3_log, transform_points
+from torchtrack.geometry.rig import T_world_color_from_depth, T_world_depth_from_color
 from torchtrack.image.flow import TrackResult
 from torchtrack.pipeline.dense_map import DenseMap
 from torchtrack.pipeline.keyframes import KeyframeStore
@@ -211,9 +212,10 @@ class Tracker:
         due = self.dense.due(reselect, frame.active)
         if not due.any():
             return s
-        T_cd = frame.T_color_depth.double()
-        al = self.dense.align(self._region_depth(cur), frame.K, s.T_world_depth @ T_inv(T_cd), due)
-        T_world_depth = torch.where(al.applied[:, None, None], al.T_world_color @ T_cd, s.T_world_depth)
+        T_cd = frame.T_color_depth
+        al = self.dense.align(self._region_depth(cur), frame.K, T_world_color_from_depth(s.T_world_depth, T_cd), due)
+        aligned = T_world_depth_from_color(al.T_world_color, T_cd)
+        T_world_depth = torch.where(al.applied[:, None, None], aligned, s.T_world_depth)
         return replace(s, T_world_obj=T_world_depth @ s.T_cam_obj)
 
     def _region_depth(self, cur: PreparedFrame) -> Tensor:
@@ -355,7 +357,7 @@ class Tracker:
         if self.relocaliser is not None:
             self.relocaliser.add(slot, cur, measure, s.T_world_depth)
         if self.dense is not None:
-            T_world_color = s.T_world_depth @ T_inv(frame.T_color_depth.double())
+            T_world_color = T_world_color_from_depth(s.T_world_depth, frame.T_color_depth)
             self.dense.add(self._region_depth(cur), frame.K, T_world_color, due)
 
 
