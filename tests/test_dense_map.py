@@ -94,6 +94,39 @@ def test_the_keyframe_from_its_own_pose_changes_nothing(room):
     assert bool(al.applied[0]) and mm < 1e-9 and deg < 1e-9
 
 
+def test_the_early_stop_leaves_what_the_remaining_iterations_would_move(room):
+    """Gauss-Newton stopped at a step below ``tolerance`` (1e-4 m / rad) against all 12 iterations run
+    (``tolerance=0``): the two cameras within 0.05 mm / 0.005 degrees (the steps shrink geometrically, so what the
+    remaining ones move is a fraction of the last), and the early stop does stop early (fewer Gauss-Newton steps)."""
+    steps, cams = {}, {}
+    for tol in (1e-4, 0.0):
+        dense = keyframe_map(room)
+        dense.tolerance = tol
+        al = dense.align(room["d_cur"], room["K"], room["drifted"][None], ONE)
+        assert bool(al.applied[0])
+        cams[tol] = al.T_world_color[0]
+        steps[tol] = _gauss_newton_steps(dense, room)
+    mm, deg = pose_error(cams[0.0], cams[1e-4])
+    assert mm < 0.05 and deg < 0.005, (mm, deg)
+    assert steps[1e-4] < steps[0.0] == dense.iterations, steps
+
+
+def _gauss_newton_steps(dense: DenseMap, room) -> int:
+    """The Gauss-Newton steps one alignment of the drifted camera takes (counted at its 6x6 solve)."""
+    solve, count = torch.linalg.solve, []
+
+    def counted(*a, **k):
+        count.append(1)
+        return solve(*a, **k)
+
+    torch.linalg.solve = counted
+    try:
+        dense.align(room["d_cur"], room["K"], room["drifted"][None], ONE)
+    finally:
+        torch.linalg.solve = solve
+    return len(count)
+
+
 @pytest.mark.equivalence
 def test_batched_equals_looped(room):
     """Two sequences with their own maps and cameras: each as aligned alone (the per-sequence Gauss-Newton is the

@@ -145,11 +145,15 @@ class VoxelPointMap:
         new[: self._n] = self._sums[: self._n]
         self._sums = new
 
+    def _bounds(self, b: int) -> Tensor:
+        """(2,) int64: sequence b's keys are in [lo, hi)."""
+        lo, hi = b << (3 * AXIS_BITS), (b + 1) << (3 * AXIS_BITS) if b + 1 < MAX_BATCH else torch.iinfo(torch.int64).max
+        return torch.tensor([lo, hi], dtype=torch.int64, device=self.device)
+
     def _rows(self, b: int, ordered: bool = True, every: int = 1) -> Tensor:
         """(M_b,) buffer rows of sequence b's voxels, in key order (``ordered``; else run by run); ``every`` > 1: only
         the voxels whose :func:`spatial_hash` is a multiple of it."""
-        lo, hi = b << (3 * AXIS_BITS), (b + 1) << (3 * AXIS_BITS) if b + 1 < MAX_BATCH else torch.iinfo(torch.int64).max
-        bounds = torch.tensor([lo, hi], dtype=torch.int64, device=self.device)
+        bounds = self._bounds(b)
         keys, rows = [], []
         for run_keys, run_rows in self._runs:
             i, j = torch.searchsorted(run_keys, bounds).tolist()
@@ -173,7 +177,8 @@ class VoxelPointMap:
 
     def size(self, b: int) -> int:
         """Occupied voxels of sequence b."""
-        return len(self._rows(b, ordered=False))
+        bounds = self._bounds(b)
+        return sum(int(torch.diff(torch.searchsorted(run_keys, bounds))) for run_keys, _ in self._runs)
 
     def clear(self, b: int) -> None:
         """Forget sequence b's map and compact the buffer (a finished sequence's memory is released)."""
