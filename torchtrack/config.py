@@ -286,7 +286,7 @@ class DenseMapConfig:
     _target_: str = "torchtrack.pipeline.dense_map.DenseMap"
     enabled: bool = True  # improvement (false = paper): the model placed on a dense map, not only chained
     voxel_size: float = 0.01  # m, the map's voxel edge (one point per occupied voxel)
-    every: int = 10  # the camera aligned to the map at a re-selection and this many frames after the last alignment
+    every: int = 1  # the camera aligned to the map every this many frames (and at every re-selection); 1: every frame
 
 
 @dataclass

@@ -1,9 +1,10 @@
 """What the dense map costs per frame: the default tracker with and without it (``dense.enabled=false``) over the same
 decoded frames, in one process, runs alternating; and the map's own calls (align, add) timed from the outside.
 
-    python experiments/bench/bench_dense_map.py ../shared/data/7scenes_redkitchen --frames 300 --repeats 2
+    python experiments/bench/bench_dense_map.py ../shared/data/7scenes_redkitchen --frames 300 --repeats 2 --also dense.every=10
 
-Prints, per configuration, the median ms per frame over the repeats, their ratio, and for the dense map: the calls to
+Prints, per configuration (``--also``: more of them, each one override), the median ms per frame over the repeats and
+its ratio to the tracker without the map, and for the default: the calls to
 ``DenseMap.align`` and ``DenseMap.add`` (count, ms per call, ms per frame) and its voxels at the end. One torch thread
 (the CLI's), frames decoded before timing (the tracker is measured, not the loader); wall clock on a shared machine.
 """
@@ -43,30 +44,33 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("root", type=Path, help="a sequence in TUM layout")
     ap.add_argument("--frames", type=int, default=300, help="its first frames tracked")
     ap.add_argument("--repeats", type=int, default=2, help="runs of each configuration, alternating")
+    ap.add_argument("--also", nargs="*", default=[], help="more configurations with the map: Hydra overrides, one each")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     seq = TumSequence(args.root, max_frames=args.frames)
     batches = list(iterate_batched([seq], prefetch=False))
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfgs = {"dense map": compose("config"), "without": compose("config", overrides=["dense.enabled=false"])}
+        cfgs |= {o: compose("config", overrides=[o]) for o in args.also}
     ms: dict[str, list[float]] = {k: [] for k in cfgs}
     calls: dict[str, list[float]] = {"align": [], "add": []}
     for r in range(args.repeats):
         for name, cfg in cfgs.items():
             tracker = build_tracker(cfg)
-            if tracker.dense is not None and r == args.repeats - 1:
+            if name == "dense map" and r == args.repeats - 1:
                 for k, log in calls.items():
                     timed(tracker.dense, k, log)
             t = time.perf_counter()
             for frame in batches:
                 tracker.step(frame)
             ms[name].append((time.perf_counter() - t) / len(batches) * 1e3)
-            if tracker.dense is not None:
+            if name == "dense map":
                 voxels = tracker.dense.map.size(0)
     med = {k: statistics.median(v) for k, v in ms.items()}
     print(f"{seq.name}, {len(batches)} frames, {args.repeats} repeats, 1 thread")
     for k, v in med.items():
-        print(f"  {k:10s} {v:7.2f} ms/frame  (runs: {', '.join(f'{x:.2f}' for x in ms[k])})")
+        print(f"  {k:10s} {v:7.2f} ms/frame  (runs: {', '.join(f'{x:.2f}' for x in ms[k])}), "
+              f"{v / med['without']:.3f}x without")  # fmt: skip
     print(
         f"  ratio {med['dense map'] / med['without']:.3f}, difference {med['dense map'] - med['without']:+.2f} ms/frame"
     )

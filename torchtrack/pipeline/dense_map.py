@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from torchtrack.geometry import T_inv, backproject_depth, hat, rotation_angle, transform_points
-from torchtrack.mapping.voxel_grid import VoxelPointMap, voxel_keys
+from torchtrack.mapping.voxel_grid import VoxelPointMap
 
 
 class Alignment(NamedTuple):
@@ -86,13 +86,15 @@ class DenseMap:
             (metres and radians): else the fit was in a wrong basin, or still on its way.
         tolerance: Gauss-Newton stops after a step below this (metres and radians; the steps shrink geometrically,
             ~0.4x each: what remains is a few hundredths of a millimetre).
+        weak: a direction of the pose in which the depth's information is below this many times the prior's is left
+            as the tracker had it (the correction projected off it).
     """
 
     def __init__(
         self,
         *,
         voxel_size: float = 0.01,
-        every: int = 10,
+        every: int = 1,
         stride: int = 4,
         max_points: int = 5000,
         iterations: int = 12,
@@ -107,6 +109,7 @@ class DenseMap:
         max_depth: float = 4.0,
         converged: float = 3e-3,
         tolerance: float = 1e-4,
+        weak: float = 3.0,
     ) -> None:
         if voxel_size <= 0 or every < 1 or stride < 1 or iterations < 1 or max_points < 1:
             raise ValueError(f"DenseMap: need voxel_size > 0 and every, stride, iterations, max_points >= 1; got "
@@ -115,14 +118,16 @@ class DenseMap:
         self.iterations, self.max_distance_m, self.huber_m, self.sigma_m = iterations, max_distance_m, huber_m, sigma_m
         self.prior_m, self.prior_deg, self.min_pairs = prior_m, prior_deg, min_pairs
         self.max_correction_m, self.max_correction_deg, self.max_depth = max_correction_m, max_correction_deg, max_depth
-        self.converged, self.tolerance = converged, tolerance
+        self.converged, self.tolerance, self.weak = converged, tolerance, weak
         self.map: VoxelPointMap | None = None
         self.since: Tensor | None = None  # frames since each sequence's last alignment
+        self._pools: list[Tensor | None] = []  # per sequence: the map's points an alignment draws from (None: stale)
 
     def reset(self, B: int, device: torch.device | str = "cpu") -> None:
         """Empty maps for B sequences."""
         self.map = VoxelPointMap(voxel_size=self.voxel_size, batch_size=B, device=device)
         self.since = torch.zeros(B, dtype=torch.long, device=device)
+        self._pools = [None] * B
 
     def due(self, reselect: Tensor, active: Tensor) -> Tensor:
         """(B,) bool: the ``active`` (B,) sequences whose camera is aligned this frame: a new model is taken
@@ -144,6 +149,8 @@ class DenseMap:
         world = transform_points(T_world_color.double(), V)[ok].to(self.map.device)
         b = torch.arange(len(mask), device=ok.device)[:, None].expand_as(ok)[ok].to(self.map.device)
         self.map.add(world, torch.zeros_like(world), b)
+        for i in mask.nonzero().squeeze(1).tolist():
+            self._pools[i] = None
 
     def align(self, depth: Tensor, K: Tensor, T_world_color: Tensor, mask: Tensor) -> Alignment:
         """The colour cameras ``T_world_color`` (B, 4, 4) of the sequences in ``mask`` (B,) aligned to their maps
@@ -158,10 +165,9 @@ class DenseMap:
             return Alignment(T_out, applied, pairs)
         V, N, valid, Ks = surface(depth, K, self.stride)
         for b in mask.nonzero().squeeze(1).tolist():
-            M = self.map.size(b)
-            if M < self.min_pairs:
+            world = self._pool(b)
+            if world is None:
                 continue
-            world = self.map.points(b, ordered=False, every=max(1, M // (8 * self.max_points))).xyz.to(V.device)
             T_cw, pairs[b], step = self._fit(world, V[b], N[b], valid[b], Ks[b], T_inv(T_out[b]))
             delta = T_cw @ T_out[b]  # the correction, in the camera
             applied[b] = (
@@ -174,20 +180,30 @@ class DenseMap:
                 T_out[b] = T_inv(T_cw)
         return Alignment(T_out, applied, pairs)
 
+    def _pool(self, b: int) -> Tensor | None:
+        """Sequence b's map points an alignment draws from (M, 3) float64: about 8 ``max_points`` of its voxels, picked
+        by a spatial hash and in voxel-key order (the same points in the same order however the map grew, so the
+        alignment does not depend on the other sequences); kept until the next :meth:`add` to it. None while the map
+        has fewer than ``min_pairs`` voxels."""
+        if self._pools[b] is None:
+            M = self.map.size(b)
+            if M < self.min_pairs:
+                return None
+            self._pools[b] = self.map.points(b, ordered=True, every=max(1, M // (8 * self.max_points))).xyz
+        return self._pools[b]
+
     def _fit(self, world: Tensor, V: Tensor, N: Tensor, valid: Tensor, K: Tensor,
              T_cw: Tensor) -> tuple[Tensor, int, float]:  # fmt: skip
-        """Gauss-Newton on the world-to-camera pose from ``T_cw`` (4, 4), the map points ``world`` (M, 3) (about 8
-        ``max_points`` of the map's voxels, before the visibility test) against the surface (V, N, valid) of the grid
-        of K: (the pose, the pairs of the last iteration, the last step's size: its largest component, metres and
-        radians). Stops early once a step is below ``tolerance``."""
+        """Gauss-Newton on the world-to-camera pose from ``T_cw`` (4, 4), the map points ``world`` (M, 3) (the
+        :meth:`_pool`) against the surface (V, N, valid) of the grid of K: (the pose, the pairs of the last iteration,
+        the last step's size: its largest component, metres and radians). Stops early once a step is below
+        ``tolerance``."""
         h, w = valid.shape
         x, y, z = transform_points(T_cw.float(), world.float()).unbind(-1)
         fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
         u, v = fx * x + cx * z, fy * y + cy * z  # the pixel times z: no division
         seen = (z > 0.1) & (z <= self.max_depth) & (u > -0.5 * z) & (v > -0.5 * z) & (u < (w - 0.5) * z)
-        world = world[seen & (v < (h - 0.5) * z)]
-        world = world[torch.argsort(voxel_keys(world, torch.zeros_like(world[:, 0], dtype=torch.long),
-                                               self.voxel_size)[0])]  # fmt: skip  # one order, however the map grew
+        world = world[seen & (v < (h - 0.5) * z)]  # still in voxel order
         if len(world) > self.max_points:
             world = world[torch.linspace(0, len(world) - 1, self.max_points, device=world.device).long()]
         # Structure of arrays (3, M): the per-point work is a few dozen row operations, not strided columns.
@@ -231,4 +247,16 @@ class DenseMap:
             delta = torch.linalg.matrix_exp(twist) @ delta  # left perturbation: exp(step) (the SE(3) exponential)
             if float(step.abs().max()) < self.tolerance:
                 break
+        # A direction in which the depth holds less than ``weak`` times the prior's information (half a surface, a
+        # plane) is not corrected: the point-to-plane sigma treats the pairs as independent, so along it the data's
+        # information is overstated and the correction would follow the depth's correlated errors.
+        sd = prior.diagonal().rsqrt()  # whitened by the prior: eigenvalues are information ratios
+        ratio, vec = torch.linalg.eigh((Jw @ J.T) * sd[:, None] * sd[None, :])
+        weak = vec[:, ratio < self.weak]
+        if weak.shape[1]:
+            y = xi / sd
+            xi = sd * (y - weak @ (weak.T @ y))
+            twist[:3, :3] = hat(xi[3:])
+            twist[:3, 3] = xi[:3]
+            delta = torch.linalg.matrix_exp(twist)
         return delta @ T_cw, n_pairs, float(step.abs().max())
