@@ -229,3 +229,14 @@ def test_a_camera_that_comes_back_is_put_back_on_the_map():
 
     (end_on, rms_on), (end_off, rms_off) = errors(), errors("dense.enabled=false")
     assert end_on < 0.7 * end_off and rms_on < 0.8 * rms_off, (end_on, end_off, rms_on, rms_off)
+
+
+def test_the_single_twist_exponential_is_the_se3_exponential():
+    """The alignment's one-twist exponential (the 4x4 twist matrix's matrix exponential) against the closed form
+    (:func:`se3_exp`, Rodrigues and the left Jacobian) from a tiny to a large rotation: equal within 1e-13."""
+    from torchtrack.pipeline.dense_map import _exp
+
+    g = torch.Generator().manual_seed(0)
+    for scale in (1e-9, 1e-4, 0.05, 1.0, 3.0):
+        xi = torch.randn(6, generator=g, dtype=torch.float64) * scale
+        torch.testing.assert_close(_exp(xi), se3_exp(xi[None])[0], atol=1e-13, rtol=0)
