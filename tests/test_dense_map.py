@@ -146,8 +146,9 @@ def test_what_the_map_cannot_correct_is_left_alone(room):
     """An empty map, a sequence not asked for: unchanged. Cameras 10 cm or 3-9 degrees off: a correction that is
     applied moves the camera towards the truth (measured: 100 mm off -> 1.6-11.4 mm, 2.9 degrees -> 0.013), one
     beyond ``max_correction_deg`` is not applied. A camera 30 cm off (three times ``max_correction_m``) is a failure the
-    bounds only limit: it is moved 30 mm sideways in a wrong basin, ending 1.1 mm / 0.37 degrees farther from the truth
-    (without the convergence test and with a prior of 5 cm, one such was moved 65 mm, to 259 mm from the truth)."""
+    bounds only limit: it is moved 29 mm sideways in a wrong basin, ending 3.4 mm / 0.42 degrees farther from the truth
+    (1.1 mm / 0.37 degrees without the weak-direction gate, ``weak=0``; without the convergence test and with a prior of
+    5 cm, one such was moved 65 mm, to 259 mm from the truth); the bound leaves 2x."""
     empty = DenseMap()
     empty.reset(1)
     al = empty.align(room["d_cur"], room["K"], room["drifted"][None], ONE)
@@ -165,7 +166,7 @@ def test_what_the_map_cannot_correct_is_left_alone(room):
     assert not bool(al.applied[0]) and torch.equal(al.T_world_color[0], far)
     far = room["T_cur"] @ se3_exp(torch.tensor([0.3, 0, 0, 0, 0, 0], dtype=torch.float64))
     after = pose_error(room["T_cur"], dense.align(room["d_cur"], room["K"], far[None], ONE).T_world_color[0])
-    assert after[0] < 300 + 3 and after[1] < 1.0, after
+    assert after[0] < 300 + 7 and after[1] < 1.0, after
 
 
 def test_due_counts_frames_and_reselections():

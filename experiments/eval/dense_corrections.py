@@ -28,7 +28,9 @@ from torchtrack.geometry.rig import T_world_color_from_depth
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
     ap.add_argument("root", type=Path, help="a sequence in TUM layout")
     ap.add_argument("--frames", type=int, default=None, help="its first frames (default: all)")
     ap.add_argument("overrides", nargs="*", help="Hydra overrides of the default configuration")
