@@ -82,7 +82,7 @@ def test_a_drifted_camera_is_aligned_to_its_true_pose(room):
     before = pose_error(room["T_cur"], room["drifted"])
     assert before[0] > 7 and before[1] > 0.25
     al = dense.align(room["d_cur"], room["K"], room["drifted"][None], ONE)
-    mm, deg = pose_error(room["T_cur"], al.T_world_color[0])
+    mm, deg = pose_error(room["T_cur"], al.T_world_cam[0])
     assert bool(al.applied[0]) and int(al.pairs[0]) > 3000
     assert mm < 1.6 and deg < 0.02, (mm, deg)
 
@@ -90,7 +90,7 @@ def test_a_drifted_camera_is_aligned_to_its_true_pose(room):
 def test_the_keyframe_from_its_own_pose_changes_nothing(room):
     dense = keyframe_map(room)
     al = dense.align(room["d_kf"], room["K"], room["T_kf"][None], ONE)
-    mm, deg = pose_error(room["T_kf"], al.T_world_color[0])
+    mm, deg = pose_error(room["T_kf"], al.T_world_cam[0])
     assert bool(al.applied[0]) and mm < 1e-9 and deg < 1e-9
 
 
@@ -104,7 +104,7 @@ def test_the_early_stop_leaves_what_the_remaining_iterations_would_move(room):
         dense.tolerance = tol
         al = dense.align(room["d_cur"], room["K"], room["drifted"][None], ONE)
         assert bool(al.applied[0])
-        cams[tol] = al.T_world_color[0]
+        cams[tol] = al.T_world_cam[0]
         steps[tol] = _gauss_newton_steps(dense, room)
     mm, deg = pose_error(cams[0.0], cams[1e-4])
     assert mm < 0.05 and deg < 0.005, (mm, deg)
@@ -138,7 +138,7 @@ def test_batched_equals_looped(room):
                        torch.ones(2, dtype=torch.bool))  # fmt: skip
     for b in range(2):
         alone = keyframe_map(room).align(room["d_cur"], room["K"], starts[b : b + 1], ONE)
-        torch.testing.assert_close(both.T_world_color[b], alone.T_world_color[0], atol=1e-12, rtol=0)
+        torch.testing.assert_close(both.T_world_cam[b], alone.T_world_cam[0], atol=1e-12, rtol=0)
         assert int(both.pairs[b]) == int(alone.pairs[0])
 
 
@@ -152,20 +152,20 @@ def test_what_the_map_cannot_correct_is_left_alone(room):
     empty = DenseMap()
     empty.reset(1)
     al = empty.align(room["d_cur"], room["K"], room["drifted"][None], ONE)
-    assert not bool(al.applied[0]) and torch.equal(al.T_world_color[0], room["drifted"])
+    assert not bool(al.applied[0]) and torch.equal(al.T_world_cam[0], room["drifted"])
     dense = keyframe_map(room)
     al = dense.align(room["d_cur"], room["K"], room["drifted"][None], ~ONE)
     assert not bool(al.applied[0]) and int(al.pairs[0]) == 0
     for xi in ([0.1, 0, 0, 0, 0, 0], [0, 0.1, 0, 0, 0, 0], [0, 0, 0.1, 0, 0, 0], [0, 0, 0, 0.05, 0, 0]):
         far = room["T_cur"] @ se3_exp(torch.tensor(xi, dtype=torch.float64))
         al = dense.align(room["d_cur"], room["K"], far[None], ONE)
-        before, after = pose_error(room["T_cur"], far), pose_error(room["T_cur"], al.T_world_color[0])
+        before, after = pose_error(room["T_cur"], far), pose_error(room["T_cur"], al.T_world_cam[0])
         assert bool(al.applied[0]) and after[0] < 0.2 * max(before[0], 10) and after[1] < 0.5, (xi, before, after)
     far = room["T_cur"] @ se3_exp(torch.tensor([0, 0, 0, 0.15, 0, 0], dtype=torch.float64))  # 8.6 degrees
     al = dense.align(room["d_cur"], room["K"], far[None], ONE)
-    assert not bool(al.applied[0]) and torch.equal(al.T_world_color[0], far)
+    assert not bool(al.applied[0]) and torch.equal(al.T_world_cam[0], far)
     far = room["T_cur"] @ se3_exp(torch.tensor([0.3, 0, 0, 0, 0, 0], dtype=torch.float64))
-    after = pose_error(room["T_cur"], dense.align(room["d_cur"], room["K"], far[None], ONE).T_world_color[0])
+    after = pose_error(room["T_cur"], dense.align(room["d_cur"], room["K"], far[None], ONE).T_world_cam[0])
     assert after[0] < 300 + 7 and after[1] < 1.0, after
 
 

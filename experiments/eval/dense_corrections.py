@@ -24,7 +24,6 @@ from torchtrack.config import CONF_DIR
 from torchtrack.data import TumSequence, iterate_batched
 from torchtrack.factory import build_tracker
 from torchtrack.geometry import T_inv, rotation_angle
-from torchtrack.geometry.rig import T_world_color_from_depth
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -44,10 +43,10 @@ def main(argv: list[str] | None = None) -> int:
     frame_no, last, cosines = 0, None, []
     align = tracker.dense.align
 
-    def logged(depth, K, T_world_color, mask):
-        out = align(depth, K, T_world_color, mask)
+    def logged(depth, K, T_world_cam, mask):
+        out = align(depth, K, T_world_cam, mask)
         if bool(mask[0]):
-            before, after = T_world_color[0].double(), out.T_world_color[0]
+            before, after = T_world_cam[0].double(), out.T_world_cam[0]
             D = T_inv(before) @ after
             corr = after[:3, 3] - before[:3, 3]
             motion = before[:3, 3] - (last if last is not None else before[:3, 3])
@@ -62,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     tracker.dense.align = logged
     for frame in iterate_batched([TumSequence(args.root, max_frames=args.frames)], prefetch=False):
         tracker.step(frame)
-        last = T_world_color_from_depth(tracker.state.T_world_depth, frame.T_color_depth)[0, :3, 3].double()
+        last = tracker.state.T_world_depth[0, :3, 3].double()  # the depth camera, which the map aligns
         frame_no += 1
     n = max(len(cosines), 1)
     print(f"{len(cosines)} alignments: mean cosine {sum(cosines) / n:+.2f}, below -0.5: "

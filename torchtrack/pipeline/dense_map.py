@@ -11,8 +11,8 @@ the camera is there: the features and the filter are untouched (they measure the
 model's world pose, which a chain of re-selections would only accumulate, is estimated against everything the camera
 saw before, however long ago.
 
-Frames: ``world`` is the tracker's world (its first depth camera); the alignment works in the colour camera, whose
-grid the registered depth is in.
+Frames: ``world`` is the tracker's world (its first depth camera); the map and the alignment work in the depth camera,
+on its own pixel grid and intrinsics (a separate depth camera's frames are used as taken, not warped).
 """
 
 from __future__ import annotations
@@ -28,10 +28,10 @@ from torchtrack.mapping.voxel_grid import VoxelPointMap
 
 
 class Alignment(NamedTuple):
-    """T_world_color (B, 4, 4) float64 the aligned colour cameras (the input where not ``applied``); applied (B,)
+    """T_world_cam (B, 4, 4) float64 the aligned depth cameras (the input where not ``applied``); applied (B,)
     bool; pairs (B,) long the map points paired with the surface in the last iteration (0 where not aligned)."""
 
-    T_world_color: Tensor
+    T_world_cam: Tensor
     applied: Tensor
     pairs: Tensor
 
@@ -142,26 +142,26 @@ class DenseMap:
         self.since = torch.where(out, 0, self.since)
         return out
 
-    def add(self, depth: Tensor, K: Tensor, T_world_color: Tensor, mask: Tensor) -> None:
-        """Fuse the registered depth (B, 1, H, W) of the sequences in ``mask`` (B,), seen through the colour
-        intrinsics K (B, 3, 3) from ``T_world_color`` (B, 4, 4), into their maps (0 depth: nothing)."""
+    def add(self, depth: Tensor, K: Tensor, T_world_cam: Tensor, mask: Tensor) -> None:
+        """Fuse the depth (B, 1, H, W) of the sequences in ``mask`` (B,), seen through the intrinsics K (B, 3, 3) of its
+        camera from ``T_world_cam`` (B, 4, 4), into their maps (0 depth: nothing)."""
         if self.map is None:
             raise ValueError("DenseMap: call reset(B) before add")
         V = strided_points(depth, K, self.stride)[0].flatten(1, 2)
         ok = (V[..., 2] > 0) & (V[..., 2] <= self.max_depth) & mask[:, None]
-        world = transform_points(T_world_color.double(), V)[ok].to(self.map.device)
+        world = transform_points(T_world_cam.double(), V)[ok].to(self.map.device)
         b = torch.arange(len(mask), device=ok.device)[:, None].expand_as(ok)[ok].to(self.map.device)
         self.map.add(world, torch.zeros_like(world), b)
         for i in mask.nonzero().squeeze(1).tolist():
             self._pools[i] = None
 
-    def align(self, depth: Tensor, K: Tensor, T_world_color: Tensor, mask: Tensor) -> Alignment:
-        """The colour cameras ``T_world_color`` (B, 4, 4) of the sequences in ``mask`` (B,) aligned to their maps
-        through the current registered depth (B, 1, H, W) and the colour intrinsics K (B, 3, 3)."""
+    def align(self, depth: Tensor, K: Tensor, T_world_cam: Tensor, mask: Tensor) -> Alignment:
+        """The depth cameras ``T_world_cam`` (B, 4, 4) of the sequences in ``mask`` (B,) aligned to their maps through
+        their current depth (B, 1, H, W) and its intrinsics K (B, 3, 3)."""
         if self.map is None:
             raise ValueError("DenseMap: call reset(B) before align")
         B = len(mask)
-        T_out = T_world_color.double().clone()
+        T_out = T_world_cam.double().clone()
         applied = torch.zeros(B, dtype=torch.bool, device=mask.device)
         pairs = torch.zeros(B, dtype=torch.long, device=mask.device)
         if not bool(mask.any()):

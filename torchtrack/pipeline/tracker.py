@@ -30,7 +30,6 @@ from torchtrack.filter.frame import Observation
 from torchtrack.filter.weighting import Variances, WeightingInputs, pixel_only_variances
 from torchtrack.frontend import FrontEnd, PreparedFrame, is_registered
 from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, se3_log, transform_points
-from torchtrack.geometry.rig import T_world_color_from_depth, T_world_depth_from_color
 from torchtrack.image.flow import TrackResult
 from torchtrack.pipeline.dense_map import DenseMap
 from torchtrack.pipeline.keyframes import KeyframeStore
@@ -212,16 +211,16 @@ class Tracker:
         due = self.dense.due(reselect, frame.active)
         if not due.any():
             return s
-        T_cd = frame.T_color_depth
-        al = self.dense.align(self._region_depth(cur), frame.K, T_world_color_from_depth(s.T_world_depth, T_cd), due)
-        aligned = T_world_depth_from_color(al.T_world_color, T_cd)
-        T_world_depth = torch.where(al.applied[:, None, None], aligned, s.T_world_depth)
+        al = self.dense.align(self._region_depth(frame), frame.K_depth, s.T_world_depth, due)
+        T_world_depth = torch.where(al.applied[:, None, None], al.T_world_cam, s.T_world_depth)
         return replace(s, T_world_obj=T_world_depth @ s.T_cam_obj)
 
-    def _region_depth(self, cur: PreparedFrame) -> Tensor:
-        """(B, 1, H, W) the registered depth inside the model's region (the object, or the scene), 0 elsewhere: what
-        the dense map holds (a moving object's background must not pull its pose)."""
-        return torch.where(self.reselect.region(cur.depth), cur.depth, torch.zeros_like(cur.depth))
+    def _region_depth(self, frame: FrameBatch) -> Tensor:
+        """(B, 1, H, W) the depth as the depth camera took it (its own grid: a separate depth camera's frames are not
+        warped into the colour camera's, whose resampling errors would enter the map) inside the model's region (the
+        object, or the scene), 0 elsewhere: what the dense map holds (a moving object's background must not pull its
+        pose)."""
+        return torch.where(self.reselect.region(frame.depth), frame.depth, torch.zeros_like(frame.depth))
 
     def _loss_check(self, frame: FrameBatch, cur: PreparedFrame, measure: Measure, res: StepResult,
                     before: TrackerState) -> tuple[StepResult, Tensor]:  # fmt: skip
@@ -357,8 +356,7 @@ class Tracker:
         if self.relocaliser is not None:
             self.relocaliser.add(slot, cur, measure, s.T_world_depth)
         if self.dense is not None:
-            T_world_color = T_world_color_from_depth(s.T_world_depth, frame.T_color_depth)
-            self.dense.add(self._region_depth(cur), frame.K, T_world_color, due)
+            self.dense.add(self._region_depth(frame), frame.K_depth, s.T_world_depth, due)
 
 
 # ---------------------------------------------------------------------------------------------- helpers
