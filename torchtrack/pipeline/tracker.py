@@ -212,8 +212,9 @@ class Tracker:
         if not due.any():
             return s
         al = self.dense.align(self._region_depth(frame), frame.K_depth, s.T_world_depth, due)
-        T_world_depth = torch.where(al.applied[:, None, None], al.T_world_cam, s.T_world_depth)
-        return replace(s, T_world_obj=T_world_depth @ s.T_cam_obj)
+        # only where applied: elsewhere a round trip through the camera would move the model by round-off
+        placed = torch.where(al.applied[:, None, None], al.T_world_cam @ s.T_cam_obj, s.T_world_obj)
+        return replace(s, T_world_obj=placed)
 
     def _region_depth(self, frame: FrameBatch) -> Tensor:
         """(B, 1, H, W) the depth as the depth camera took it (its own grid: a separate depth camera's frames are not
