@@ -138,7 +138,7 @@ class Tracker:
             tracked = self._advanced(s, frame, cur, track.points, valid, valid_xyz, est.T_cam_obj.double(), points_d,
                                      var)  # outliers, eq. (16)  # fmt: skip
             reselect = self.reselect.needed(tracked.valid & valid_xyz, tracked.n_model, frame.active)  # few with depth
-            tracked = self._placed(tracked, frame, cur, reselect)  # the model's world pose, on the dense map
+            tracked = self._placed(tracked, frame, reselect)  # the model's world pose, on the dense map
             self.state, model = self._reselected(tracked, frame, cur, measure, reselect)  # §III-B
             res = _result(tracked, track.winner, track.d_tim, reselect, observation=obs, variances=var, cues=cues,
                           model_T_cam_obj=model, estimate=est)  # fmt: skip
@@ -202,7 +202,7 @@ class Tracker:
         est = self.reselect.fused(est, T_cam_obj, points_d, var.var_xyz, s.valid & valid_xyz)
         return replace(s, points_mean=est.mean, points_info=est.info)
 
-    def _placed(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, reselect: Tensor) -> TrackerState:
+    def _placed(self, s: TrackerState, frame: FrameBatch, reselect: Tensor) -> TrackerState:
         """``s`` with the model moved in the world (``T_world_obj``) so that the camera is where the dense map puts it
         (:meth:`DenseMap.align`), in the sequences it is due for (a re-selection anchors the new model there); the
         model's pose in the camera, hence the features and the filter, unchanged."""
