@@ -120,9 +120,8 @@ def unaligned_errors(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[float, float]
 
 def test_unregistered_trajectory_matches_ground_truth_without_alignment(tracked):
     """Measured (noise-free, 320 x 240, 16 frames, RMSE unaligned, the default configuration): unregistered 0.39 mm
-    and 0.018 deg at most, registered 0.47 mm (before the dense map every frame: 1.54 and 1.65 mm); the depth camera's
-    poses written as the colour camera's (the old runner, with the online noise scale off): 9.98 mm and 0.91 deg.
-    Bounds: 5 mm and 0.5 deg."""
+    and 0.018 deg at most, registered 0.47 mm; the depth camera's poses written as the colour camera's (the old
+    runner, with the online noise scale off): 9.98 mm and 0.91 deg. Bounds: 5 mm and 0.5 deg."""
     gt, out = tracked
     trans, rot = unaligned_errors(out["unregistered"][0], gt)
     assert trans < 5e-3 and rot < 0.5, f"{trans * 1e3:.2f} mm, {rot:.3f} deg"
@@ -132,9 +131,9 @@ def test_unregistered_tracks_within_1_3x_the_registered(tracked):
     """The default configuration. Measured: ATE (SE(3)-aligned) 0.37 vs 0.42 mm (0.89x), each feature's depth read
     where its ray meets the depth camera's surface (:func:`torchtrack.geometry.depth_along_rays`) and the dense map
     fed the depth camera's own frames; with the map fed the depth warped into the colour camera: 0.80 vs 0.42 mm
-    (1.9x; before the map aligned every frame 0.66 vs 0.86). Features read from the forward warp instead: 1.83 vs 0.86
-    mm (2.1x; 1.42 vs 1.23 with the online noise scale off): the warp's resampling errors, which are not white, weigh
-    too much once the scale has learned how exact this render is."""
+    (1.9x): the warp's resampling is not the white noise the map's point-to-plane sigma assumes. Features read from
+    the forward warp instead: 1.83 vs 0.86 mm (2.1x; 1.42 vs 1.23 with the online noise scale off): the same errors
+    weigh too much once the scale has learned how exact this render is."""
     gt, out = tracked
     t = np.arange(FRAMES) / 30.0
     reg, unreg = (trajectory_metrics(t, out[k][0], gt)["ate_rmse_m"] for k in ("registered", "unregistered"))
