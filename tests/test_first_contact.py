@@ -112,7 +112,7 @@ def test_a_first_build_is_announced_before_the_bar_and_not_timed(tmp_path, capsy
     tracker = RGBDTracker.from_config(cfg)
     (metrics,) = run_tracker(tracker, sequences, tmp_path / "out", plots=False)
     err = capsys.readouterr().err
-    line = "torchtrack: building the compiled LK and SIM operators (first run only)... done in 3 s\n"
+    line = "torchtrack: building the compiled LK, SIM and alignment operators (first run only)... done in 3 s\n"
     assert err.startswith(line) and err.count("building") == 1 and "tracking:" in err[len(line) :], err
     assert metrics["frames"] == 6 and metrics["frames"] / metrics["fps"] < BUILD_S
 

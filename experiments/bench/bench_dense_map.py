@@ -3,8 +3,9 @@ decoded frames, in one process, runs alternating; and the map's own calls (align
 
     python experiments/bench/bench_dense_map.py ../shared/data/7scenes_redkitchen --frames 300 --repeats 2 --also dense.every=10
 
-Prints, per configuration (``--also``: more of them, each one override), the median ms per frame over the repeats and
-its ratio to the tracker without the map, and for the default: the calls to
+Prints, per configuration (``--also``: more of them, each one override; ``--reference``: the default with the
+alignment in pure torch, ``DenseMap(backend="torch")``, instead of the compiled operator), the median ms per frame
+over the repeats and its ratio to the tracker without the map, and for the default: the calls to
 ``DenseMap.align`` and ``DenseMap.add`` (count, ms per call, ms per frame) and its voxels at the end. One torch thread
 (the CLI's), frames decoded before timing (the tracker is measured, not the loader); wall clock on a shared machine.
 """
@@ -45,6 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=300, help="its first frames tracked")
     ap.add_argument("--repeats", type=int, default=2, help="runs of each configuration, alternating")
     ap.add_argument("--also", nargs="*", default=[], help="more configurations with the map: Hydra overrides, one each")
+    ap.add_argument("--reference", action="store_true", help="also the alignment's pure-torch reference")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     seq = TumSequence(args.root, max_frames=args.frames)
@@ -52,11 +54,15 @@ def main(argv: list[str] | None = None) -> int:
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfgs = {"dense map": compose("config"), "without": compose("config", overrides=["dense.enabled=false"])}
         cfgs |= {o: compose("config", overrides=[o]) for o in args.also}
+        if args.reference:
+            cfgs["torch alignment"] = cfgs["dense map"]
     ms: dict[str, list[float]] = {k: [] for k in cfgs}
     calls: dict[str, list[float]] = {"align": [], "add": []}
     for r in range(args.repeats):
         for name, cfg in cfgs.items():
             tracker = build_tracker(cfg)
+            if name == "torch alignment":
+                tracker.dense.backend = "torch"
             if name == "dense map" and r == args.repeats - 1:
                 for k, log in calls.items():
                     timed(tracker.dense, k, log)

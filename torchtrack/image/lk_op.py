@@ -1,6 +1,7 @@
-"""The compiled operators ``torch.ops.torchtrack.lk_track`` (csrc/lk.cpp, the LK inner loop) and
-``torch.ops.torchtrack.shape_index_map`` (csrc/sim.cpp, the SIM): one library, built on first use, cached, with fake
-kernels; :mod:`torchtrack.image.lk` and :mod:`torchtrack.image.shape_index` fall back to their pure-torch references
+"""The compiled operators ``torch.ops.torchtrack.lk_track`` (csrc/lk.cpp, the LK inner loop),
+``torch.ops.torchtrack.shape_index_map`` (csrc/sim.cpp, the SIM) and ``torch.ops.torchtrack.dense_fit`` (csrc/dense.cpp,
+the dense map's alignment): one library, built on first use, cached, with fake kernels; :mod:`torchtrack.image.lk`,
+:mod:`torchtrack.image.shape_index` and :mod:`torchtrack.pipeline.dense_map` fall back to their pure-torch references
 where it cannot be built.
 
 Build: ``torch.utils.cpp_extension.load`` (ninja, the system C++ compiler, ``-O3``) into
@@ -26,7 +27,7 @@ import torch
 from torch import Tensor
 
 SOURCE = Path(__file__).with_name("csrc") / "lk.cpp"
-SOURCES = [SOURCE, SOURCE.with_name("sim.cpp")]
+SOURCES = [SOURCE, SOURCE.with_name("sim.cpp"), SOURCE.with_name("dense.cpp")]
 # -fopenmp compiles at::parallel_for's OpenMP region; it is not linked: the symbols resolve to torch's own OpenMP
 # runtime (linking the system libgomp would load a second one).
 CFLAGS = ["-O3", "-fopenmp", "-fno-math-errno"]
@@ -89,7 +90,7 @@ def available() -> bool:
         except Exception as e:  # any build failure: the reference path still works
             _state["ok"], _state["error"] = False, f"{type(e).__name__}: {str(e).strip().splitlines()[-1:]}"
             warnings.warn(f"torchtrack: compiled LK operator unavailable ({_state['error']}); using the pure-torch "
-                          "LK and SIM (slower)", RuntimeWarning, stacklevel=3)  # fmt: skip
+                          "LK, SIM and alignment (slower)", RuntimeWarning, stacklevel=3)  # fmt: skip
     return _state["ok"]
 
 
@@ -107,14 +108,21 @@ def warm_up(stream: TextIO | None = None) -> bool:
         return available()
     stream = stream if stream is not None else sys.stderr
     print(
-        "torchtrack: building the compiled LK and SIM operators (first run only)... ", end="", file=stream, flush=True
+        "torchtrack: building the compiled LK, SIM and alignment operators (first run only)... ",
+        end="",
+        file=stream,
+        flush=True,
     )
     t0 = time.perf_counter()
     with warnings.catch_warnings():  # this line says it instead
         warnings.simplefilter("ignore", RuntimeWarning)
         ok = available()
     took = time.perf_counter() - t0
-    done = f"done in {took:.0f} s" if ok else f"failed after {took:.0f} s ({error()}); using the pure-torch LK and SIM"
+    done = (
+        f"done in {took:.0f} s"
+        if ok
+        else f"failed after {took:.0f} s ({error()}); using the pure-torch LK, SIM and alignment"
+    )
     print(done, file=stream, flush=True)
     return ok
 
@@ -136,6 +144,10 @@ def _register_fake() -> None:
     @torch.library.register_fake("torchtrack::shape_index_map")
     def _(depth, K, *args) -> tuple[Tensor, Tensor, Tensor]:
         return torch.empty_like(depth), torch.empty_like(depth, dtype=torch.bool), torch.empty_like(depth)
+
+    @torch.library.register_fake("torchtrack::dense_fit")
+    def _(world, depth, K, T_cw, *args) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        return world.new_empty(4, 4), world.new_empty(6), world.new_empty(6, 6), world.new_empty(3)
 
     _state["fake"] = True
 

@@ -23,7 +23,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.geometry import T_inv, backproject_depth, hat, rotation_angle, transform_points
+from torchtrack.geometry import T_inv, backproject_depth, hat, transform_points
+from torchtrack.image.lk import use_cpp
 from torchtrack.mapping.voxel_grid import VoxelPointMap
 
 
@@ -36,6 +37,20 @@ class Alignment(NamedTuple):
     pairs: Tensor
 
 
+class Fit(NamedTuple):
+    """One camera's Gauss-Newton fit to its map: the correction ``delta`` (4, 4) (the aligned world-to-camera pose is
+    delta @ T_cw); its twist ``xi`` (6,) (the sum of the steps: the prior's residual); the data's information
+    ``info`` J^T W J (6, 6) of the last iteration; the ``pairs`` of the last iteration; ``step``, the last step's
+    largest component (metres and radians; inf where fewer than 6 pairs were left); ``steps`` taken."""
+
+    delta: Tensor
+    xi: Tensor
+    info: Tensor
+    pairs: int
+    step: float
+    steps: int
+
+
 def strided_points(depth: Tensor, K: Tensor, stride: int) -> tuple[Tensor, Tensor]:
     """The points (B, h, w, 3) float64 of every ``stride``-th pixel of a depth image (B, 1, H, W) seen through K
     (B, 3, 3), in its camera (0 depth: the origin), and the intrinsics (B, 3, 3) of that strided grid."""
@@ -44,7 +59,10 @@ def strided_points(depth: Tensor, K: Tensor, stride: int) -> tuple[Tensor, Tenso
     return backproject_depth(Ks, depth[:, :, ::stride, ::stride].double()), Ks
 
 
-def surface(depth: Tensor, K: Tensor, stride: int, max_step: float = 0.05) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+MAX_STEP = 0.05  # surface(): no normal across a depth step larger than this fraction of the depth
+
+
+def surface(depth: Tensor, K: Tensor, stride: int, max_step: float = MAX_STEP) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The surface of a depth image (B, 1, H, W) at every ``stride``-th pixel: vertices (B, h, w, 3) in the camera of
     K (B, 3, 3), unit normals (B, h, w, 3) (the cross product of the central differences), valid (B, h, w) (depth
     there and at the four neighbours, none farther than ``max_step`` x z in depth: no normal across a depth step),
@@ -91,6 +109,8 @@ class DenseMap:
             ~0.4x each: what remains is a few hundredths of a millimetre).
         weak: a direction of the pose in which the depth's information is below this many times the prior's is left
             as the tracker had it (the correction projected off it).
+        backend: "cpp" the compiled ``torch.ops.torchtrack.dense_fit`` (csrc/dense.cpp), "torch" the reference
+            (:meth:`_fit_torch`), "auto" the operator where it builds (the LK operator's switch, ``lk.use_cpp``).
     """
 
     def __init__(
@@ -113,6 +133,7 @@ class DenseMap:
         converged: float = 3e-3,
         tolerance: float = 1e-4,
         weak: float = 3.0,
+        backend: str = "auto",
     ) -> None:
         if voxel_size <= 0 or every < 1 or stride < 1 or iterations < 1 or max_points < 1:
             raise ValueError(f"DenseMap: need voxel_size > 0 and every, stride, iterations, max_points >= 1; got "
@@ -121,7 +142,9 @@ class DenseMap:
         self.iterations, self.max_distance_m, self.huber_m, self.sigma_m = iterations, max_distance_m, huber_m, sigma_m
         self.prior_m, self.prior_deg, self.min_pairs = prior_m, prior_deg, min_pairs
         self.max_correction_m, self.max_correction_deg, self.max_depth = max_correction_m, max_correction_deg, max_depth
-        self.converged, self.tolerance, self.weak = converged, tolerance, weak
+        self.converged, self.tolerance, self.weak, self.backend = converged, tolerance, weak, backend
+        if backend not in ("auto", "cpp", "torch"):  # here, not at the first alignment (the operator builds then)
+            raise ValueError(f"DenseMap: backend must be 'auto', 'cpp' or 'torch', got {backend!r}")
         self.map: VoxelPointMap | None = None
         self.since: Tensor | None = None  # frames since each sequence's last alignment
         self._pools: list[Tensor | None] = []  # per sequence: the map's points an alignment draws from (None: stale)
@@ -166,21 +189,25 @@ class DenseMap:
         pairs = torch.zeros(B, dtype=torch.long, device=mask.device)
         if not bool(mask.any()):
             return Alignment(T_out, applied, pairs)
-        V, N, valid, Ks = surface(depth, K, self.stride)
         for b in mask.nonzero().squeeze(1).tolist():
             world = self._pool(b)
             if world is None:
                 continue
-            T_cw, pairs[b], step = self._fit(world, V[b], N[b], valid[b], Ks[b], T_inv(T_out[b]))
-            delta = T_cw @ T_out[b]  # the correction, in the camera
+            T_cw = T_inv(T_out[b])
+            fit = self.fit(world, depth[b, 0], K[b], T_cw)
+            pairs[b] = fit.pairs
+            if fit.step == math.inf:  # too few pairs left: no correction
+                continue
+            delta = self._gated(fit)  # the correction, in the camera
+            cos = (float(delta[0, 0] + delta[1, 1] + delta[2, 2]) - 1.0) / 2.0
             applied[b] = (
                 int(pairs[b]) >= self.min_pairs
-                and step < self.converged  # else a wrong basin, or a partial correction
+                and fit.step < self.converged  # else a wrong basin, or a partial correction
                 and float(delta[:3, 3].norm()) <= self.max_correction_m
-                and float(rotation_angle(delta[None, :3, :3])[0]) <= math.radians(self.max_correction_deg)
+                and math.acos(max(-1.0, min(1.0, cos))) <= math.radians(self.max_correction_deg)
             )
             if applied[b]:
-                T_out[b] = T_inv(T_cw)
+                T_out[b] = T_inv(delta @ T_cw)
         return Alignment(T_out, applied, pairs)
 
     def _pool(self, b: int) -> Tensor | None:
@@ -195,20 +222,35 @@ class DenseMap:
             self._pools[b] = self.map.points(b, ordered=True, every=max(1, M // (8 * self.max_points))).xyz
         return self._pools[b]
 
-    def _fit(self, world: Tensor, V: Tensor, N: Tensor, valid: Tensor, K: Tensor,
-             T_cw: Tensor) -> tuple[Tensor, int, float]:  # fmt: skip
+    def fit(self, world: Tensor, depth: Tensor, K: Tensor, T_cw: Tensor) -> Fit:
         """Gauss-Newton on the world-to-camera pose from ``T_cw`` (4, 4), the map points ``world`` (M, 3) (the
-        :meth:`_pool`) against the surface (V, N, valid) of the grid of K: (the pose, the pairs of the last iteration,
-        the last step's size: its largest component, metres and radians). Stops early once a step is below
-        ``tolerance``."""
+        :meth:`_pool`) against the surface of the depth image (H, W) seen through K (3, 3) (:func:`surface` of its
+        strided grid), by the compiled ``torch.ops.torchtrack.dense_fit`` (csrc/dense.cpp) where the backend runs it,
+        else by :meth:`_fit_torch`. Stops early once a step is below ``tolerance``."""
+        if not (use_cpp(self.backend) and depth.device.type == "cpu"):
+            return self._fit_torch(world, depth, K, T_cw)
+        delta, xi, info, stats = torch.ops.torchtrack.dense_fit(
+            world.double().contiguous(), depth.float().contiguous(), K.double().contiguous(),
+            T_cw.double().contiguous(), self.stride, self.max_points, self.iterations, self.max_depth,
+            self.max_distance_m, self.huber_m, self.sigma_m, self.prior_m, math.radians(self.prior_deg),
+            self.tolerance, MAX_STEP,
+        )  # fmt: skip
+        pairs, step, steps = stats.tolist()
+        return Fit(delta, xi, info, int(pairs), step, int(steps))
+
+    def _fit_torch(self, world: Tensor, depth: Tensor, K: Tensor, T_cw: Tensor) -> Fit:
+        """:meth:`fit` in torch: the operator's reference (tests/test_dense_op.py), and the path where it does not
+        build."""
+        V, N, valid, K = (x[0] for x in surface(depth[None, None], K[None], self.stride))
         h, w = valid.shape
-        x, y, z = transform_points(T_cw.float(), world.float()).unbind(-1)
+        x, y, z = transform_points(T_cw, world).unbind(-1)  # float64: the operator's culling flips no point
         fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
         u, v = fx * x + cx * z, fy * y + cy * z  # the pixel times z: no division
         seen = (z > 0.1) & (z <= self.max_depth) & (u > -0.5 * z) & (v > -0.5 * z) & (u < (w - 0.5) * z)
         world = world[seen & (v < (h - 0.5) * z)]  # still in voxel order
-        if len(world) > self.max_points:
-            world = world[torch.linspace(0, len(world) - 1, self.max_points, device=world.device).long()]
+        n, m = len(world), self.max_points
+        if n > m:  # evenly thinned, in integers (the operator picks the same points)
+            world = world[torch.arange(m, device=world.device) * (n - 1) // max(m - 1, 1)]
         # Structure of arrays (3, M): the per-point work is a few dozen row operations, not strided columns.
         P0 = torch.addmm(T_cw[:3, 3:], T_cw[:3, :3], world.T)  # the points in the starting camera
         # One gather per iteration: each pixel's vertex, normal and validity in a row; the last row is "no surface".
@@ -220,7 +262,7 @@ class DenseMap:
         step = torch.full_like(xi, math.inf)
         delta = torch.eye(4, dtype=torch.float64, device=world.device)  # the correction, applied to P0
         n_pairs = 0
-        for _ in range(self.iterations):
+        for k in range(self.iterations):
             P = torch.addmm(delta[:3, 3:], delta[:3, :3], P0)
             x, y, z = P
             iz = 1.0 / z.clamp_min(1e-6)
@@ -235,7 +277,7 @@ class DenseMap:
             ok = (S[6] > 0) & (ra <= self.max_distance_m) & ((d * d).sum(0) <= (2 * self.max_distance_m) ** 2)
             n_pairs = int(ok.sum())
             if n_pairs < 6:
-                return delta @ T_cw, n_pairs, math.inf
+                return Fit(delta, xi, torch.zeros_like(prior), n_pairs, math.inf, k)
             huber = torch.where(ra <= self.huber_m, 1.0, self.huber_m / ra.clamp_min(1e-12))
             wgt = huber * ok / (self.sigma_m * z.square().clamp_min(1.0)) ** 2
             x, y, z = P
@@ -247,16 +289,24 @@ class DenseMap:
             delta = _exp(step) @ delta  # left perturbation
             if float(step.abs().max()) < self.tolerance:
                 break
+        return Fit(delta, xi, Jw @ J.T, n_pairs, float(step.abs().max()), k + 1)
+
+    def _gated(self, fit: Fit) -> Tensor:
+        """The fit's correction (4, 4), projected off every pose direction in which the data's information is below
+        ``weak`` times the prior's."""
         # A direction in which the depth holds less than ``weak`` times the prior's information (half a surface, a
         # plane) is not corrected: the point-to-plane sigma treats the pairs as independent, so along it the data's
         # information is overstated and the correction would follow the depth's correlated errors.
-        sd = prior.diagonal().rsqrt()  # whitened by the prior: eigenvalues are information ratios
-        ratio, vec = torch.linalg.eigh((Jw @ J.T) * sd[:, None] * sd[None, :])
+        rad = math.radians(self.prior_deg)
+        sd = torch.tensor([self.prior_m] * 3 + [rad] * 3, dtype=torch.float64, device=fit.xi.device)
+        ratio, vec = torch.linalg.eigh(
+            fit.info * sd[:, None] * sd[None, :]
+        )  # whitened by the prior: information ratios
         weak = vec[:, ratio < self.weak]
-        if weak.shape[1]:
-            y = xi / sd
-            delta = _exp(sd * (y - weak @ (weak.T @ y)))
-        return delta @ T_cw, n_pairs, float(step.abs().max())
+        if not weak.shape[1]:
+            return fit.delta
+        y = fit.xi / sd
+        return _exp(sd * (y - weak @ (weak.T @ y)))
 
 
 def _exp(xi: Tensor) -> Tensor:

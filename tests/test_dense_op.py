@@ -1,0 +1,118 @@
+"""The compiled dense alignment (torch.ops.torchtrack.dense_fit, csrc/dense.cpp) against its pure-torch reference
+(``DenseMap._fit_torch``).
+
+Oracles: the reference on a rendered room from cameras near and far from the truth (pairs, steps, the correction, its
+twist and the data's information within tests/tolerances.py DENSE_OP_*), and both at the render's exact ground truth;
+the same on real depth (a map of 7-Scenes keyframes placed by their ground-truth poses); fewer than 6 pairs: no
+correction from either; the fallback where the operator does not build; torch.library.opcheck for the schema and the
+fake kernel; bad inputs raise.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+import torch
+from test_dense_map import keyframe_map, pose_error, room  # noqa: F401 (room: the fixture)
+from tolerances import DENSE_OP_INFO, DENSE_OP_PAIRS, DENSE_OP_POSE
+
+from torchtrack.data import TumSequence, iterate_batched
+from torchtrack.geometry import T_inv, se3_exp
+from torchtrack.image import lk_op
+from torchtrack.pipeline.dense_map import DenseMap
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+pytestmark = pytest.mark.skipif(not lk_op.available(), reason="the compiled operators do not build here")
+
+# starts around the room's current camera: its true pose, the drifted one of test_dense_map, 10 cm and 3 degrees off
+STARTS = [[0.0] * 6, None, [0.1, 0, 0, 0, 0, 0], [0, 0, 0.1, 0, 0, 0], [0, 0, 0, 0.05, 0, 0], [0, 0.02, 0, 0, 0, 0.01]]
+
+
+def assert_agree(dense: DenseMap, world, depth, K, T_cw) -> tuple:
+    """The operator's and the reference's fits from T_cw agree; returns both."""
+    dense.backend = "cpp"
+    op = dense.fit(world, depth, K, T_cw)
+    dense.backend = "torch"
+    ref = dense.fit(world, depth, K, T_cw)
+    assert abs(op.pairs - ref.pairs) <= DENSE_OP_PAIRS * ref.pairs and op.steps == ref.steps, (op, ref)
+    assert op.step < dense.tolerance or math.isclose(op.step, ref.step, rel_tol=1e-3)
+    torch.testing.assert_close(op.delta, ref.delta, atol=DENSE_OP_POSE, rtol=0)
+    torch.testing.assert_close(op.xi, ref.xi, atol=DENSE_OP_POSE, rtol=0)
+    scale = float(ref.info.abs().max())
+    torch.testing.assert_close(op.info, ref.info, atol=DENSE_OP_INFO * scale, rtol=0)
+    return op, ref
+
+
+@pytest.mark.parametrize("iterations", [1, 12])
+def test_the_operator_is_the_reference_on_a_render(room, iterations):  # noqa: F811
+    """One Gauss-Newton step (the normal equations as built) and the whole fit, from six starts; from the truth and
+    from the drifted camera both end within 1.6 mm / 0.02 degrees of the truth (test_dense_map's bound)."""
+    dense = keyframe_map(room)
+    dense.iterations = iterations
+    world = dense._pool(0)
+    for xi in STARTS:
+        T = room["drifted"] if xi is None else room["T_cur"] @ se3_exp(torch.tensor(xi, dtype=torch.float64))
+        op, ref = assert_agree(dense, world, room["d_cur"][0, 0], room["K"][0], T_inv(T))
+        assert ref.pairs > 1000  # measured: 1,655 to ~4,000
+        if iterations == 12 and (xi is None or xi == [0.0] * 6):
+            for fit in (op, ref):
+                mm, deg = pose_error(room["T_cur"], T_inv(fit.delta @ T_inv(T)))
+                assert mm < 1.6 and deg < 0.02, (xi, mm, deg)
+
+
+def test_too_few_pairs_give_no_correction(room):  # noqa: F811
+    """A camera turned away from the map (no point in view): both fits report inf and the identity."""
+    dense = keyframe_map(room)
+    T = room["T_cur"] @ se3_exp(torch.tensor([0, 0, 0, 0, math.pi, 0], dtype=torch.float64))
+    for backend in ("cpp", "torch"):
+        dense.backend = backend
+        fit = dense.fit(dense._pool(0), room["d_cur"][0, 0], room["K"][0], T_inv(T))
+        assert fit.step == math.inf and fit.pairs < 6 and fit.steps == 0
+        assert torch.equal(fit.delta, torch.eye(4, dtype=torch.float64)) and not bool(fit.info.any())
+
+
+@pytest.mark.equivalence
+@pytest.mark.skipif(not (DATA / "7scenes_redkitchen").exists(), reason="needs ../shared/data/7scenes_redkitchen")
+def test_real_depth_agrees_with_the_reference():
+    """7-Scenes (Kinect depth, 640 x 480): a map of frames 0, 10, 20, 30 placed by their ground truth; frame 25 from
+    its true pose and from 2 cm / 1 degree off."""
+    frames = list(iterate_batched([TumSequence(DATA / "7scenes_redkitchen", max_frames=31)], prefetch=False))
+    dense = DenseMap()
+    dense.reset(1)
+    for f in frames[0:31:10]:
+        T_wd = f.T_world_color_gt @ f.T_color_depth.double()
+        dense.add(f.depth, f.K_depth, T_wd, torch.ones(1, dtype=torch.bool))
+    f = frames[25]
+    T_wd = (f.T_world_color_gt @ f.T_color_depth.double())[0]
+    for xi in ([0.0] * 6, [0.02, 0, 0, 0, 0.0175, 0], [0, -0.01, 0.015, 0.01, 0, -0.01]):
+        T = T_wd @ se3_exp(torch.tensor(xi, dtype=torch.float64))
+        op, ref = assert_agree(dense, dense._pool(0), f.depth[0, 0], f.K_depth[0], T_inv(T))
+        assert ref.pairs > 2000
+
+
+def test_fallback_opcheck_and_bad_inputs(room, monkeypatch):  # noqa: F811
+    dense = keyframe_map(room)
+    world, depth, K, T_cw = dense._pool(0), room["d_cur"][0, 0], room["K"][0], T_inv(room["drifted"])
+    dense.backend = "torch"
+    ref = dense.fit(world, depth, K, T_cw)
+    monkeypatch.setenv("TORCHTRACK_NO_BUILD", "1")
+    monkeypatch.setattr(lk_op, "_state", {})
+    dense.backend = "auto"
+    with pytest.warns(RuntimeWarning, match="unavailable"):
+        out = dense.fit(world, depth, K, T_cw)
+    assert torch.equal(out.delta, ref.delta) and out.pairs == ref.pairs
+    dense.backend = "cpp"
+    with pytest.raises(RuntimeError, match="could not be built"):
+        dense.fit(world, depth, K, T_cw)
+    monkeypatch.undo()
+    with pytest.raises(ValueError, match="backend"):
+        DenseMap(backend="gpu")
+    args = (world[:2000].contiguous(), depth.float().contiguous(), K.double(), T_cw.contiguous(), 4, 500, 3, 4.0,
+            0.05, 0.01, 0.005, 0.01, 0.0175, 1e-4, 0.05)  # fmt: skip
+    torch.library.opcheck(torch.ops.torchtrack.dense_fit.default, args)
+    with pytest.raises(RuntimeError, match="float64"):
+        torch.ops.torchtrack.dense_fit(world.float(), *args[1:])
+    with pytest.raises(RuntimeError, match="float32"):
+        torch.ops.torchtrack.dense_fit(args[0], depth.double(), *args[2:])
