@@ -25,7 +25,7 @@ from torchtrack.data.synthetic.scene import default_scene
 from torchtrack.factory import build_tracker
 from torchtrack.geometry import T_inv, rotation_angle, se3_exp
 from torchtrack.image import lk_op
-from torchtrack.pipeline.dense_map import DenseMap, surface
+from torchtrack.pipeline.dense_map import DenseMap, grid, surface
 
 ONE = torch.ones(1, dtype=torch.bool)
 
@@ -109,7 +109,8 @@ def test_the_early_stop_leaves_what_the_remaining_iterations_would_move(room, ba
         al = dense.align(room["d_cur"], room["K"], room["drifted"][None], ONE)
         assert bool(al.applied[0])
         cams[tol] = al.T_world_cam[0]
-        steps[tol] = dense.fit(dense._pool(0), room["d_cur"][0, 0], room["K"][0], T_inv(room["drifted"])).steps
+        (d,), (K,) = grid(room["d_cur"], room["K"], dense.stride)
+        steps[tol] = dense.fit(dense._pool(0), d, K, T_inv(room["drifted"])).steps
     mm, deg = pose_error(cams[0.0], cams[1e-4])
     assert mm < 0.05 and deg < 0.005, (mm, deg)
     assert steps[1e-4] < steps[0.0] == dense.iterations, steps

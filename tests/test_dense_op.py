@@ -21,7 +21,7 @@ from tolerances import DENSE_OP_INFO, DENSE_OP_PAIRS, DENSE_OP_POSE
 from torchtrack.data import TumSequence, iterate_batched
 from torchtrack.geometry import T_inv, se3_exp
 from torchtrack.image import lk_op
-from torchtrack.pipeline.dense_map import DenseMap
+from torchtrack.pipeline.dense_map import DenseMap, grid
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 pytestmark = pytest.mark.skipif(not lk_op.available(), reason="the compiled operators do not build here")
@@ -31,7 +31,8 @@ STARTS = [[0.0] * 6, None, [0.1, 0, 0, 0, 0, 0], [0, 0, 0.1, 0, 0, 0], [0, 0, 0,
 
 
 def assert_agree(dense: DenseMap, world, depth, K, T_cw) -> tuple:
-    """The operator's and the reference's fits from T_cw agree; returns both."""
+    """The operator's and the reference's fits from T_cw on the depth image (1, 1, H, W) agree; returns both."""
+    depth, K = (x[0] for x in grid(depth, K, dense.stride))
     dense.backend = "cpp"
     op = dense.fit(world, depth, K, T_cw)
     dense.backend = "torch"
@@ -54,7 +55,7 @@ def test_the_operator_is_the_reference_on_a_render(room, iterations):  # noqa: F
     world = dense._pool(0)
     for xi in STARTS:
         T = room["drifted"] if xi is None else room["T_cur"] @ se3_exp(torch.tensor(xi, dtype=torch.float64))
-        op, ref = assert_agree(dense, world, room["d_cur"][0, 0], room["K"][0], T_inv(T))
+        op, ref = assert_agree(dense, world, room["d_cur"], room["K"], T_inv(T))
         assert ref.pairs > 1000  # measured: 1,655 to ~4,000
         if iterations == 12 and (xi is None or xi == [0.0] * 6):
             for fit in (op, ref):
@@ -68,7 +69,7 @@ def test_too_few_pairs_give_no_correction(room):  # noqa: F811
     T = room["T_cur"] @ se3_exp(torch.tensor([0, 0, 0, 0, math.pi, 0], dtype=torch.float64))
     for backend in ("cpp", "torch"):
         dense.backend = backend
-        fit = dense.fit(dense._pool(0), room["d_cur"][0, 0], room["K"][0], T_inv(T))
+        fit = dense.fit(dense._pool(0), *(x[0] for x in grid(room["d_cur"], room["K"], dense.stride)), T_inv(T))
         assert fit.step == math.inf and fit.pairs < 6 and fit.steps == 0
         assert torch.equal(fit.delta, torch.eye(4, dtype=torch.float64)) and not bool(fit.info.any())
 
@@ -88,13 +89,14 @@ def test_real_depth_agrees_with_the_reference():
     T_wd = (f.T_world_color_gt @ f.T_color_depth.double())[0]
     for xi in ([0.0] * 6, [0.02, 0, 0, 0, 0.0175, 0], [0, -0.01, 0.015, 0.01, 0, -0.01]):
         T = T_wd @ se3_exp(torch.tensor(xi, dtype=torch.float64))
-        op, ref = assert_agree(dense, dense._pool(0), f.depth[0, 0], f.K_depth[0], T_inv(T))
+        op, ref = assert_agree(dense, dense._pool(0), f.depth, f.K_depth, T_inv(T))
         assert ref.pairs > 2000
 
 
 def test_fallback_opcheck_and_bad_inputs(room, monkeypatch):  # noqa: F811
     dense = keyframe_map(room)
-    world, depth, K, T_cw = dense._pool(0), room["d_cur"][0, 0], room["K"][0], T_inv(room["drifted"])
+    (depth,), (K,) = grid(room["d_cur"], room["K"], dense.stride)
+    world, T_cw = dense._pool(0), T_inv(room["drifted"])
     dense.backend = "torch"
     ref = dense.fit(world, depth, K, T_cw)
     monkeypatch.setenv("TORCHTRACK_NO_BUILD", "1")
@@ -109,7 +111,7 @@ def test_fallback_opcheck_and_bad_inputs(room, monkeypatch):  # noqa: F811
     monkeypatch.undo()
     with pytest.raises(ValueError, match="backend"):
         DenseMap(backend="gpu")
-    args = (world[:2000].contiguous(), depth.float().contiguous(), K.double(), T_cw.contiguous(), 4, 500, 3, 4.0,
+    args = (world[:2000].contiguous(), depth.float().contiguous(), K.double(), T_cw.contiguous(), 500, 3, 4.0,
             0.05, 0.01, 0.005, 0.01, 0.0175, 1e-4, 0.05)  # fmt: skip
     torch.library.opcheck(torch.ops.torchtrack.dense_fit.default, args)
     with pytest.raises(RuntimeError, match="float64"):

@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -51,12 +52,22 @@ class Fit(NamedTuple):
     steps: int
 
 
+def grid(depth: Tensor, K: Tensor, stride: int, region: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Every ``stride``-th pixel of a depth image (B, 1, H, W) seen through K (B, 3, 3): the depth grid (B, h, w), 0
+    outside ``region`` (B, 1, H, W) bool (None: everywhere), and its intrinsics (B, 3, 3) float64."""
+    d = depth[:, 0, ::stride, ::stride]
+    if region is not None:
+        d = torch.where(region[:, 0, ::stride, ::stride], d, torch.zeros_like(d))
+    Ks = K.double().clone()
+    Ks[:, :2] /= stride  # pixel (i, j) of the grid is pixel (i, j) x stride of the image
+    return d, Ks
+
+
 def strided_points(depth: Tensor, K: Tensor, stride: int) -> tuple[Tensor, Tensor]:
     """The points (B, h, w, 3) float64 of every ``stride``-th pixel of a depth image (B, 1, H, W) seen through K
     (B, 3, 3), in its camera (0 depth: the origin), and the intrinsics (B, 3, 3) of that strided grid."""
-    Ks = K.double().clone()
-    Ks[:, :2] /= stride  # pixel (i, j) of the grid is pixel (i, j) x stride of the image
-    return backproject_depth(Ks, depth[:, :, ::stride, ::stride].double()), Ks
+    d, Ks = grid(depth, K, stride)
+    return backproject_depth(Ks, d[:, None].double()), Ks
 
 
 MAX_STEP = 0.05  # surface(): no normal across a depth step larger than this fraction of the depth
@@ -165,12 +176,14 @@ class DenseMap:
         self.since = torch.where(out, 0, self.since)
         return out
 
-    def add(self, depth: Tensor, K: Tensor, T_world_cam: Tensor, mask: Tensor) -> None:
+    def add(self, depth: Tensor, K: Tensor, T_world_cam: Tensor, mask: Tensor, region: Tensor | None = None) -> None:
         """Fuse the depth (B, 1, H, W) of the sequences in ``mask`` (B,), seen through the intrinsics K (B, 3, 3) of its
-        camera from ``T_world_cam`` (B, 4, 4), into their maps (0 depth: nothing)."""
+        camera from ``T_world_cam`` (B, 4, 4), into their maps (0 depth: nothing; only inside ``region`` (B, 1, H, W)
+        bool where given)."""
         if self.map is None:
             raise ValueError("DenseMap: call reset(B) before add")
-        V = strided_points(depth, K, self.stride)[0].flatten(1, 2)
+        d, Ks = grid(depth, K, self.stride, region)
+        V = backproject_depth(Ks, d[:, None].double()).flatten(1, 2)
         ok = (V[..., 2] > 0) & (V[..., 2] <= self.max_depth) & mask[:, None]
         world = transform_points(T_world_cam.double(), V)[ok].to(self.map.device)
         b = torch.arange(len(mask), device=ok.device)[:, None].expand_as(ok)[ok].to(self.map.device)
@@ -178,9 +191,11 @@ class DenseMap:
         for i in mask.nonzero().squeeze(1).tolist():
             self._pools[i] = None
 
-    def align(self, depth: Tensor, K: Tensor, T_world_cam: Tensor, mask: Tensor) -> Alignment:
+    def align(self, depth: Tensor, K: Tensor, T_world_cam: Tensor, mask: Tensor,
+              region: Tensor | None = None) -> Alignment:  # fmt: skip
         """The depth cameras ``T_world_cam`` (B, 4, 4) of the sequences in ``mask`` (B,) aligned to their maps through
-        their current depth (B, 1, H, W) and its intrinsics K (B, 3, 3)."""
+        their current depth (B, 1, H, W) (only inside ``region`` (B, 1, H, W) bool where given) and its intrinsics K
+        (B, 3, 3)."""
         if self.map is None:
             raise ValueError("DenseMap: call reset(B) before align")
         B = len(mask)
@@ -189,12 +204,13 @@ class DenseMap:
         pairs = torch.zeros(B, dtype=torch.long, device=mask.device)
         if not bool(mask.any()):
             return Alignment(T_out, applied, pairs)
+        d, Ks = grid(depth, K, self.stride, region)
         for b in mask.nonzero().squeeze(1).tolist():
             world = self._pool(b)
             if world is None:
                 continue
             T_cw = T_inv(T_out[b])
-            fit = self.fit(world, depth[b, 0], K[b], T_cw)
+            fit = self.fit(world, d[b], Ks[b], T_cw)
             pairs[b] = fit.pairs
             if fit.step == math.inf:  # too few pairs left: no correction
                 continue
@@ -224,14 +240,14 @@ class DenseMap:
 
     def fit(self, world: Tensor, depth: Tensor, K: Tensor, T_cw: Tensor) -> Fit:
         """Gauss-Newton on the world-to-camera pose from ``T_cw`` (4, 4), the map points ``world`` (M, 3) (the
-        :meth:`_pool`) against the surface of the depth image (H, W) seen through K (3, 3) (:func:`surface` of its
-        strided grid), by the compiled ``torch.ops.torchtrack.dense_fit`` (csrc/dense.cpp) where the backend runs it,
+        :meth:`_pool`) against the surface of the depth grid (h, w) seen through K (3, 3) (:func:`grid`, then
+        :func:`surface`), by the compiled ``torch.ops.torchtrack.dense_fit`` (csrc/dense.cpp) where the backend runs it,
         else by :meth:`_fit_torch`. Stops early once a step is below ``tolerance``."""
         if not (use_cpp(self.backend) and depth.device.type == "cpu"):
             return self._fit_torch(world, depth, K, T_cw)
         delta, xi, info, stats = torch.ops.torchtrack.dense_fit(
             world.double().contiguous(), depth.float().contiguous(), K.double().contiguous(),
-            T_cw.double().contiguous(), self.stride, self.max_points, self.iterations, self.max_depth,
+            T_cw.double().contiguous(), self.max_points, self.iterations, self.max_depth,
             self.max_distance_m, self.huber_m, self.sigma_m, self.prior_m, math.radians(self.prior_deg),
             self.tolerance, MAX_STEP,
         )  # fmt: skip
@@ -241,7 +257,7 @@ class DenseMap:
     def _fit_torch(self, world: Tensor, depth: Tensor, K: Tensor, T_cw: Tensor) -> Fit:
         """:meth:`fit` in torch: the operator's reference (tests/test_dense_op.py), and the path where it does not
         build."""
-        V, N, valid, K = (x[0] for x in surface(depth[None, None], K[None], self.stride))
+        V, N, valid, K = (x[0] for x in surface(depth[None, None], K[None], 1))
         h, w = valid.shape
         x, y, z = transform_points(T_cw, world).unbind(-1)  # float64: the operator's culling flips no point
         fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
@@ -297,16 +313,15 @@ class DenseMap:
         # A direction in which the depth holds less than ``weak`` times the prior's information (half a surface, a
         # plane) is not corrected: the point-to-plane sigma treats the pairs as independent, so along it the data's
         # information is overstated and the correction would follow the depth's correlated errors.
+        # The 6x6 eigenproblem in numpy: torch's eigh and its small tensors cost ~0.5 ms per frame, numpy's ~0.03.
         rad = math.radians(self.prior_deg)
-        sd = torch.tensor([self.prior_m] * 3 + [rad] * 3, dtype=torch.float64, device=fit.xi.device)
-        ratio, vec = torch.linalg.eigh(
-            fit.info * sd[:, None] * sd[None, :]
-        )  # whitened by the prior: information ratios
+        sd = np.array([self.prior_m] * 3 + [rad] * 3)
+        ratio, vec = np.linalg.eigh(fit.info.cpu().numpy() * sd[:, None] * sd[None, :])  # whitened: information ratios
         weak = vec[:, ratio < self.weak]
         if not weak.shape[1]:
             return fit.delta
-        y = fit.xi / sd
-        return _exp(sd * (y - weak @ (weak.T @ y)))
+        y = fit.xi.cpu().numpy() / sd
+        return _exp(torch.from_numpy(sd * (y - weak @ (weak.T @ y))).to(fit.xi))
 
 
 def _exp(xi: Tensor) -> Tensor:

@@ -102,6 +102,7 @@ class Tracker:
         self.outliers = outliers if outliers is not None else ResidualDrop()
         self.keyframes = keyframes if keyframes is not None else KeyframeStore()
         self.landmarks, self.relocaliser, self.dense = landmarks, relocaliser, dense
+        self._region: Tensor | None = None  # the current frame's _map_region
         self.predict_init, self.pixel_only, self.record = predict_init, pixel_only, record
         self.state = TrackerState()
 
@@ -118,6 +119,7 @@ class Tracker:
     def step(self, frame: FrameBatch) -> StepResult:
         """One frame of every sequence, in the paper's order (§III)."""
         s = self.state
+        self._region = None  # this frame's model region, for the dense map: computed on first use
         cur = self.frontend(frame)  # prepare: depth in the colour camera, SIM (eq. 8), LK pyramids
         raw = None if is_registered(frame) else frame.depth  # a separate depth camera: rays meet its surface
         measure = Measure(cur.depth, frame.K, frame.T_color_depth, raw, frame.K_depth)  # a pixel's 3D point, eq. (6)
@@ -211,17 +213,19 @@ class Tracker:
         due = self.dense.due(reselect, frame.active)
         if not due.any():
             return s
-        al = self.dense.align(self._region_depth(frame), frame.K_depth, s.T_world_depth, due)
+        al = self.dense.align(frame.depth, frame.K_depth, s.T_world_depth, due, self._map_region(frame))
         # only where applied: elsewhere a round trip through the camera would move the model by round-off
         placed = torch.where(al.applied[:, None, None], al.T_world_cam @ s.T_cam_obj, s.T_world_obj)
         return replace(s, T_world_obj=placed)
 
-    def _region_depth(self, frame: FrameBatch) -> Tensor:
-        """(B, 1, H, W) the depth as the depth camera took it (its own grid: a separate depth camera's frames are not
-        warped into the colour camera's, whose resampling errors would enter the map) inside the model's region (the
-        object, or the scene), 0 elsewhere: what the dense map holds (a moving object's background must not pull its
-        pose)."""
-        return torch.where(self.reselect.region(frame.depth), frame.depth, torch.zeros_like(frame.depth))
+    def _map_region(self, frame: FrameBatch) -> Tensor:
+        """(B, 1, H, W) bool the model's region (the object, or the scene) in the depth as the depth camera took it (its
+        own grid: a separate depth camera's frames are not warped into the colour camera's, whose resampling errors
+        would enter the map): what the dense map holds (a moving object's background must not pull its pose). Computed
+        once per frame (the alignment and a keyframe's fusion share it)."""
+        if self._region is None:
+            self._region = self.reselect.region(frame.depth)
+        return self._region
 
     def _loss_check(self, frame: FrameBatch, cur: PreparedFrame, measure: Measure, res: StepResult,
                     before: TrackerState) -> tuple[StepResult, Tensor]:  # fmt: skip
@@ -357,7 +361,7 @@ class Tracker:
         if self.relocaliser is not None:
             self.relocaliser.add(slot, cur, measure, s.T_world_depth)
         if self.dense is not None:
-            self.dense.add(self._region_depth(frame), frame.K_depth, s.T_world_depth, due)
+            self.dense.add(frame.depth, frame.K_depth, s.T_world_depth, due, self._map_region(frame))
 
 
 # ---------------------------------------------------------------------------------------------- helpers

@@ -2,7 +2,7 @@
 // (the reference and test oracle, tests/test_dense_op.py) as one CPU operator, torchtrack::dense_fit. The reference
 // spends ~30 ms per alignment in ~150 tensor operations on a few thousand points; here each stage is one loop.
 //
-// Stages, as in the reference: the surface of the depth's strided grid (vertices, normals of the central differences,
+// Stages, as in the reference: the surface of the depth grid (vertices, normals of the central differences,
 // validity: depth at the pixel and its four neighbours, none farther than max_step x z); the map points culled to
 // those in front of the camera and inside the image and evenly thinned to max_points
 // (point i * (n - 1) / (max_points - 1), integer division); then Gauss-Newton on the pose: each point projected to
@@ -103,25 +103,25 @@ void solve6(double* H, const double* g, double* x) {
   }
 }
 
-struct Surface {  // the strided grid's vertices and normals (h * w * 3) and validity (h * w)
+struct Surface {  // the grid's vertices and normals (h * w * 3) and validity (h * w)
   int h, w;
   std::vector<double> V, N;
   std::vector<uint8_t> valid;
 };
 
-// dense_map.py surface(): the grid pixel (i, j) is the image's (i stride, j stride), seen through K / stride.
-Surface make_surface(const float* depth, int64_t H, int64_t W, int64_t stride, double fx, double fy, double cx,
+// dense_map.py surface() of a depth grid (h, w) seen through fx, fy, cx, cy.
+Surface make_surface(const float* depth, int64_t h_, int64_t w_, double fx, double fy, double cx,
                      double cy, double max_step) {
   Surface s;
-  s.h = static_cast<int>((H + stride - 1) / stride);
-  s.w = static_cast<int>((W + stride - 1) / stride);
+  s.h = static_cast<int>(h_);
+  s.w = static_cast<int>(w_);
   const int h = s.h, w = s.w;
   s.V.assign(3 * h * w, 0.0);
   s.N.assign(3 * h * w, 0.0);
   s.valid.assign(h * w, 0);
   for (int i = 0; i < h; ++i)
     for (int j = 0; j < w; ++j) {
-      const double z = depth[i * stride * W + j * stride];
+      const double z = depth[i * w + j];
       double* p = &s.V[3 * (i * w + j)];
       p[0] = (j - cx) / fx * z;
       p[1] = (i - cy) / fy * z;
@@ -200,7 +200,7 @@ DENSE_CLONES int64_t normal_equations(const double* X0, const double* Y0, const 
 }
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> dense_fit_cpu(
-    const at::Tensor& world, const at::Tensor& depth, const at::Tensor& K, const at::Tensor& T_cw, int64_t stride,
+    const at::Tensor& world, const at::Tensor& depth, const at::Tensor& K, const at::Tensor& T_cw,
     int64_t max_points, int64_t iterations, double max_depth, double max_distance, double huber, double sigma,
     double prior_m, double prior_rad, double tolerance, double max_step) {
   TORCH_CHECK(world.dim() == 2 && world.size(1) == 3 && world.scalar_type() == at::kDouble && world.is_contiguous(),
@@ -211,14 +211,14 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> dense_fit_cpu(
               "dense_fit: K (3, 3) float64 contiguous");
   TORCH_CHECK(T_cw.sizes() == at::IntArrayRef({4, 4}) && T_cw.scalar_type() == at::kDouble && T_cw.is_contiguous(),
               "dense_fit: T_cw (4, 4) float64 contiguous");
-  TORCH_CHECK(stride >= 1 && max_points >= 1 && iterations >= 1, "dense_fit: stride, max_points, iterations >= 1");
+  TORCH_CHECK(max_points >= 1 && iterations >= 1, "dense_fit: max_points, iterations >= 1");
   const auto opt = world.options();
   auto delta_t = at::empty({4, 4}, opt), xi_t = at::zeros({6}, opt), info_t = at::zeros({6, 6}, opt);
   auto stats_t = at::empty({3}, opt);
 
   const double* k = K.data_ptr<double>();
-  const double fx = k[0] / stride, fy = k[4] / stride, cx = k[2] / stride, cy = k[5] / stride;
-  const Surface s = make_surface(depth.data_ptr<float>(), depth.size(0), depth.size(1), stride, fx, fy, cx, cy,
+  const double fx = k[0], fy = k[4], cx = k[2], cy = k[5];
+  const Surface s = make_surface(depth.data_ptr<float>(), depth.size(0), depth.size(1), fx, fy, cx, cy,
                                  max_step);
   const int h = s.h, w = s.w;
 
@@ -296,7 +296,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> dense_fit_cpu(
 
 TORCH_LIBRARY_FRAGMENT(torchtrack, m) {
   m.def(
-      "dense_fit(Tensor world, Tensor depth, Tensor K, Tensor T_cw, int stride, int max_points, int iterations, "
+      "dense_fit(Tensor world, Tensor depth, Tensor K, Tensor T_cw, int max_points, int iterations, "
       "float max_depth, float max_distance, float huber, float sigma, float prior_m, float prior_rad, "
       "float tolerance, float max_step) -> (Tensor, Tensor, Tensor, Tensor)");
 }
