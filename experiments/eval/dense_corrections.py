@@ -43,8 +43,8 @@ def main(argv: list[str] | None = None) -> int:
     frame_no, last, cosines = 0, None, []
     align = tracker.dense.align
 
-    def logged(depth, K, T_world_cam, mask):
-        out = align(depth, K, T_world_cam, mask)
+    def logged(depth, K, T_world_cam, mask, region=None):
+        out = align(depth, K, T_world_cam, mask, region)
         if bool(mask[0]):
             before, after = T_world_cam[0].double(), out.T_world_cam[0]
             D = T_inv(before) @ after
