@@ -158,6 +158,31 @@ def test_what_the_map_cannot_correct_is_left_alone(room):
     assert after[0] < 300 + 7 and after[1] < 1.0, after
 
 
+def test_the_pool_kept_up_to_date_is_the_pool_picked_anew():
+    """Keyframes of a rendered room added to two sequences' maps one by one (each its own path), the pool read after
+    each: the pool merged with each add's new voxels equals the one picked from the whole map, point for point and in
+    the same order, both while the thinning (``every``) stays (the merge) and when it changes (picked anew)."""
+    cfg = SyntheticConfig(width=160, height=120, mode="scene", noise="none", seed=1)
+    scene = default_scene(cfg)
+    T0 = look_at(SCENE_EYE, SCENE_TARGET)
+    K = scene.K.float()[None].expand(2, -1, -1)
+    dense = DenseMap(max_points=300, min_pairs=50)  # every: 1 (no hash) to 5 over the twelve keyframes
+    dense.reset(2)
+    merged, everys = 0, set()
+    for k in range(12):
+        T = torch.stack([T0 @ se3_exp(torch.tensor([0.03 * k, 0, 0.01 * k, 0, 0.04 * k, 0], dtype=torch.float64)),
+                         T0 @ se3_exp(torch.tensor([0, 0.02 * k, 0, 0.03 * k, 0, 0.01], dtype=torch.float64))])  # fmt: skip
+        depth = torch.stack([render_frame(scene, T[b]).depth for b in range(2)])
+        dense.add(depth, K, T, torch.tensor([True, k % 3 != 1]))  # the second sequence skips some keyframes
+        for b in range(2):
+            every = max(1, dense.map.size(b) // (8 * dense.max_points))
+            before = dense._pools[b]
+            merged += before is not None and before.every == every and before.xyz is None
+            everys.add(every)
+            assert torch.equal(dense._pool(b), dense.map.points(b, ordered=True, every=every).xyz), (k, b)
+    assert merged >= 5 and len(everys) >= 3 and max(everys) > 1, (merged, everys)
+
+
 def test_due_counts_frames_and_reselections():
     dense = DenseMap(every=3)
     dense.reset(2)

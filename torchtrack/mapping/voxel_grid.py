@@ -88,8 +88,10 @@ class VoxelPointMap:
         """Bytes held by the map's buffers (capacity, not only the rows in use)."""
         return self._sums.numel() * 8 + sum(k.numel() * 16 for k, _ in self._runs)
 
-    def add(self, points: Tensor, rgb: Tensor, batch: Tensor) -> None:
-        """Fuse points (P, 3) float64 world metres with colours rgb (P, 3) into the maps of ``batch`` (P,) int64."""
+    def add(self, points: Tensor, rgb: Tensor, batch: Tensor) -> tuple[Tensor, Tensor]:
+        """Fuse points (P, 3) float64 world metres with colours rgb (P, 3) into the maps of ``batch`` (P,) int64.
+        Returns the voxels this created: their keys (K,) ascending and buffer rows (K,) (a key's sequence:
+        ``key >> 54``)."""
         if points.dim() != 2 or points.shape[-1] != 3 or rgb.shape != points.shape or batch.shape != points.shape[:1]:
             raise ValueError(
                 f"VoxelPointMap.add: need points (P, 3), rgb (P, 3), batch (P,); got {tuple(points.shape)}, "
@@ -109,7 +111,7 @@ class VoxelPointMap:
             self.dropped += int((~inside).sum())
             keys, points, rgb = keys[inside], points[inside], rgb[inside]
         if len(keys) == 0:
-            return
+            return keys, keys.clone()
         uk, inv = torch.unique(keys, sorted=True, return_inverse=True)
         ones = torch.ones(len(keys), 1, dtype=torch.float64, device=keys.device)
         values = torch.cat([points.double(), rgb.double(), ones], 1)
@@ -120,21 +122,24 @@ class VoxelPointMap:
             hit = run_keys[pos] == uk
             self._sums.index_add_(0, run_rows[pos[hit]], sums[hit])
             new &= ~hit
-        self._append(uk[new], sums[new])
+        return self._append(uk[new], sums[new])
 
-    def _append(self, keys: Tensor, sums: Tensor) -> None:
-        """New voxels: rows for their sums, a run for their sorted keys; merge runs of similar size."""
+    def _append(self, keys: Tensor, sums: Tensor) -> tuple[Tensor, Tensor]:
+        """New voxels: rows for their sums, a run for their sorted keys; merge runs of similar size. Returns the keys
+        and their rows."""
         k = len(keys)
         if k == 0:
-            return
+            return keys, keys.clone()
+        rows = torch.arange(self._n, self._n + k, device=keys.device)
         self._reserve(self._n + k)
         self._sums[self._n : self._n + k] = sums
-        self._runs.append((keys, torch.arange(self._n, self._n + k, device=keys.device)))
+        self._runs.append((keys, rows))
         self._n += k
         while len(self._runs) > 1 and len(self._runs[-2][0]) <= 2 * len(self._runs[-1][0]):
             (ka, ra), (kb, rb) = self._runs.pop(), self._runs.pop()
             merged, order = torch.sort(torch.cat([kb, ka]))
             self._runs.append((merged, torch.cat([rb, ra])[order]))
+        return keys, rows
 
     def _reserve(self, rows: int) -> None:
         cap = len(self._sums)
@@ -153,6 +158,11 @@ class VoxelPointMap:
     def _rows(self, b: int, ordered: bool = True, every: int = 1) -> Tensor:
         """(M_b,) buffer rows of sequence b's voxels, in key order (``ordered``; else run by run); ``every`` > 1: only
         the voxels whose :func:`spatial_hash` is a multiple of it."""
+        return self.voxels(b, ordered, every)[1]
+
+    def voxels(self, b: int, ordered: bool = True, every: int = 1) -> tuple[Tensor, Tensor]:
+        """Sequence b's voxels: keys (M_b,) and buffer rows (M_b,), in key order (``ordered``; else run by run);
+        ``every`` > 1: only those whose :func:`spatial_hash` is a multiple of it."""
         bounds = self._bounds(b)
         keys, rows = [], []
         for run_keys, run_rows in self._runs:
@@ -160,20 +170,33 @@ class VoxelPointMap:
             keys.append(run_keys[i:j])
             rows.append(run_rows[i:j])
         if not keys:
-            return torch.empty(0, dtype=torch.int64, device=self.device)
+            empty = torch.empty(0, dtype=torch.int64, device=self.device)
+            return empty, empty.clone()
         keys, rows = torch.cat(keys), torch.cat(rows)
         if every > 1:
             pick = spatial_hash(keys) % every == 0
             keys, rows = keys[pick], rows[pick]
-        return rows[torch.argsort(keys)] if ordered else rows
+        if not ordered:
+            return keys, rows
+        keys, order = torch.sort(keys)
+        return keys, rows[order]
 
     def points(self, b: int = 0, ordered: bool = True, every: int = 1) -> MapPoints:
         """Sequence b's map: one point per voxel, the mean position and colour of its points; sorted by voxel key
         (``ordered``; else in an order that saves the sort). ``every`` > 1: about one voxel in ``every``, the same ones
         whatever the other sequences in the map and the order they were added in (:func:`spatial_hash`)."""
-        sums = self._sums[self._rows(b, ordered, every)]
+        return self.at(self._rows(b, ordered, every))
+
+    def at(self, rows: Tensor) -> MapPoints:
+        """The map's points of buffer ``rows`` (M,) (:meth:`voxels`): the mean position and colour of each voxel."""
+        sums = self._sums[rows]
         n = sums[:, 6:]
         return MapPoints(sums[:, :3] / n, (sums[:, 3:6] / n).float(), n[:, 0].long())
+
+    def xyz(self, rows: Tensor) -> Tensor:
+        """``at(rows).xyz`` (M, 3) alone: the mean positions, without the colours."""
+        sums = self._sums[rows]
+        return sums[:, :3] / sums[:, 6:]
 
     def size(self, b: int) -> int:
         """Occupied voxels of sequence b."""

@@ -26,7 +26,7 @@ from torch import Tensor
 
 from torchtrack.geometry import T_inv, backproject_depth, hat, transform_points
 from torchtrack.image.lk import use_cpp
-from torchtrack.mapping.voxel_grid import VoxelPointMap
+from torchtrack.mapping.voxel_grid import AXIS_BITS, VoxelPointMap, spatial_hash
 
 
 class Alignment(NamedTuple):
@@ -158,13 +158,14 @@ class DenseMap:
             raise ValueError(f"DenseMap: backend must be 'auto', 'cpp' or 'torch', got {backend!r}")
         self.map: VoxelPointMap | None = None
         self.since: Tensor | None = None  # frames since each sequence's last alignment
-        self._pools: list[Tensor | None] = []  # per sequence: the map's points an alignment draws from (None: stale)
+        self._pools: list[_Pool | None] = []  # per sequence: the map's points an alignment draws from
 
     def reset(self, B: int, device: torch.device | str = "cpu") -> None:
         """Empty maps for B sequences."""
         self.map = VoxelPointMap(voxel_size=self.voxel_size, batch_size=B, device=device)
         self.since = torch.zeros(B, dtype=torch.long, device=device)
         self._pools = [None] * B
+        self._fresh: list[list[tuple[Tensor, Tensor]]] = [[] for _ in range(B)]  # voxels created since the pool
 
     def due(self, reselect: Tensor, active: Tensor) -> Tensor:
         """(B,) bool: the ``active`` (B,) sequences whose camera is aligned this frame: a new model is taken
@@ -187,9 +188,13 @@ class DenseMap:
         ok = (V[..., 2] > 0) & (V[..., 2] <= self.max_depth) & mask[:, None]
         world = transform_points(T_world_cam.double(), V)[ok].to(self.map.device)
         b = torch.arange(len(mask), device=ok.device)[:, None].expand_as(ok)[ok].to(self.map.device)
-        self.map.add(world, torch.zeros_like(world), b)
+        keys, rows = self.map.add(world, torch.zeros_like(world), b)
+        seq = keys >> (3 * AXIS_BITS)
         for i in mask.nonzero().squeeze(1).tolist():
-            self._pools[i] = None
+            mine = seq == i
+            self._fresh[i].append((keys[mine], rows[mine]))
+            if self._pools[i] is not None:
+                self._pools[i] = self._pools[i]._replace(xyz=None)  # stale: its voxels' means moved
 
     def align(self, depth: Tensor, K: Tensor, T_world_cam: Tensor, mask: Tensor,
               region: Tensor | None = None) -> Alignment:  # fmt: skip
@@ -230,13 +235,30 @@ class DenseMap:
         """Sequence b's map points an alignment draws from (M, 3) float64: about 8 ``max_points`` of its voxels, picked
         by a spatial hash and in voxel-key order (the same points in the same order however the map grew, so the
         alignment does not depend on the other sequences); kept until the next :meth:`add` to it. None while the map
-        has fewer than ``min_pairs`` voxels."""
-        if self._pools[b] is None:
-            M = self.map.size(b)
-            if M < self.min_pairs:
-                return None
-            self._pools[b] = self.map.points(b, ordered=True, every=max(1, M // (8 * self.max_points))).xyz
-        return self._pools[b]
+        has fewer than ``min_pairs`` voxels.
+
+        After an add the pool's voxels are those it had and the new ones the hash picks (while the thinning ``every``
+        stays): merged into the sorted keys, not picked again from the whole map (the same voxels in the same order,
+        tests/test_dense_map.py)."""
+        pool = self._pools[b]
+        if pool is not None and pool.xyz is not None:
+            return pool.xyz
+        M = self.map.size(b)
+        if M < self.min_pairs:
+            return None
+        every = max(1, M // (8 * self.max_points))
+        if pool is None or pool.every != every:
+            keys, rows = self.map.voxels(b, ordered=True, every=every)
+        else:
+            new_keys = torch.cat([k for k, _ in self._fresh[b]])
+            new_rows = torch.cat([r for _, r in self._fresh[b]])
+            if every > 1:
+                pick = spatial_hash(new_keys) % every == 0
+                new_keys, new_rows = new_keys[pick], new_rows[pick]
+            keys, rows = _merge(pool.keys, pool.rows, new_keys, new_rows)
+        self._fresh[b] = []
+        self._pools[b] = _Pool(keys, rows, every, self.map.xyz(rows))
+        return self._pools[b].xyz
 
     def fit(self, world: Tensor, depth: Tensor, K: Tensor, T_cw: Tensor) -> Fit:
         """Gauss-Newton on the world-to-camera pose from ``T_cw`` (4, 4), the map points ``world`` (M, 3) (the
@@ -322,6 +344,32 @@ class DenseMap:
             return fit.delta
         y = fit.xi.cpu().numpy() / sd
         return _exp(torch.from_numpy(sd * (y - weak @ (weak.T @ y))).to(fit.xi))
+
+
+class _Pool(NamedTuple):
+    """A sequence's pool (:meth:`DenseMap._pool`): voxel keys (M,) ascending, their buffer rows (M,), the thinning
+    ``every`` they were picked with, their points (M, 3) (None: stale, the map changed since)."""
+
+    keys: Tensor
+    rows: Tensor
+    every: int
+    xyz: Tensor | None
+
+
+def _merge(keys: Tensor, rows: Tensor, new_keys: Tensor, new_rows: Tensor) -> tuple[Tensor, Tensor]:
+    """Two disjoint key-sorted (keys, rows) sets as one, key-sorted: each new key's place among the old ones, in
+    linear time (no sort)."""
+    if len(new_keys) == 0:
+        return keys, rows
+    new_keys, order = torch.sort(new_keys)  # a keyframe's new voxels (sorted when they came from one add)
+    new_rows = new_rows[order]
+    at = torch.searchsorted(keys, new_keys) + torch.arange(len(new_keys), device=keys.device)
+    old = torch.ones(len(keys) + len(new_keys), dtype=torch.bool, device=keys.device)
+    old[at] = False
+    out_k, out_r = keys.new_empty(len(old)), rows.new_empty(len(old))
+    out_k[at], out_r[at] = new_keys, new_rows
+    out_k[old], out_r[old] = keys, rows
+    return out_k, out_r
 
 
 def _exp(xi: Tensor) -> Tensor:
