@@ -159,13 +159,14 @@ class DenseMap:
         self.map: VoxelPointMap | None = None
         self.since: Tensor | None = None  # frames since each sequence's last alignment
         self._pools: list[_Pool | None] = []  # per sequence: the map's points an alignment draws from
+        self._fresh: list[list[tuple[Tensor, Tensor]]] = []  # per sequence: voxels created since its pool was picked
 
     def reset(self, B: int, device: torch.device | str = "cpu") -> None:
         """Empty maps for B sequences."""
         self.map = VoxelPointMap(voxel_size=self.voxel_size, batch_size=B, device=device)
         self.since = torch.zeros(B, dtype=torch.long, device=device)
         self._pools = [None] * B
-        self._fresh: list[list[tuple[Tensor, Tensor]]] = [[] for _ in range(B)]  # voxels created since the pool
+        self._fresh = [[] for _ in range(B)]
 
     def due(self, reselect: Tensor, active: Tensor) -> Tensor:
         """(B,) bool: the ``active`` (B,) sequences whose camera is aligned this frame: a new model is taken
