@@ -9,7 +9,8 @@ the point-to-plane distances ``n . (T p - v)`` (n the current frame's normal at 
 camera as a prior, gives the posterior camera. The tracker then moves its model in the world (``T_world_obj``) so that
 the camera is there: the features and the filter are untouched (they measure the camera against the model), and the
 model's world pose, which a chain of re-selections would only accumulate, is estimated against everything the camera
-saw before, however long ago.
+saw before, however long ago. The Gauss-Newton fit runs as the compiled ``torch.ops.torchtrack.dense_fit``
+(csrc/dense.cpp) where it builds, else as :meth:`DenseMap._fit_torch`, its reference.
 
 Frames: ``world`` is the tracker's world (its first depth camera); the map and the alignment work in the depth camera,
 on its own pixel grid and intrinsics (a separate depth camera's frames are used as taken, not warped).
