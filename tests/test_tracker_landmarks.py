@@ -19,6 +19,7 @@ from torchtrack.data.synthetic.render import render_frame
 from torchtrack.data.synthetic.scene import default_scene
 from torchtrack.factory import build_tracker
 from torchtrack.geometry import T_inv, make_T, so3_exp, transform_points
+from torchtrack.pipeline.dense_map import DenseMap
 from torchtrack.pipeline.landmarks import LandmarkMap
 
 pytestmark = pytest.mark.slow  # whole tracked sequences: a camera that pans away and back
@@ -123,7 +124,7 @@ def test_reacquired_landmarks_keep_their_world_positions(pan, monkeypatch):
     """Every re-acquired landmark enters the new model at exactly its stored world position: T_world_obj X_o after the
     re-selection equals it (to float32 rounding of the model points)."""
     poses, frames = pan
-    tracker = build_tracker(compose_cfg(*ON))
+    tracker = build_tracker(compose_cfg(*ON, *NO_MAP))  # with the map holding, none is re-acquired (below)
     found = []
     real = LandmarkMap.reacquire
 
@@ -155,10 +156,41 @@ def test_reacquired_landmarks_keep_their_world_positions(pan, monkeypatch):
 def test_batched_equals_looped():
     a, b = out_and_back(25.0, 0.3, frames=24), out_and_back(-20.0, -0.2, frames=24)
     both = batches([a, b])
-    tracker = build_tracker(compose_cfg(*ON, "reselect.fraction=0.7"))
+    tracker = build_tracker(compose_cfg(*ON, *NO_MAP, "reselect.fraction=0.7"))  # the landmarks' own batching
     batched = torch.stack([tracker.step(f).T_world_depth for f in both])  # F,B,4,4
     for i, poses in enumerate((a, b)):
-        alone = build_tracker(compose_cfg(*ON, "reselect.fraction=0.7"))
+        alone = build_tracker(compose_cfg(*ON, *NO_MAP, "reselect.fraction=0.7"))
         for f, frame in enumerate(batches([poses])):
             torch.testing.assert_close(batched[f, i], alone.step(frame).T_world_depth[0], atol=TRAJ, rtol=0)
     assert int(tracker.state.reacquired_total.min()) > 0
+
+
+def test_landmarks_are_reacquired_only_where_the_map_did_not_hold(pan, monkeypatch):
+    """With the dense map on (the default), a re-selection re-acquires landmarks only for a sequence whose alignment
+    of that frame did not apply: on this render every alignment applies, so none is re-acquired; with the map unable
+    to apply (``min_pairs`` beyond any frame's pairs) the landmarks are re-acquired as without the map."""
+    poses, frames = pan
+    masks, applied = [], []
+    real_reacquire, real_align = LandmarkMap.reacquire, DenseMap.align
+
+    def reacquire(self, *args, **kwargs):
+        masks.append(args[7].clone())  # the sequences re-selecting that may re-acquire
+        return real_reacquire(self, *args, **kwargs)
+
+    def align(self, *args, **kwargs):
+        out = real_align(self, *args, **kwargs)
+        applied.append(out.applied.clone())
+        return out
+
+    monkeypatch.setattr(LandmarkMap, "reacquire", reacquire)
+    monkeypatch.setattr(DenseMap, "align", align)
+    tracker = build_tracker(compose_cfg(*ON))
+    for frame in frames:
+        tracker.step(frame)
+    assert masks and bool(torch.cat(applied).all())  # re-selections happened, and the map held at each alignment
+    assert not bool(torch.cat(masks).any()) and int(tracker.state.reacquired_total.sum()) == 0
+    tracker = build_tracker(compose_cfg(*ON))
+    tracker.dense.min_pairs = 10**9
+    for frame in frames:
+        tracker.step(frame)
+    assert int(tracker.state.reacquired_total.sum()) > 50  # measured without the map: 133 (test above)

@@ -59,7 +59,9 @@ class Tracker:
             (:class:`~torchtrack.pipeline.landmarks.LandmarkMap`): at a re-selection the visible landmarks of the
             keyframes are re-tracked and join the new model at their ORIGINAL world positions, after the survivors and
             before new features; with ``landmarks.correct`` the camera the new model is anchored at is first re-fitted
-            to them.
+            to them. With a dense map, only where its alignment of that frame did not apply (where it did, the model
+            is already placed against everything seen: re-acquiring landmarks too measured worse on long real
+            sequences, experiments/RESULTS.md).
         relocaliser: improvement (None = no loss check): after each frame, the loss check
             (:class:`~torchtrack.pipeline.relocalise.Relocaliser`) against the keyframes' ORB descriptors; the
             relocalised sequences take a new model at the camera pose it found.
@@ -103,6 +105,7 @@ class Tracker:
         self.keyframes = keyframes if keyframes is not None else KeyframeStore()
         self.landmarks, self.relocaliser, self.dense = landmarks, relocaliser, dense
         self._region: Tensor | None = None  # the current frame's _map_region
+        self._map_held: Tensor | None = None  # (B,) this frame's dense alignment applied (landmarks not needed there)
         self.predict_init, self.pixel_only, self.record = predict_init, pixel_only, record
         self.state = TrackerState()
 
@@ -120,6 +123,7 @@ class Tracker:
         """One frame of every sequence, in the paper's order (§III)."""
         s = self.state
         self._region = None  # this frame's model region, for the dense map: computed on first use
+        self._map_held = None
         cur = self.frontend(frame)  # prepare: depth in the colour camera, SIM (eq. 8), LK pyramids
         raw = None if is_registered(frame) else frame.depth  # a separate depth camera: rays meet its surface
         measure = Measure(cur.depth, frame.K, frame.T_color_depth, raw, frame.K_depth)  # a pixel's 3D point, eq. (6)
@@ -214,6 +218,7 @@ class Tracker:
         if not due.any():
             return s
         al = self.dense.align(frame.depth, frame.K_depth, s.T_world_depth, due, self._map_region(frame))
+        self._map_held = al.applied
         # only where applied: elsewhere a round trip through the camera would move the model by round-off
         placed = torch.where(al.applied[:, None, None], al.T_world_cam @ s.T_cam_obj, s.T_world_obj)
         return replace(s, T_world_obj=placed)
@@ -337,6 +342,8 @@ class Tracker:
         if self.landmarks is None:
             return kept, None, T_world_depth
         world = transform_points(s.T_world_obj, s.points_obj.double())  # the kept features' prior in the re-fit
+        if self._map_held is not None:  # where the dense map placed the model, it already holds what was seen
+            mask = mask & ~self._map_held
         acq = self.landmarks.reacquire(self.keyframes, self.flow, cur, measure, T_world_depth, s.pixels, keep, mask,
                                        tracked_world=world)  # fmt: skip
         T_world_depth = torch.where(mask[:, None, None], acq.T_world_depth, T_world_depth)
