@@ -185,16 +185,13 @@ class VoxelPointMap:
         """Sequence b's map: one point per voxel, the mean position and colour of its points; sorted by voxel key
         (``ordered``; else in an order that saves the sort). ``every`` > 1: about one voxel in ``every``, the same ones
         whatever the other sequences in the map and the order they were added in (:func:`spatial_hash`)."""
-        return self.at(self._rows(b, ordered, every))
-
-    def at(self, rows: Tensor) -> MapPoints:
-        """The map's points of buffer ``rows`` (M,) (:meth:`voxels`): the mean position and colour of each voxel."""
-        sums = self._sums[rows]
+        sums = self._sums[self._rows(b, ordered, every)]
         n = sums[:, 6:]
         return MapPoints(sums[:, :3] / n, (sums[:, 3:6] / n).float(), n[:, 0].long())
 
     def xyz(self, rows: Tensor) -> Tensor:
-        """``at(rows).xyz`` (M, 3) alone: the mean positions, without the colours."""
+        """The mean positions (M, 3) of the voxels at buffer ``rows`` (M,) (:meth:`voxels`): ``points().xyz`` of
+        those voxels, without the colours."""
         sums = self._sums[rows]
         return sums[:, :3] / sums[:, 6:]
 

@@ -337,7 +337,8 @@ class DenseMap:
         # A direction in which the depth holds less than ``weak`` times the prior's information (half a surface, a
         # plane) is not corrected: the point-to-plane sigma treats the pairs as independent, so along it the data's
         # information is overstated and the correction would follow the depth's correlated errors.
-        # The 6x6 eigenproblem in numpy: torch's eigh and its small tensors cost ~0.5 ms per frame, numpy's ~0.03.
+        # The 6x6 eigenproblem in numpy: on a matrix this small torch's per-call overhead (eigh, boolean indexing,
+        # small tensors) is most of the cost, and this runs every frame.
         rad = math.radians(self.prior_deg)
         sd = np.array([self.prior_m] * 3 + [rad] * 3)
         ratio, vec = np.linalg.eigh(fit.info.cpu().numpy() * sd[:, None] * sd[None, :])  # whitened: information ratios
