@@ -28,6 +28,7 @@ from torchtrack.data.synthetic.render import render_frame
 from torchtrack.data.synthetic.scene import Primitive, frame_pose, make_scene, pose, random_texture
 from torchtrack.factory import build_mapper, build_tracker
 from torchtrack.geometry import T_inv, make_T, so3_exp
+from torchtrack.image import lk_op
 from torchtrack.mapping import (
     PanoramaMapper,
     VoxelPointMap,
@@ -35,6 +36,7 @@ from torchtrack.mapping import (
     perspective_view,
     splat,
     top_down_view,
+    voxel_grid,
     voxel_keys,
 )
 from torchtrack.run import run_tracker
@@ -139,17 +141,21 @@ def numpy_voxels(p: np.ndarray, c: np.ndarray, b: np.ndarray, voxel: float, seq:
 
 
 @pytest.mark.equivalence
-def test_voxel_map_equals_a_direct_numpy_computation():
+@pytest.mark.parametrize("backend", ["cpp", "torch"])
+def test_voxel_map_equals_a_direct_numpy_computation(backend):
+    if backend == "cpp" and not lk_op.available():
+        pytest.skip("the compiled operators do not build here")
     gen = torch.Generator().manual_seed(0)
-    chunks, runs = [], []
-    m = VoxelPointMap(voxel_size=0.03, batch_size=3)
-    for n in (300, 40, 30, 8, 20, 300, 5):  # clustered points (most voxels get several), 3 maps, 7 insertions of
-        centres = torch.rand(n, 3, generator=gen, dtype=torch.float64) * 2 - 1  # sizes that leave several runs
+    chunks = []
+    m = VoxelPointMap(voxel_size=0.03, batch_size=3, backend=backend)
+    for n in (300, 40, 30, 8, 20, 300, 5):  # clustered points (most voxels get several), 3 maps, 7 insertions
+        centres = torch.rand(n, 3, generator=gen, dtype=torch.float64) * 2 - 1
         p = centres.repeat_interleave(20, 0) + 0.01 * torch.randn(20 * n, 3, generator=gen, dtype=torch.float64)
         chunks.append((p, torch.rand(20 * n, 3, generator=gen), torch.randint(0, 3, (20 * n,), generator=gen)))
         m.add(*chunks[-1])
-        runs.append(len(m._runs))
-    assert max(runs) >= 3  # the merges of the index were exercised
+    # the index was exercised: the table grew (filled anew) and keys collided (some not in their first slot)
+    home = voxel_grid._slot(m._keys[: len(m)], len(m._table))
+    assert len(m._table) > 1024 and bool((m._table[home] != torch.arange(len(m))).any())
     P, C, Bt = (torch.cat(x).numpy() for x in zip(*chunks, strict=True))
     assert len(m) == sum(m.size(s) for s in range(3))
     for s in range(3):
@@ -163,6 +169,54 @@ def test_voxel_map_equals_a_direct_numpy_computation():
         order = torch.argsort(loose.xyz[:, 0] * 1e6 + loose.xyz[:, 1] * 1e3 + loose.xyz[:, 2])
         same = torch.argsort(got.xyz[:, 0] * 1e6 + got.xyz[:, 1] * 1e3 + got.xyz[:, 2])
         assert torch.equal(loose.xyz[order], got.xyz[same]) and torch.equal(loose.count[order], got.count[same])
+
+
+def test_the_index_operator_gives_the_references_rows():
+    """voxel_index (csrc/voxel.cpp) against VoxelPointMap._index_torch: the same rows for the same keys over a stream of
+    additions (known and new voxels mixed, the table growing) and after a clear; the voxels created the same."""
+    if not lk_op.available():
+        pytest.skip("the compiled operators do not build here")
+    gen = torch.Generator().manual_seed(3)
+    maps = [VoxelPointMap(voxel_size=0.02, batch_size=4, backend=b) for b in ("cpp", "torch")]
+    for i in range(12):
+        p = torch.rand(3000, 3, generator=gen, dtype=torch.float64) * (0.5 + 0.2 * i)  # growing: known + new
+        c, b = torch.rand(3000, 3, generator=gen), torch.randint(0, 4, (3000,), generator=gen)
+        made = [m.add(p, c, b) for m in maps]
+        assert all(torch.equal(x, y) for x, y in zip(*made, strict=True)), i
+        if i == 6:
+            for m in maps:
+                m.clear(2)
+    probe = torch.unique(voxel_keys(torch.rand(5000, 3, generator=gen, dtype=torch.float64) * 3,
+                                    torch.randint(0, 4, (5000,), generator=gen), 0.02)[0])  # fmt: skip
+    assert torch.equal(maps[0]._find(probe), maps[1]._find(probe))
+    for s in range(4):
+        assert torch.equal(maps[0].points(s).xyz, maps[1].points(s).xyz)
+
+
+def test_the_index_operator_schema_fallback_and_bad_inputs(monkeypatch):
+    if not lk_op.available():
+        pytest.skip("the compiled operators do not build here")
+    table, keys = torch.full((64,), voxel_grid.EMPTY), torch.zeros(32, dtype=torch.long)
+    query = torch.tensor([5, 1 << 40, 7, 5 << 54])
+    torch.library.opcheck(torch.ops.torchtrack.voxel_index.default, (table, keys, 0, query))
+    rows = torch.ops.torchtrack.voxel_index(table, keys, 0, query)
+    assert rows.tolist() == [0, 1, 2, 3] and keys[:4].tolist() == query.tolist()
+    assert torch.ops.torchtrack.voxel_index(table, keys, 4, query.flip(0)).tolist() == [3, 2, 1, 0]  # all known
+    with pytest.raises(RuntimeError, match="half full"):
+        torch.ops.torchtrack.voxel_index(torch.full((16,), -1), keys, 6, query)
+    with pytest.raises(RuntimeError, match="power of two"):
+        torch.ops.torchtrack.voxel_index(torch.full((48,), -1), keys, 0, query)
+    with pytest.raises(RuntimeError, match="int64"):
+        torch.ops.torchtrack.voxel_index(table, keys, 0, query.int())
+    # where the operator does not build, "auto" is the reference
+    monkeypatch.setenv("TORCHTRACK_NO_BUILD", "1")
+    monkeypatch.setattr(lk_op, "_state", {})
+    m = VoxelPointMap(voxel_size=0.1)
+    with pytest.warns(RuntimeWarning, match="unavailable"):
+        m.add(torch.rand(50, 3, dtype=torch.float64), torch.rand(50, 3), torch.zeros(50, dtype=torch.long))
+    with pytest.raises(RuntimeError, match="could not be built"):
+        VoxelPointMap(voxel_size=0.1, backend="cpp").add(torch.zeros(1, 3, dtype=torch.float64), torch.zeros(1, 3),
+                                                         torch.zeros(1, dtype=torch.long))  # fmt: skip
 
 
 def test_clear_releases_one_map_and_keeps_the_others():
@@ -207,6 +261,8 @@ def test_bad_input_raises(kwargs, message):
         m.add(args["points"], args["rgb"], args["batch"])
     with pytest.raises(ValueError, match="voxel_size"):
         VoxelPointMap(voxel_size=0.0)
+    with pytest.raises(ValueError, match="backend"):
+        VoxelPointMap(backend="numpy")
     with pytest.raises(ValueError, match="every"):
         PanoramaMapper(every=0)
 

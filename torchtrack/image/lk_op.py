@@ -1,7 +1,8 @@
 """The compiled operators ``torch.ops.torchtrack.lk_track`` (csrc/lk.cpp, the LK inner loop),
-``torch.ops.torchtrack.shape_index_map`` (csrc/sim.cpp, the SIM) and ``torch.ops.torchtrack.dense_fit`` (csrc/dense.cpp,
-the dense map's alignment): one library, built on first use, cached, with fake kernels; :mod:`torchtrack.image.lk`,
-:mod:`torchtrack.image.shape_index` and :mod:`torchtrack.pipeline.dense_map` fall back to their pure-torch references
+``torch.ops.torchtrack.shape_index_map`` (csrc/sim.cpp, the SIM), ``torch.ops.torchtrack.dense_fit`` (csrc/dense.cpp,
+the dense map's alignment) and ``torch.ops.torchtrack.voxel_index`` (csrc/voxel.cpp, the voxel map's hash table): one
+library, built on first use, cached, with fake kernels; :mod:`torchtrack.image.lk`, :mod:`torchtrack.image.shape_index`,
+:mod:`torchtrack.pipeline.dense_map` and :mod:`torchtrack.mapping.voxel_grid` fall back to their pure-torch references
 where it cannot be built.
 
 Build: ``torch.utils.cpp_extension.load`` (ninja, the system C++ compiler, ``-O3``) into
@@ -27,7 +28,7 @@ import torch
 from torch import Tensor
 
 SOURCE = Path(__file__).with_name("csrc") / "lk.cpp"
-SOURCES = [SOURCE, SOURCE.with_name("sim.cpp"), SOURCE.with_name("dense.cpp")]
+SOURCES = [SOURCE, SOURCE.with_name("sim.cpp"), SOURCE.with_name("dense.cpp"), SOURCE.with_name("voxel.cpp")]
 # -fopenmp compiles at::parallel_for's OpenMP region; it is not linked: the symbols resolve to torch's own OpenMP
 # runtime (linking the system libgomp would load a second one).
 CFLAGS = ["-O3", "-fopenmp", "-fno-math-errno"]
@@ -148,6 +149,10 @@ def _register_fake() -> None:
     @torch.library.register_fake("torchtrack::dense_fit")
     def _(world, depth, K, T_cw, *args) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         return world.new_empty(4, 4), world.new_empty(6), world.new_empty(6, 6), world.new_empty(3)
+
+    @torch.library.register_fake("torchtrack::voxel_index")
+    def _(table, keys, n, query) -> Tensor:
+        return torch.empty_like(query)
 
     _state["fake"] = True
 

@@ -4,13 +4,15 @@ Every voxel keeps the sums of the positions and colours of the points that fell 
 point is the mean (position and colour). Memory is bounded by the occupied volume, not by the number of frames.
 
 Voxels are keyed by one int64 per (sequence, voxel): ``b << 54 | (ix + 2^17) << 36 | (iy + 2^17) << 18 | (iz + 2^17)``
-with ``i = floor(p / voxel_size)`` per axis, so one sorted key array serves all B maps (each map is a contiguous run
-of it) and points outside +-2^17 voxels of the world origin (+-1.3 km at 1 cm) are dropped and counted.
+with ``i = floor(p / voxel_size)`` per axis, so one index serves all B maps and points outside +-2^17 voxels of the
+world origin (+-1.3 km at 1 cm) are dropped and counted.
 
-The index is a few sorted runs of keys (a log-structured merge: a new frame's new voxels form a run; runs of
-similar size are merged, so there are O(log M) runs and a key is re-sorted O(log M) times over the map's life):
-a frame of K voxels costs O(K log^2 M) amortised, never O(M). The per-voxel sums (x, y, z, r, g, b, count:
-7 float64) live in one append-only buffer that grows by doubling; a run holds each key's row in it.
+The index is a hash table with open addressing (linear probing, at most half full; a slot holds a voxel's row, its key
+is read from the rows' keys): a frame of K voxels costs O(K) expected, whatever the map's size. The lookup runs as the
+compiled ``torch.ops.torchtrack.voxel_index`` (csrc/voxel.cpp) where it builds, else as vectorised probing in torch
+(:meth:`VoxelPointMap._index_torch`, its reference). The per-voxel sums (x, y, z, r, g, b, count: 7 float64) and the
+keys live in append-only buffers, one row per voxel, that grow by doubling; the table doubles (and is filled anew)
+when it would be more than half full.
 """
 
 from __future__ import annotations
@@ -20,10 +22,13 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchtrack.image.lk import use_cpp
+
 AXIS_BITS = 18
 BATCH_BITS = 63 - 3 * AXIS_BITS  # 9: up to 512 sequences
 HALF = 1 << (AXIS_BITS - 1)
 MAX_BATCH = 1 << BATCH_BITS
+EMPTY = -1  # a free slot of the table
 
 
 class MapPoints(NamedTuple):
@@ -53,6 +58,14 @@ def spatial_hash(keys: Tensor) -> Tensor:
     return (ix * 73856093) ^ (iy * 19349663) ^ (iz * 83492791)
 
 
+def _slot(keys: Tensor, size: int) -> Tensor:
+    """The first slot (P,) of ``keys`` (P,) in a table of ``size`` (a power of two) slots: Fibonacci hashing, the top
+    log2(size) bits of key x 0x9E3779B97F4A7C15 (2^64 / the golden ratio; int64, wrapping), which scatters
+    neighbouring voxels over the table (csrc/voxel.cpp computes the same)."""
+    bits = size.bit_length() - 1
+    return ((keys * -0x61C8864680B583EB) >> (64 - bits)) & (size - 1)
+
+
 class VoxelPointMap:
     """B voxel-grid point maps fused point by point.
 
@@ -60,23 +73,37 @@ class VoxelPointMap:
         voxel_size: edge of a voxel, metres.
         batch_size: B, the number of maps (<= 512).
         device: where the sums and the index live; the points added must be on it (the tracker's frames' device).
+        backend: the index's lookup: "cpp" the compiled ``torch.ops.torchtrack.voxel_index``, "torch" its reference
+            (:meth:`_index_torch`), "auto" the operator where it builds (on CPU).
     """
 
-    def __init__(self, *, voxel_size: float = 0.01, batch_size: int = 1, device: torch.device | str = "cpu") -> None:
+    def __init__(
+        self,
+        *,
+        voxel_size: float = 0.01,
+        batch_size: int = 1,
+        device: torch.device | str = "cpu",
+        backend: str = "auto",
+    ) -> None:
         if voxel_size <= 0:
             raise ValueError(f"VoxelPointMap: voxel_size must be > 0, got {voxel_size}")
         if not 1 <= batch_size <= MAX_BATCH:
             raise ValueError(f"VoxelPointMap: batch_size must be in [1, {MAX_BATCH}], got {batch_size}")
+        if backend not in ("auto", "cpp", "torch"):
+            raise ValueError(f"VoxelPointMap: backend must be 'auto', 'cpp' or 'torch', got {backend!r}")
         self.voxel_size = float(voxel_size)
         self.batch_size = batch_size
+        self.backend = backend
         self.dropped = 0  # points outside the representable range
-        self._runs: list[tuple[Tensor, Tensor]] = []  # (keys ascending, their rows), largest first; disjoint
-        self._n = 0  # rows used in the buffer
+        self._n = 0  # rows used in the buffers
         self._sums = torch.empty(0, 7, dtype=torch.float64, device=device)  # by row: sum of x, y, z, r, g, b; count
+        self._keys = torch.empty(0, dtype=torch.int64, device=device)  # by row: the voxel's key
+        self._table = torch.full((1024,), EMPTY, dtype=torch.int64, device=device)  # slot -> row, or EMPTY
+        self._sizes = [0] * batch_size  # voxels per sequence
 
     def __len__(self) -> int:
         """Occupied voxels over all B maps."""
-        return sum(len(k) for k, _ in self._runs)
+        return self._n
 
     @property
     def device(self) -> torch.device:
@@ -86,7 +113,7 @@ class VoxelPointMap:
     @property
     def nbytes(self) -> int:
         """Bytes held by the map's buffers (capacity, not only the rows in use)."""
-        return self._sums.numel() * 8 + sum(k.numel() * 16 for k, _ in self._runs)
+        return (self._sums.numel() + self._keys.numel() + self._table.numel()) * 8
 
     def add(self, points: Tensor, rgb: Tensor, batch: Tensor) -> tuple[Tensor, Tensor]:
         """Fuse points (P, 3) float64 world metres with colours rgb (P, 3) into the maps of ``batch`` (P,) int64.
@@ -116,66 +143,91 @@ class VoxelPointMap:
         ones = torch.ones(len(keys), 1, dtype=torch.float64, device=keys.device)
         values = torch.cat([points.double(), rgb.double(), ones], 1)
         sums = torch.zeros(len(uk), 7, dtype=torch.float64, device=uk.device).index_add_(0, inv, values)
-        new = torch.ones(len(uk), dtype=torch.bool, device=uk.device)
-        for run_keys, run_rows in self._runs:
-            pos = torch.searchsorted(run_keys, uk).clamp_(max=len(run_keys) - 1)
-            hit = run_keys[pos] == uk
-            self._sums.index_add_(0, run_rows[pos[hit]], sums[hit])
-            new &= ~hit
-        return self._append(uk[new], sums[new])
-
-    def _append(self, keys: Tensor, sums: Tensor) -> tuple[Tensor, Tensor]:
-        """New voxels: rows for their sums, a run for their sorted keys; merge runs of similar size. Returns the keys
-        and their rows."""
-        k = len(keys)
-        if k == 0:
-            return keys, keys.clone()
-        rows = torch.arange(self._n, self._n + k, device=keys.device)
-        self._reserve(self._n + k)
-        self._sums[self._n : self._n + k] = sums
-        self._runs.append((keys, rows))
+        self._reserve(self._n + len(uk))  # room for every voxel as a new one
+        rows = self._index(uk)
+        new = rows >= self._n
+        k = int(new.sum())
+        self._sums[self._n : self._n + k] = 0.0
+        self._sums.index_add_(0, rows, sums)
         self._n += k
-        while len(self._runs) > 1 and len(self._runs[-2][0]) <= 2 * len(self._runs[-1][0]):
-            (ka, ra), (kb, rb) = self._runs.pop(), self._runs.pop()
-            merged, order = torch.sort(torch.cat([kb, ka]))
-            self._runs.append((merged, torch.cat([rb, ra])[order]))
-        return keys, rows
+        for b, count in enumerate(torch.bincount(uk[new] >> (3 * AXIS_BITS), minlength=self.batch_size).tolist()):
+            self._sizes[b] += count
+        return uk[new], rows[new]
+
+    def _index(self, keys: Tensor) -> Tensor:
+        """The rows (P,) of the voxels ``keys`` (P,) (distinct): each one's row where the map has it, else a new row
+        (``_n``, ``_n`` + 1, ... in the order of ``keys``; ``_n`` not advanced), its key written and entered in the
+        table. The buffers must have room (:meth:`_reserve`)."""
+        if use_cpp(self.backend) and keys.device.type == "cpu":
+            return torch.ops.torchtrack.voxel_index(self._table, self._keys, self._n, keys.contiguous())
+        return self._index_torch(keys)
+
+    def _index_torch(self, keys: Tensor) -> Tensor:
+        """:meth:`_index` in torch: the operator's reference (tests/test_mapping.py) and the path where it does not
+        build."""
+        rows = self._find(keys)
+        new = (rows < 0).nonzero().squeeze(1)
+        rows[new] = torch.arange(self._n, self._n + len(new), device=keys.device)
+        self._keys[rows[new]] = keys[new]
+        self._insert(rows[new])
+        return rows
+
+    def _find(self, keys: Tensor) -> Tensor:
+        """The rows (P,) of the voxels ``keys`` (P,) (EMPTY where the map has none): all probed at once, slot after
+        slot, each until its key or a free slot."""
+        rows = torch.full_like(keys, EMPTY)
+        todo = torch.arange(len(keys) if self._n else 0, device=keys.device)
+        slot = _slot(keys, len(self._table))
+        while len(todo):
+            r = self._table[slot]
+            hit = (r >= 0) & (self._keys[r.clamp_min(0)] == keys[todo])
+            rows[todo[hit]] = r[hit]
+            more = (r >= 0) & ~hit  # another voxel's slot: the next one
+            todo, slot = todo[more], (slot[more] + 1) & (len(self._table) - 1)
+        return rows
+
+    def _insert(self, rows: Tensor) -> None:
+        """Enter the voxels of ``rows`` (their keys not in the table yet) into the table: each takes the first free
+        slot from its own; of several that reach one free slot together one takes it, the others probe on."""
+        slot = _slot(self._keys[rows], len(self._table))
+        while len(rows):
+            free = self._table[slot] < 0
+            self._table[slot[free]] = rows[free]
+            took = self._table[slot] == rows
+            rows, slot = rows[~took], (slot[~took] + 1) & (len(self._table) - 1)
 
     def _reserve(self, rows: int) -> None:
+        """Room for ``rows`` voxels: the buffers (doubling) and the table (at most half full: probes stay short;
+        doubled and filled anew)."""
         cap = len(self._sums)
-        if rows <= cap:
-            return
-        # rows past _n are never read
-        new = torch.empty(max(rows, 2 * cap, 1024), 7, dtype=torch.float64, device=self.device)
-        new[: self._n] = self._sums[: self._n]
-        self._sums = new
+        if rows > cap:  # rows past _n are never read
+            size = max(rows, 2 * cap, 1024)
+            sums = torch.empty(size, 7, dtype=torch.float64, device=self.device)
+            keys = torch.empty(size, dtype=torch.int64, device=self.device)
+            sums[: self._n], keys[: self._n] = self._sums[: self._n], self._keys[: self._n]
+            self._sums, self._keys = sums, keys
+        if 2 * rows > len(self._table):
+            size = len(self._table)
+            while 2 * rows > size:
+                size *= 2
+            self._rehash(size)
 
-    def _bounds(self, b: int) -> Tensor:
-        """(2,) int64: sequence b's keys are in [lo, hi)."""
-        lo, hi = b << (3 * AXIS_BITS), (b + 1) << (3 * AXIS_BITS) if b + 1 < MAX_BATCH else torch.iinfo(torch.int64).max
-        return torch.tensor([lo, hi], dtype=torch.int64, device=self.device)
-
-    def _rows(self, b: int, ordered: bool = True, every: int = 1) -> Tensor:
-        """(M_b,) buffer rows of sequence b's voxels, in key order (``ordered``; else run by run); ``every`` > 1: only
-        the voxels whose :func:`spatial_hash` is a multiple of it."""
-        return self.voxels(b, ordered, every)[1]
+    def _rehash(self, size: int) -> None:
+        """A table of ``size`` slots holding the map's voxels."""
+        self._table = torch.full((size,), EMPTY, dtype=torch.int64, device=self.device)
+        n, self._n = self._n, 0
+        self._index(self._keys[:n].clone())  # each key new to the empty table: rows 0 .. n - 1, as they were
+        self._n = n
 
     def voxels(self, b: int, ordered: bool = True, every: int = 1) -> tuple[Tensor, Tensor]:
-        """Sequence b's voxels: keys (M_b,) and buffer rows (M_b,), in key order (``ordered``; else run by run);
-        ``every`` > 1: only those whose :func:`spatial_hash` is a multiple of it."""
-        bounds = self._bounds(b)
-        keys, rows = [], []
-        for run_keys, run_rows in self._runs:
-            i, j = torch.searchsorted(run_keys, bounds).tolist()
-            keys.append(run_keys[i:j])
-            rows.append(run_rows[i:j])
-        if not keys:
-            empty = torch.empty(0, dtype=torch.int64, device=self.device)
-            return empty, empty.clone()
-        keys, rows = torch.cat(keys), torch.cat(rows)
+        """Sequence b's voxels: keys (M_b,) and buffer rows (M_b,), in key order (``ordered``; else in the order they
+        were created); ``every`` > 1: only those whose :func:`spatial_hash` is a multiple of it."""
+        keys = self._keys[: self._n]
+        pick = (keys >> (3 * AXIS_BITS)) == b
         if every > 1:
-            pick = spatial_hash(keys) % every == 0
-            keys, rows = keys[pick], rows[pick]
+            pick &= spatial_hash(keys) % every == 0
+        rows = pick.nonzero().squeeze(1)
+        keys = keys[rows]
         if not ordered:
             return keys, rows
         keys, order = torch.sort(keys)
@@ -185,7 +237,7 @@ class VoxelPointMap:
         """Sequence b's map: one point per voxel, the mean position and colour of its points; sorted by voxel key
         (``ordered``; else in an order that saves the sort). ``every`` > 1: about one voxel in ``every``, the same ones
         whatever the other sequences in the map and the order they were added in (:func:`spatial_hash`)."""
-        sums = self._sums[self._rows(b, ordered, every)]
+        sums = self._sums[self.voxels(b, ordered, every)[1]]
         n = sums[:, 6:]
         return MapPoints(sums[:, :3] / n, (sums[:, 3:6] / n).float(), n[:, 0].long())
 
@@ -197,21 +249,13 @@ class VoxelPointMap:
 
     def size(self, b: int) -> int:
         """Occupied voxels of sequence b."""
-        bounds = self._bounds(b)
-        return sum(int(torch.diff(torch.searchsorted(run_keys, bounds))) for run_keys, _ in self._runs)
+        return self._sizes[b]
 
     def clear(self, b: int) -> None:
-        """Forget sequence b's map and compact the buffer (a finished sequence's memory is released)."""
-        drop = torch.zeros(self._n, dtype=torch.bool, device=self.device)
-        drop[self._rows(b)] = True
-        if not bool(drop.any()):
+        """Forget sequence b's map and compact the buffers (a finished sequence's memory is released)."""
+        if not self._sizes[b]:
             return
-        new_row = torch.cumsum(~drop, 0) - 1  # old row -> compacted row (where kept)
-        self._sums = self._sums[: self._n][~drop]
-        self._n = len(self._sums)
-        runs = []
-        for run_keys, run_rows in self._runs:
-            keep = ~drop[run_rows]
-            if bool(keep.any()):
-                runs.append((run_keys[keep], new_row[run_rows[keep]]))
-        self._runs = sorted(runs, key=lambda r: -len(r[0]))
+        keep = (self._keys[: self._n] >> (3 * AXIS_BITS)) != b
+        self._sums, self._keys = self._sums[: self._n][keep], self._keys[: self._n][keep]
+        self._n, self._sizes[b] = len(self._keys), 0
+        self._rehash(len(self._table))
