@@ -193,3 +193,17 @@ def test_erode_px_against_opencv(radius):
     assert torch.equal(ObjectRegion(largest_component=True, erode_px=radius)(depth), m)
     with pytest.raises(ValueError, match="erode_px must be >= 0"):
         ObjectRegion(erode_px=-1)
+
+
+def test_all_depth_says_when_the_region_is_the_depths_own_mask():
+    """The tracker skips the dense map's region where ``all_depth``: there the region is exactly the pixels with depth
+    (so masking the depth with it changes nothing); an object, an eroded or a largest-component scene is not."""
+    depth, _ = layered_depth()  # two boxes before a wall, holes, stray pixels between the layers
+    depth[..., :6, :6] = 0.0
+    depth[..., 1:4, 1:4] = 1.0  # and an island of depth (a component of its own)
+    scene = ObjectRegion(whole_frame=True)
+    assert scene.all_depth and torch.equal(scene(depth), depth > 0)
+    assert torch.equal(torch.where(scene(depth), depth, torch.zeros_like(depth)), depth)
+    for kw in (dict(whole_frame=True, erode_px=2), dict(whole_frame=True, largest_component=True), dict()):
+        region = ObjectRegion(**kw)
+        assert not region.all_depth and not torch.equal(region(depth), depth > 0), kw

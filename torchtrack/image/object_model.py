@@ -158,6 +158,13 @@ class ObjectRegion:
     def __call__(self, depth: Tensor) -> Tensor:
         return object_mask(depth, **self.kwargs)
 
+    @property
+    def all_depth(self) -> bool:
+        """Whether the region is every pixel with depth (the scene, not eroded, every component): then a depth image's
+        zeros say it already."""
+        k = self.kwargs
+        return bool(k["whole_frame"] and not k["erode_px"] and not k["largest_component"])
+
 
 class PCM(NamedTuple):
     """Coloured point-cloud model, padded.

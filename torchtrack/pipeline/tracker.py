@@ -223,11 +223,13 @@ class Tracker:
         placed = torch.where(al.applied[:, None, None], al.T_world_cam @ s.T_cam_obj, s.T_world_obj)
         return replace(s, T_world_obj=placed)
 
-    def _map_region(self, frame: FrameBatch) -> Tensor:
+    def _map_region(self, frame: FrameBatch) -> Tensor | None:
         """(B, 1, H, W) bool the model's region (the object, or the scene) in the depth as the depth camera took it (its
         own grid: a separate depth camera's frames are not warped into the colour camera's, whose resampling errors
         would enter the map): what the dense map holds (a moving object's background must not pull its pose). Computed
-        once per frame (the alignment and a keyframe's fusion share it)."""
+        once per frame (the alignment and a keyframe's fusion share it); None where it is every pixel with depth."""
+        if getattr(self.reselect.region, "all_depth", False):  # a custom region callable: computed
+            return None
         if self._region is None:
             self._region = self.reselect.region(frame.depth)
         return self._region

@@ -3,7 +3,8 @@
 // spends ~30 ms per alignment in ~150 tensor operations on a few thousand points; here each stage is one loop.
 //
 // Stages, as in the reference: the surface of the depth grid (vertices, normals of the central differences,
-// validity: depth at the pixel and its four neighbours, none farther than max_step x z); the map points culled to
+// validity: depth at the pixel and its four neighbours, none farther than max_step x z; here computed at a pixel when
+// a point first lands on it, not over the whole grid); the map points culled to
 // those in front of the camera and inside the image and evenly thinned to max_points
 // (point i * (n - 1) / (max_points - 1), integer division); then Gauss-Newton on the pose: each point projected to
 // its nearest pixel, paired with the surface there, the Huber- and depth-weighted point-to-plane normal equations
@@ -27,6 +28,7 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <memory>
 #include <vector>
 
 namespace {
@@ -103,48 +105,66 @@ void solve6(double* H, const double* g, double* x) {
   }
 }
 
-struct Surface {  // the grid's vertices and normals (h * w * 3) and validity (h * w)
-  int h, w;
-  std::vector<double> V, N;
-  std::vector<uint8_t> valid;
-};
+// dense_map.py surface() of a depth grid (h, w) seen through fx, fy, cx, cy, computed at a pixel when a point first
+// lands on it (an alignment pairs a few thousand of the grid's pixels, over and over): the same arithmetic as the
+// reference's, pixel by pixel. A pixel's vertex and normal share one cache line.
+class Surface {
+ public:
+  Surface(const float* depth, int64_t h, int64_t w, double fx, double fy, double cx, double cy, double max_step)
+      : h(static_cast<int>(h)), w(static_cast<int>(w)), depth_(depth), fx_(fx), fy_(fy), cx_(cx), cy_(cy),
+        max_step_(max_step), px_(new Pixel[h * w]), state_(h * w, 0) {}
 
-// dense_map.py surface() of a depth grid (h, w) seen through fx, fy, cx, cy.
-Surface make_surface(const float* depth, int64_t h_, int64_t w_, double fx, double fy, double cx,
-                     double cy, double max_step) {
-  Surface s;
-  s.h = static_cast<int>(h_);
-  s.w = static_cast<int>(w_);
-  const int h = s.h, w = s.w;
-  s.V.assign(3 * h * w, 0.0);
-  s.N.assign(3 * h * w, 0.0);
-  s.valid.assign(h * w, 0);
-  for (int i = 0; i < h; ++i)
-    for (int j = 0; j < w; ++j) {
-      const double z = depth[i * w + j];
-      double* p = &s.V[3 * (i * w + j)];
-      p[0] = (j - cx) / fx * z;
-      p[1] = (i - cy) / fy * z;
-      p[2] = z;
-    }
-  auto near = [&](double a, double zc) { return a > 0 && std::abs(a - zc) <= max_step * zc; };
-  for (int i = 1; i < h - 1; ++i)
-    for (int j = 1; j < w - 1; ++j) {
-      const double* c = &s.V[3 * (i * w + j)];
-      const double *l = c - 3, *r = c + 3, *u = c - 3 * w, *d = c + 3 * w;
-      const double a0 = r[0] - l[0], a1 = r[1] - l[1], a2 = r[2] - l[2];
-      const double b0 = d[0] - u[0], b1 = d[1] - u[1], b2 = d[2] - u[2];
-      const double n0 = a1 * b2 - a2 * b1, n1 = a2 * b0 - a0 * b2, n2 = a0 * b1 - a1 * b0;
-      const double norm = std::max(std::sqrt(n0 * n0 + n1 * n1 + n2 * n2), 1e-12);
-      double* n = &s.N[3 * (i * w + j)];
-      n[0] = n0 / norm;
-      n[1] = n1 / norm;
-      n[2] = n2 / norm;
-      const double zc = c[2];
-      s.valid[i * w + j] = zc > 0 && near(r[2], zc) && near(l[2], zc) && near(d[2], zc) && near(u[2], zc);
-    }
-  return s;
-}
+  // The vertex (3) and unit normal (3) at pixel (i, j), or nullptr where it has no surface: a border pixel, no depth
+  // there or at one of its four neighbours, or one of them farther than max_step x z in depth.
+  const double* at(int i, int j) {
+    const int64_t p = static_cast<int64_t>(i) * w + j;
+    if (!state_[p]) state_[p] = compute(i, j, px_[p].vn) ? 1 : 2;
+    return state_[p] == 1 ? px_[p].vn : nullptr;
+  }
+
+  const int h, w;
+
+ private:
+  struct alignas(64) Pixel {
+    double vn[6];  // vertex, normal
+  };
+
+  void vertex(int i, int j, double* p) const {
+    const double z = depth_[static_cast<int64_t>(i) * w + j];
+    p[0] = (j - cx_) / fx_ * z;
+    p[1] = (i - cy_) / fy_ * z;
+    p[2] = z;
+  }
+
+  bool compute(int i, int j, double* vn) const {
+    if (i < 1 || j < 1 || i >= h - 1 || j >= w - 1) return false;
+    double c[3], l[3], r[3], u[3], d[3];
+    vertex(i, j, c);
+    vertex(i, j - 1, l);
+    vertex(i, j + 1, r);
+    vertex(i - 1, j, u);
+    vertex(i + 1, j, d);
+    const double zc = c[2];
+    auto near = [&](double a) { return a > 0 && std::abs(a - zc) <= max_step_ * zc; };
+    if (!(zc > 0 && near(r[2]) && near(l[2]) && near(d[2]) && near(u[2]))) return false;
+    const double a0 = r[0] - l[0], a1 = r[1] - l[1], a2 = r[2] - l[2];
+    const double b0 = d[0] - u[0], b1 = d[1] - u[1], b2 = d[2] - u[2];
+    const double n0 = a1 * b2 - a2 * b1, n1 = a2 * b0 - a0 * b2, n2 = a0 * b1 - a1 * b0;
+    const double norm = std::max(std::sqrt(n0 * n0 + n1 * n1 + n2 * n2), 1e-12);
+    vn[0] = c[0];
+    vn[1] = c[1];
+    vn[2] = c[2];
+    vn[3] = n0 / norm;
+    vn[4] = n1 / norm;
+    vn[5] = n2 / norm;
+    return true;
+  }
+
+  const float* depth_;
+  const double fx_, fy_, cx_, cy_, max_step_;
+  std::unique_ptr<Pixel[]> px_;
+  std::vector<uint8_t> state_;  // 0 not computed yet, 1 a surface, 2 none
+};
 
 // AVX2 + FMA and baseline builds of the hot loop, picked at load time (as csrc/lk.cpp).
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 11  // x86-64-v3: GCC 11+
@@ -156,13 +176,10 @@ Surface make_surface(const float* depth, int64_t h_, int64_t w_, double fx, doub
 // One Gauss-Newton iteration's normal equations: the points (X0, Y0, Z0) moved by delta, each paired with the surface
 // at its nearest grid pixel; info (6, 6) = sum w J J^T and g (6) = sum w J r over the pairs. Returns the pairs.
 DENSE_CLONES int64_t normal_equations(const double* X0, const double* Y0, const double* Z0, int64_t n,
-                                      const Mat4& delta, const Surface& s, double fx, double fy, double cx, double cy,
+                                      const Mat4& delta, Surface& s, double fx, double fy, double cx, double cy,
                                       double max_distance, double huber, double sigma, double* info, double* g) {
   const int h = s.h, w = s.w;
   const double far2 = (2.0 * max_distance) * (2.0 * max_distance);
-  const double* V = s.V.data();
-  const double* N = s.N.data();
-  const uint8_t* valid = s.valid.data();
   double acc[27] = {};  // the lower triangle of info (21), then g (6): locals, not the caller's arrays
   int64_t pairs = 0;
   for (int64_t i = 0; i < n; ++i) {
@@ -173,9 +190,9 @@ DENSE_CLONES int64_t normal_equations(const double* X0, const double* Y0, const 
     const double iz = 1.0 / z;
     const double uf = std::nearbyint(x * iz * fx + cx), vf = std::nearbyint(y * iz * fy + cy);
     if (!(uf >= 0 && uf < w && vf >= 0 && vf < h)) continue;
-    const int64_t pix = static_cast<int64_t>(vf) * w + static_cast<int64_t>(uf);
-    if (!valid[pix]) continue;
-    const double *q = V + 3 * pix, *nn = N + 3 * pix;
+    const double* q = s.at(static_cast<int>(vf), static_cast<int>(uf));
+    if (!q) continue;
+    const double* nn = q + 3;
     const double d0 = x - q[0], d1 = y - q[1], d2 = z - q[2];
     const double r = d0 * nn[0] + d1 * nn[1] + d2 * nn[2], ra = std::abs(r);
     if (!(ra <= max_distance) || !(d0 * d0 + d1 * d1 + d2 * d2 <= far2)) continue;
@@ -218,8 +235,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> dense_fit_cpu(
 
   const double* k = K.data_ptr<double>();
   const double fx = k[0], fy = k[4], cx = k[2], cy = k[5];
-  const Surface s = make_surface(depth.data_ptr<float>(), depth.size(0), depth.size(1), fx, fy, cx, cy,
-                                 max_step);
+  Surface s(depth.data_ptr<float>(), depth.size(0), depth.size(1), fx, fy, cx, cy, max_step);
   const int h = s.h, w = s.w;
 
   // the map points the camera can see, evenly thinned
@@ -227,17 +243,17 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> dense_fit_cpu(
   const double wl = w - 0.5, hl = h - 0.5;
   const double* P = world.data_ptr<double>();
   const int64_t M = world.size(0);
-  std::vector<int64_t> seen;
-  seen.reserve(M);
-  for (int64_t m = 0; m < M; ++m) {
+  std::vector<int64_t> seen(M);
+  int64_t n = 0;
+  for (int64_t m = 0; m < M; ++m) {  // branch-free: the visible ones' indices, in order
     const double* p = P + 3 * m;
     const double x = p[0] * Tc[0] + p[1] * Tc[1] + p[2] * Tc[2] + Tc[3];
     const double y = p[0] * Tc[4] + p[1] * Tc[5] + p[2] * Tc[6] + Tc[7];
     const double z = p[0] * Tc[8] + p[1] * Tc[9] + p[2] * Tc[10] + Tc[11];
     const double u = fx * x + cx * z, v = fy * y + cy * z;
-    if (z > 0.1 && z <= max_depth && u > -0.5 * z && v > -0.5 * z && u < wl * z && v < hl * z) seen.push_back(m);
+    seen[n] = m;
+    n += (z > 0.1) & (z <= max_depth) & (u > -0.5 * z) & (v > -0.5 * z) & (u < wl * z) & (v < hl * z);
   }
-  int64_t n = static_cast<int64_t>(seen.size());
   if (n > max_points) {
     for (int64_t i = 0; i < max_points; ++i) seen[i] = seen[max_points > 1 ? i * (n - 1) / (max_points - 1) : 0];
     n = max_points;
