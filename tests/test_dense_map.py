@@ -255,3 +255,16 @@ def test_the_single_twist_exponential_is_the_se3_exponential():
     for scale in (1e-9, 1e-4, 0.05, 1.0, 3.0):
         xi = torch.randn(6, generator=g, dtype=torch.float64) * scale
         torch.testing.assert_close(_exp(xi), se3_exp(xi[None])[0], atol=1e-13, rtol=0)
+
+
+def test_the_numpy_rigid_inverse_is_T_inv():
+    """The alignment's per-sequence bookkeeping in numpy: its rigid inverse against :func:`T_inv` (the same formula:
+    equal within float round-off, 1e-15 at these magnitudes) and against the identity."""
+    from torchtrack.pipeline.dense_map import _inv
+
+    g = torch.Generator().manual_seed(1)
+    for _ in range(5):
+        T = se3_exp((torch.randn(6, generator=g, dtype=torch.float64) * torch.tensor([2.0] * 3 + [1.0] * 3))[None])[0]
+        inv = torch.from_numpy(_inv(T.numpy()))
+        torch.testing.assert_close(inv, T_inv(T), atol=1e-15, rtol=0)
+        torch.testing.assert_close(inv @ T, torch.eye(4, dtype=torch.float64), atol=1e-15, rtol=0)

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchtrack.geometry import T_inv, backproject_depth, hat, transform_points
+from torchtrack.geometry import backproject_depth, hat, transform_points
 from torchtrack.image.lk import use_cpp
 from torchtrack.mapping.voxel_grid import AXIS_BITS, VoxelPointMap, spatial_hash
 
@@ -206,32 +206,33 @@ class DenseMap:
         if self.map is None:
             raise ValueError("DenseMap: call reset(B) before align")
         B = len(mask)
-        T_out = T_world_cam.double().clone()
-        applied = torch.zeros(B, dtype=torch.bool, device=mask.device)
-        pairs = torch.zeros(B, dtype=torch.long, device=mask.device)
-        if not bool(mask.any()):
-            return Alignment(T_out, applied, pairs)
-        d, Ks = grid(depth, K, self.stride, region)
-        for b in mask.nonzero().squeeze(1).tolist():
-            world = self._pool(b)
-            if world is None:
-                continue
-            T_cw = T_inv(T_out[b])
-            fit = self.fit(world, d[b], Ks[b], T_cw)
-            pairs[b] = fit.pairs
-            if fit.step == math.inf:  # too few pairs left: no correction
-                continue
-            delta = self._gated(fit)  # the correction, in the camera
-            cos = (float(delta[0, 0] + delta[1, 1] + delta[2, 2]) - 1.0) / 2.0
-            applied[b] = (
-                int(pairs[b]) >= self.min_pairs
-                and fit.step < self.converged  # else a wrong basin, or a partial correction
-                and float(delta[:3, 3].norm()) <= self.max_correction_m
-                and math.acos(max(-1.0, min(1.0, cos))) <= math.radians(self.max_correction_deg)
-            )
-            if applied[b]:
-                T_out[b] = T_inv(delta @ T_cw)
-        return Alignment(T_out, applied, pairs)
+        T_out = T_world_cam.double().cpu().numpy().copy()
+        applied, pairs = [False] * B, [0] * B
+        if bool(mask.any()):
+            # Per sequence a handful of 4x4 and 6x6 products: in numpy, whose per-call cost is a fraction of torch's.
+            d, Ks = grid(depth, K, self.stride, region)
+            for b in mask.nonzero().squeeze(1).tolist():
+                world = self._pool(b)
+                if world is None:
+                    continue
+                T_cw = _inv(T_out[b])
+                fit = self.fit(world, d[b], Ks[b], torch.from_numpy(T_cw).to(world.device))
+                pairs[b] = fit.pairs
+                if fit.step == math.inf:  # too few pairs left: no correction
+                    continue
+                delta = self._gated(fit)  # the correction, in the camera
+                cos = (np.trace(delta[:3, :3]) - 1.0) / 2.0
+                applied[b] = (
+                    fit.pairs >= self.min_pairs
+                    and fit.step < self.converged  # else a wrong basin, or a partial correction
+                    and float(np.linalg.norm(delta[:3, 3])) <= self.max_correction_m
+                    and math.acos(max(-1.0, min(1.0, cos))) <= math.radians(self.max_correction_deg)
+                )
+                if applied[b]:
+                    T_out[b] = _inv(delta @ T_cw)
+        dev = mask.device
+        return Alignment(torch.from_numpy(T_out).to(dev), torch.tensor(applied, device=dev),
+                         torch.tensor(pairs, dtype=torch.long, device=dev))  # fmt: skip
 
     def _pool(self, b: int) -> Tensor | None:
         """Sequence b's map points an alignment draws from (M, 3) float64: about 8 ``max_points`` of its voxels, picked
@@ -331,9 +332,9 @@ class DenseMap:
                 break
         return Fit(delta, xi, Jw @ J.T, n_pairs, float(step.abs().max()), k + 1)
 
-    def _gated(self, fit: Fit) -> Tensor:
-        """The fit's correction (4, 4), projected off every pose direction in which the data's information is below
-        ``weak`` times the prior's."""
+    def _gated(self, fit: Fit) -> np.ndarray:
+        """The fit's correction (4, 4) float64, projected off every pose direction in which the data's information is
+        below ``weak`` times the prior's."""
         # A direction in which the depth holds less than ``weak`` times the prior's information (half a surface, a
         # plane) is not corrected: the point-to-plane sigma treats the pairs as independent, so along it the data's
         # information is overstated and the correction would follow the depth's correlated errors.
@@ -344,9 +345,9 @@ class DenseMap:
         ratio, vec = np.linalg.eigh(fit.info.cpu().numpy() * sd[:, None] * sd[None, :])  # whitened: information ratios
         weak = vec[:, ratio < self.weak]
         if not weak.shape[1]:
-            return fit.delta
+            return fit.delta.cpu().numpy()
         y = fit.xi.cpu().numpy() / sd
-        return _exp(torch.from_numpy(sd * (y - weak @ (weak.T @ y))).to(fit.xi))
+        return _exp(torch.from_numpy(sd * (y - weak @ (weak.T @ y)))).numpy()
 
 
 class _Pool(NamedTuple):
@@ -373,6 +374,14 @@ def _merge(keys: Tensor, rows: Tensor, new_keys: Tensor, new_rows: Tensor) -> tu
     out_k[at], out_r[at] = new_keys, new_rows
     out_k[old], out_r[old] = keys, rows
     return out_k, out_r
+
+
+def _inv(T: np.ndarray) -> np.ndarray:
+    """The inverse of a rigid transform (4, 4) (:func:`~torchtrack.geometry.T_inv` in numpy)."""
+    out = np.eye(4)
+    out[:3, :3] = T[:3, :3].T
+    out[:3, 3] = -(T[:3, :3].T @ T[:3, 3])
+    return out
 
 
 def _exp(xi: Tensor) -> Tensor:
