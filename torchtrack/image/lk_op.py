@@ -1,6 +1,6 @@
 """The compiled operators ``torch.ops.torchtrack.lk_track`` (csrc/lk.cpp, the LK inner loop),
 ``torch.ops.torchtrack.shape_index_map`` (csrc/sim.cpp, the SIM), ``torch.ops.torchtrack.dense_fit`` (csrc/dense.cpp,
-the dense map's alignment) and ``torch.ops.torchtrack.voxel_index`` (csrc/voxel.cpp, the voxel map's hash table): one
+the dense map's alignment) and ``torch.ops.torchtrack.voxel_add`` (csrc/voxel.cpp, the voxel map's fusion): one
 library, built on first use, cached, with fake kernels; :mod:`torchtrack.image.lk`, :mod:`torchtrack.image.shape_index`,
 :mod:`torchtrack.pipeline.dense_map` and :mod:`torchtrack.mapping.voxel_grid` fall back to their pure-torch references
 where it cannot be built.
@@ -150,9 +150,10 @@ def _register_fake() -> None:
     def _(world, depth, K, T_cw, *args) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         return world.new_empty(4, 4), world.new_empty(6), world.new_empty(6, 6), world.new_empty(3)
 
-    @torch.library.register_fake("torchtrack::voxel_index")
-    def _(table, keys, n, query) -> Tensor:
-        return torch.empty_like(query)
+    @torch.library.register_fake("torchtrack::voxel_add")
+    def _(table, keys, sums, n, points, *args) -> tuple[Tensor, Tensor, int]:
+        k = torch.library.get_ctx().new_dynamic_size()
+        return keys.new_empty(k), keys.new_empty(k), 0
 
     _state["fake"] = True
 

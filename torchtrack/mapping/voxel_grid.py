@@ -8,9 +8,9 @@ with ``i = floor(p / voxel_size)`` per axis, so one index serves all B maps and 
 world origin (+-1.3 km at 1 cm) are dropped and counted.
 
 The index is a hash table with open addressing (linear probing, at most half full; a slot holds a voxel's row, its key
-is read from the rows' keys): a frame of K voxels costs O(K) expected, whatever the map's size. The lookup runs as the
-compiled ``torch.ops.torchtrack.voxel_index`` (csrc/voxel.cpp) where it builds, else as vectorised probing in torch
-(:meth:`VoxelPointMap._index_torch`, its reference). The per-voxel sums (x, y, z, r, g, b, count: 7 float64) and the
+is read from the rows' keys): a frame of K voxels costs O(K) expected, whatever the map's size. A frame's fusion runs
+as the compiled ``torch.ops.torchtrack.voxel_add`` (csrc/voxel.cpp) where it builds, else in torch with vectorised
+probing (:meth:`VoxelPointMap._add_torch`, its reference). The per-voxel sums (x, y, z, r, g, b, count: 7 float64) and the
 keys live in append-only buffers, one row per voxel, that grow by doubling; the table doubles (and is filled anew)
 when it would be more than half full.
 """
@@ -73,8 +73,8 @@ class VoxelPointMap:
         voxel_size: edge of a voxel, metres.
         batch_size: B, the number of maps (<= 512).
         device: where the sums and the index live; the points added must be on it (the tracker's frames' device).
-        backend: the index's lookup: "cpp" the compiled ``torch.ops.torchtrack.voxel_index``, "torch" its reference
-            (:meth:`_index_torch`), "auto" the operator where it builds (on CPU).
+        backend: the fusion: "cpp" the compiled ``torch.ops.torchtrack.voxel_add``, "torch" its reference
+            (:meth:`_add_torch`), "auto" the operator where it builds (on CPU).
     """
 
     def __init__(
@@ -133,6 +133,23 @@ class VoxelPointMap:
             raise ValueError(
                 f"VoxelPointMap.add: batch indices must be in [0, {self.batch_size}), got {batch.unique()}"
             )
+        if use_cpp(self.backend) and self.device.type == "cpu":
+            self._reserve(self._n + len(points))  # room for every point as a new voxel
+            new_keys, new_rows, dropped = torch.ops.torchtrack.voxel_add(
+                self._table, self._keys, self._sums, self._n, points.double().contiguous(),
+                rgb.double().contiguous(), batch.long().contiguous(), self.voxel_size,
+            )  # fmt: skip
+            self.dropped += dropped
+        else:
+            new_keys, new_rows = self._add_torch(points, rgb, batch)
+        self._n += len(new_keys)
+        for b, count in enumerate(torch.bincount(new_keys >> (3 * AXIS_BITS), minlength=self.batch_size).tolist()):
+            self._sizes[b] += count
+        return new_keys, new_rows
+
+    def _add_torch(self, points: Tensor, rgb: Tensor, batch: Tensor) -> tuple[Tensor, Tensor]:
+        """:meth:`add`'s fusion in torch: the compiled ``voxel_add``'s reference (tests/test_mapping.py) and the path
+        where it does not build. Returns the new voxels' keys and rows (``_n`` not advanced)."""
         keys, inside = voxel_keys(points.double(), batch.long(), self.voxel_size)
         if not bool(inside.all()):
             self.dropped += int((~inside).sum())
@@ -144,27 +161,16 @@ class VoxelPointMap:
         values = torch.cat([points.double(), rgb.double(), ones], 1)
         sums = torch.zeros(len(uk), 7, dtype=torch.float64, device=uk.device).index_add_(0, inv, values)
         self._reserve(self._n + len(uk))  # room for every voxel as a new one
-        rows = self._index(uk)
+        rows = self._index_torch(uk)
         new = rows >= self._n
-        k = int(new.sum())
-        self._sums[self._n : self._n + k] = 0.0
+        self._sums[self._n : self._n + int(new.sum())] = 0.0
         self._sums.index_add_(0, rows, sums)
-        self._n += k
-        for b, count in enumerate(torch.bincount(uk[new] >> (3 * AXIS_BITS), minlength=self.batch_size).tolist()):
-            self._sizes[b] += count
         return uk[new], rows[new]
 
-    def _index(self, keys: Tensor) -> Tensor:
+    def _index_torch(self, keys: Tensor) -> Tensor:
         """The rows (P,) of the voxels ``keys`` (P,) (distinct): each one's row where the map has it, else a new row
         (``_n``, ``_n`` + 1, ... in the order of ``keys``; ``_n`` not advanced), its key written and entered in the
         table. The buffers must have room (:meth:`_reserve`)."""
-        if use_cpp(self.backend) and keys.device.type == "cpu":
-            return torch.ops.torchtrack.voxel_index(self._table, self._keys, self._n, keys.contiguous())
-        return self._index_torch(keys)
-
-    def _index_torch(self, keys: Tensor) -> Tensor:
-        """:meth:`_index` in torch: the operator's reference (tests/test_mapping.py) and the path where it does not
-        build."""
         rows = self._find(keys)
         new = (rows < 0).nonzero().squeeze(1)
         rows[new] = torch.arange(self._n, self._n + len(new), device=keys.device)
@@ -216,7 +222,7 @@ class VoxelPointMap:
         """A table of ``size`` slots holding the map's voxels."""
         self._table = torch.full((size,), EMPTY, dtype=torch.int64, device=self.device)
         n, self._n = self._n, 0
-        self._index(self._keys[:n].clone())  # each key new to the empty table: rows 0 .. n - 1, as they were
+        self._index_torch(self._keys[:n].clone())  # each key new to the empty table: rows 0 .. n - 1, as they were
         self._n = n
 
     def voxels(self, b: int, ordered: bool = True, every: int = 1) -> tuple[Tensor, Tensor]:
