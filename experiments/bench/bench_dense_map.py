@@ -1,5 +1,7 @@
 """What the dense map costs per frame: the default tracker with and without it (``dense.enabled=false``) over the same
-decoded frames, in one process, runs alternating; and the map's own calls (align, add) timed from the outside.
+decoded frames, in one process, the configurations stepping through each frame back to back (in a rotating order, so
+that the shared machine's drifting speed falls on all alike); and the map's own calls (align, add) timed from the
+outside.
 
     python experiments/bench/bench_dense_map.py ../shared/data/7scenes_redkitchen --frames 300 --repeats 2 --also dense.every=10
 
@@ -59,19 +61,24 @@ def main(argv: list[str] | None = None) -> int:
     ms: dict[str, list[float]] = {k: [] for k in cfgs}
     calls: dict[str, list[float]] = {"align": [], "add": []}
     for r in range(args.repeats):
-        for name, cfg in cfgs.items():
-            tracker = build_tracker(cfg)
-            if name == "torch alignment":
-                tracker.dense.backend = "torch"
-            if name == "dense map" and r == args.repeats - 1:
-                for k, log in calls.items():
-                    timed(tracker.dense, k, log)
-            t = time.perf_counter()
-            for frame in batches:
-                tracker.step(frame)
-            ms[name].append((time.perf_counter() - t) / len(batches) * 1e3)
-            if name == "dense map":
-                voxels = tracker.dense.map.size(0)
+        trackers = {name: build_tracker(cfg) for name, cfg in cfgs.items()}
+        if "torch alignment" in trackers:
+            trackers["torch alignment"].dense.backend = "torch"
+        if r == args.repeats - 1:
+            for k, log in calls.items():
+                timed(trackers["dense map"].dense, k, log)
+        spent = dict.fromkeys(trackers, 0.0)
+        names = list(trackers)
+        for i, frame in enumerate(batches):
+            # all configurations step through the same frame back to back, in a rotating order: the machine's
+            # speed drifts over seconds on a shared host, and this way each configuration sees the same drift
+            for name in names[i % len(names) :] + names[: i % len(names)]:
+                t = time.perf_counter()
+                trackers[name].step(frame)
+                spent[name] += time.perf_counter() - t
+        for name in names:
+            ms[name].append(spent[name] / len(batches) * 1e3)
+        voxels = trackers["dense map"].dense.map.size(0)
     med = {k: statistics.median(v) for k, v in ms.items()}
     print(f"{seq.name}, {len(batches)} frames, {args.repeats} repeats, 1 thread")
     for k, v in med.items():
