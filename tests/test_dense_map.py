@@ -268,3 +268,31 @@ def test_the_numpy_rigid_inverse_is_T_inv():
         inv = torch.from_numpy(_inv(T.numpy()))
         torch.testing.assert_close(inv, T_inv(T), atol=1e-15, rtol=0)
         torch.testing.assert_close(inv @ T, torch.eye(4, dtype=torch.float64), atol=1e-15, rtol=0)
+
+
+@pytest.mark.parametrize("backend", ["cpp", "torch"])
+def test_nan_depth_without_a_region_aligns_as_with_one(backend):
+    """The tracker passes no region where it is every pixel with depth (ObjectRegion.all_depth): a NaN in the depth
+    must then count as no depth, as the region used to make it (on the torch path 0 x NaN would turn the whole fit into
+    NaN). A smooth surface fused at the identity, a 10 x 10 NaN patch, the camera 5 mm off: the same alignment with
+    and without the region, and applied. No sequence to align (B = 0): an empty bool ``applied``."""
+    if backend == "cpp" and not lk_op.available():
+        pytest.skip("the compiled operators do not build here")
+    h, w = 60, 80
+    K = torch.tensor([[50.0, 0, w / 2], [0, 50.0, h / 2], [0, 0, 1]], dtype=torch.float64)[None]
+    yy, xx = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    depth = (1.0 + 0.2 * torch.sin(xx / 7.0) + 0.1 * torch.cos(yy / 5.0)).float()[None, None]
+    dense = DenseMap(backend=backend, min_pairs=50, max_points=2000, stride=1)
+    dense.reset(1)
+    dense.add(depth, K, torch.eye(4, dtype=torch.float64)[None], torch.tensor([True]))
+    holed = depth.clone()
+    holed[..., 10:20, 10:20] = float("nan")
+    T = torch.eye(4, dtype=torch.float64)[None].clone()
+    T[0, 0, 3] = 0.005
+    bare = dense.align(holed, K, T, torch.tensor([True]))
+    masked = dense.align(holed, K, T, torch.tensor([True]), holed > 0)
+    assert bool(bare.applied[0]) and int(bare.pairs[0]) == int(masked.pairs[0]) > 1000
+    assert torch.equal(bare.T_world_cam, masked.T_world_cam)
+    assert float(bare.T_world_cam[0, 0, 3].abs()) < 0.005  # moved towards the map
+    none = dense.align(holed[:0], K[:0], T[:0], torch.zeros(0, dtype=torch.bool))
+    assert none.applied.dtype == torch.bool and none.pairs.dtype == torch.long and len(none.applied) == 0

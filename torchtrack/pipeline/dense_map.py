@@ -55,10 +55,13 @@ class Fit(NamedTuple):
 
 def grid(depth: Tensor, K: Tensor, stride: int, region: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Every ``stride``-th pixel of a depth image (B, 1, H, W) seen through K (B, 3, 3): the depth grid (B, h, w), 0
-    outside ``region`` (B, 1, H, W) bool (None: everywhere), and its intrinsics (B, 3, 3) float64."""
+    where there is no depth (0, negative or NaN) and outside ``region`` (B, 1, H, W) bool (None: everywhere), and its
+    intrinsics (B, 3, 3) float64."""
     d = depth[:, 0, ::stride, ::stride]
+    keep = d > 0  # a NaN would reach the fit's sums (0 x NaN is NaN)
     if region is not None:
-        d = torch.where(region[:, 0, ::stride, ::stride], d, torch.zeros_like(d))
+        keep &= region[:, 0, ::stride, ::stride]
+    d = torch.where(keep, d, torch.zeros_like(d))
     Ks = K.double().clone()
     Ks[:, :2] /= stride  # pixel (i, j) of the grid is pixel (i, j) x stride of the image
     return d, Ks
@@ -231,7 +234,7 @@ class DenseMap:
                 if applied[b]:
                     T_out[b] = _inv(delta @ T_cw)
         dev = mask.device
-        return Alignment(torch.from_numpy(T_out).to(dev), torch.tensor(applied, device=dev),
+        return Alignment(torch.from_numpy(T_out).to(dev), torch.tensor(applied, dtype=torch.bool, device=dev),
                          torch.tensor(pairs, dtype=torch.long, device=dev))  # fmt: skip
 
     def _pool(self, b: int) -> Tensor | None:
