@@ -60,8 +60,7 @@ class Tracker:
             keyframes are re-tracked and join the new model at their ORIGINAL world positions, after the survivors and
             before new features; with ``landmarks.correct`` the camera the new model is anchored at is first re-fitted
             to them. With a dense map, only where its alignment of that frame did not apply: where it did, the model
-            is already placed against everything the camera saw, and the landmarks' older, chained anchors would pull
-            it off that placement.
+            is placed against all the camera saw, and the landmarks' older, chained anchors would pull it off.
         relocaliser: improvement (None = no loss check): after each frame, the loss check
             (:class:`~torchtrack.pipeline.relocalise.Relocaliser`) against the keyframes' ORB descriptors; the
             relocalised sequences take a new model at the camera pose it found.
