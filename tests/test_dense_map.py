@@ -160,8 +160,9 @@ def test_what_the_map_cannot_correct_is_left_alone(room):
 
 def test_the_pool_kept_up_to_date_is_the_pool_picked_anew():
     """Keyframes of a rendered room added to two sequences' maps one by one (each its own path), the pool read after
-    each: the pool merged with each add's new voxels equals the one picked from the whole map, point for point and in
-    the same order, both while the thinning (``every``) stays (the merge) and when it changes (picked anew)."""
+    each: the pool kept up to date by each add (its voxels' means recomputed, the new voxels merged) equals the one
+    picked from the whole map, point for point and in the same order, both while the thinning (``every``) stays and
+    when it changes (picked anew)."""
     cfg = SyntheticConfig(width=160, height=120, mode="scene", noise="none", seed=1)
     scene = default_scene(cfg)
     T0 = look_at(SCENE_EYE, SCENE_TARGET)
@@ -176,8 +177,7 @@ def test_the_pool_kept_up_to_date_is_the_pool_picked_anew():
         dense.add(depth, K, T, torch.tensor([True, k % 3 != 1]))  # the second sequence skips some keyframes
         for b in range(2):
             every = max(1, dense.map.size(b) // (8 * dense.max_points))
-            before = dense._pools[b]
-            merged += before is not None and before.every == every and before.xyz is None
+            merged += dense._pools[b] is not None  # kept up to date by the add (else picked anew below)
             everys.add(every)
             assert torch.equal(dense._pool(b), dense.map.points(b, ordered=True, every=every).xyz), (k, b)
     assert merged >= 5 and len(everys) >= 3 and max(everys) > 1, (merged, everys)

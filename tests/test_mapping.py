@@ -189,6 +189,9 @@ def test_the_fusion_operator_equals_the_reference():
             for m in maps:
                 m.clear(2)
     assert maps[0].dropped == maps[1].dropped == 20 and len(maps[0]) == len(maps[1])
+    assert len(maps[0]._table) > 1024  # refilled (compiled voxel_rehash) as it grew, and at the clear
+    for m in maps:  # each table finds every voxel at its row
+        assert torch.equal(m._find(m._keys[: len(m)]), torch.arange(len(m)))
     for s in range(4):
         got, ref = maps[0].points(s), maps[1].points(s)
         assert torch.equal(got.count, ref.count) and maps[0].size(s) == maps[1].size(s)
@@ -206,15 +209,26 @@ def test_the_fusion_operator_schema_fallback_and_bad_inputs(monkeypatch):
     # the schema (mutated buffers declared) and the fake kernel; AOT functionalisation of an operator that mutates its
     # inputs and returns data-dependent sizes is beyond opcheck's dynamic test
     torch.library.opcheck(torch.ops.torchtrack.voxel_add.default, args, test_utils=("test_schema", "test_faketensor"))
-    new_keys, rows, dropped = torch.ops.torchtrack.voxel_add(*args)
+    new_keys, rows, known_keys, known_rows, dropped = torch.ops.torchtrack.voxel_add(*args)
     assert rows.tolist() == [0, 1] and dropped == 1 and bool((new_keys[:-1] < new_keys[1:]).all())
     assert args[2][0, 6] == 2 and args[2][1, 6] == 1  # two points in the origin's voxel
+    assert len(known_keys) == len(known_rows) == 0
+    again = torch.ops.torchtrack.voxel_add(table, keys, args[2], 2, p[:2], rgb[:2], b[:2], 0.01)
+    assert len(again[0]) == 0 and torch.equal(again[2], new_keys) and again[3].tolist() == [0, 1]  # both known now
     with pytest.raises(RuntimeError, match="half full"):
         torch.ops.torchtrack.voxel_add(torch.full((4,), -1), *args[1:])
     with pytest.raises(RuntimeError, match="power of two"):
         torch.ops.torchtrack.voxel_add(torch.full((48,), -1), *args[1:])
     with pytest.raises(RuntimeError, match="float64"):
         torch.ops.torchtrack.voxel_add(*args[:4], p.float(), *args[5:])
+    refill = (torch.zeros(8, dtype=torch.long), new_keys, 2)
+    torch.library.opcheck(
+        torch.ops.torchtrack.voxel_rehash.default, refill, test_utils=("test_schema", "test_faketensor")
+    )
+    torch.ops.torchtrack.voxel_rehash(*refill)
+    assert sorted(refill[0].tolist()) == [-1] * 6 + [0, 1]
+    with pytest.raises(RuntimeError, match="half full"):
+        torch.ops.torchtrack.voxel_rehash(torch.zeros(2, dtype=torch.long), new_keys, 2)
     # where the operator does not build, "auto" is the reference
     monkeypatch.setenv("TORCHTRACK_NO_BUILD", "1")
     monkeypatch.setattr(lk_op, "_state", {})

@@ -151,9 +151,14 @@ def _register_fake() -> None:
         return world.new_empty(4, 4), world.new_empty(6), world.new_empty(6, 6), world.new_empty(3)
 
     @torch.library.register_fake("torchtrack::voxel_add")
-    def _(table, keys, sums, n, points, *args) -> tuple[Tensor, Tensor, int]:
-        k = torch.library.get_ctx().new_dynamic_size()
-        return keys.new_empty(k), keys.new_empty(k), 0
+    def _(table, keys, sums, n, points, *args) -> tuple[Tensor, Tensor, Tensor, Tensor, int]:
+        ctx = torch.library.get_ctx()
+        k, g = ctx.new_dynamic_size(), ctx.new_dynamic_size()
+        return keys.new_empty(k), keys.new_empty(k), keys.new_empty(g), keys.new_empty(g), 0
+
+    @torch.library.register_fake("torchtrack::voxel_rehash")
+    def _(table, keys, n) -> None:
+        return None
 
     _state["fake"] = True
 

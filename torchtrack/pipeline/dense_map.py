@@ -27,7 +27,7 @@ from torch import Tensor
 
 from torchtrack.geometry import backproject_depth, hat, transform_points
 from torchtrack.image.lk import use_cpp
-from torchtrack.mapping.voxel_grid import AXIS_BITS, VoxelPointMap, spatial_hash
+from torchtrack.mapping.voxel_grid import AXIS_BITS, Added, VoxelPointMap, spatial_hash
 
 
 class Alignment(NamedTuple):
@@ -163,14 +163,12 @@ class DenseMap:
         self.map: VoxelPointMap | None = None
         self.since: Tensor | None = None  # frames since each sequence's last alignment
         self._pools: list[_Pool | None] = []  # per sequence: the map's points an alignment draws from
-        self._fresh: list[list[tuple[Tensor, Tensor]]] = []  # per sequence: voxels created since its pool was picked
 
     def reset(self, B: int, device: torch.device | str = "cpu") -> None:
         """Empty maps for B sequences."""
         self.map = VoxelPointMap(voxel_size=self.voxel_size, batch_size=B, device=device)
         self.since = torch.zeros(B, dtype=torch.long, device=device)
         self._pools = [None] * B
-        self._fresh = [[] for _ in range(B)]
 
     def due(self, reselect: Tensor, active: Tensor) -> Tensor:
         """(B,) bool: the ``active`` (B,) sequences whose camera is aligned this frame: a new model is taken
@@ -193,13 +191,9 @@ class DenseMap:
         ok = (V[..., 2] > 0) & (V[..., 2] <= self.max_depth) & mask[:, None]
         world = transform_points(T_world_cam.double(), V)[ok].to(self.map.device)
         b = torch.arange(len(mask), device=ok.device)[:, None].expand_as(ok)[ok].to(self.map.device)
-        keys, rows = self.map.add(world, torch.zeros_like(world), b)
-        seq = keys >> (3 * AXIS_BITS)
+        added = self.map.add(world, torch.zeros_like(world), b)
         for i in mask.nonzero().squeeze(1).tolist():
-            mine = seq == i
-            self._fresh[i].append((keys[mine], rows[mine]))
-            if self._pools[i] is not None:
-                self._pools[i] = self._pools[i]._replace(xyz=None)  # stale: its voxels' means moved
+            self._pools[i] = self._updated(i, added)
 
     def align(self, depth: Tensor, K: Tensor, T_world_cam: Tensor, mask: Tensor,
               region: Tensor | None = None) -> Alignment:  # fmt: skip
@@ -240,31 +234,42 @@ class DenseMap:
     def _pool(self, b: int) -> Tensor | None:
         """Sequence b's map points an alignment draws from (M, 3) float64: about 8 ``max_points`` of its voxels, picked
         by a spatial hash and in voxel-key order (the same points in the same order however the map grew, so the
-        alignment does not depend on the other sequences); kept until the next :meth:`add` to it. None while the map
-        has fewer than ``min_pairs`` voxels.
-
-        After an add the pool's voxels are those it had and the new ones the hash picks (while the thinning ``every``
-        stays): merged into the sorted keys, not picked again from the whole map (the same voxels in the same order,
-        tests/test_dense_map.py)."""
-        pool = self._pools[b]
-        if pool is not None and pool.xyz is not None:
-            return pool.xyz
-        M = self.map.size(b)
-        if M < self.min_pairs:
-            return None
-        every = max(1, M // (8 * self.max_points))
-        if pool is None or pool.every != every:
+        alignment does not depend on the other sequences); kept up to date by :meth:`add` (:meth:`_updated`). None
+        while the map has fewer than ``min_pairs`` voxels."""
+        if self._pools[b] is None:
+            M = self.map.size(b)
+            if M < self.min_pairs:
+                return None
+            every = max(1, M // (8 * self.max_points))
             keys, rows = self.map.voxels(b, ordered=True, every=every)
-        else:
-            new_keys = torch.cat([k for k, _ in self._fresh[b]])
-            new_rows = torch.cat([r for _, r in self._fresh[b]])
-            if every > 1:
-                pick = spatial_hash(new_keys) % every == 0
-                new_keys, new_rows = new_keys[pick], new_rows[pick]
-            keys, rows = _merge(pool.keys, pool.rows, new_keys, new_rows)
-        self._fresh[b] = []
-        self._pools[b] = _Pool(keys, rows, every, self.map.xyz(rows))
+            self._pools[b] = _Pool(keys.cpu().numpy(), self.map.xyz(rows), every)
         return self._pools[b].xyz
+
+    def _updated(self, b: int, added: Added) -> _Pool | None:
+        """Sequence b's pool after an add (None: picked anew from the whole map at the next alignment, where the
+        thinning ``every`` changed): the means of its voxels that took points recomputed, the new voxels the hash
+        picks merged into the sorted keys. The same points in the same order as picked anew (tests/test_dense_map.py),
+        at the cost of the voxels the add touched, not of the pool (a gather of ~50,000 means scattered over the
+        map's buffers costs ~2-5 ms)."""
+        pool, M = self._pools[b], self.map.size(b)
+        if pool is None or M < self.min_pairs or pool.every != max(1, M // (8 * self.max_points)):
+            return None
+
+        def picked(keys: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
+            keep = (keys >> (3 * AXIS_BITS)) == b
+            if pool.every > 1:
+                keep &= spatial_hash(keys) % pool.every == 0
+            return keys[keep], rows[keep]
+
+        # the searches and the merge in numpy: on ~50,000 keys torch's per-operation cost is most of it
+        dev = pool.xyz.device
+        keys, rows = picked(added.known_keys, added.known_rows)  # in the pool since it was picked or merged
+        pool.xyz[torch.from_numpy(np.searchsorted(pool.keys, keys.cpu().numpy())).to(dev)] = self.map.xyz(rows)
+        keys, rows = picked(added.keys, added.rows)  # ascending: each one goes before the pool's key it is sorted at
+        keys = keys.cpu().numpy()
+        at = np.searchsorted(pool.keys, keys)
+        xyz = np.insert(pool.xyz.cpu().numpy(), at, self.map.xyz(rows).cpu().numpy(), axis=0)
+        return _Pool(np.insert(pool.keys, at, keys), torch.from_numpy(xyz).to(dev), pool.every)
 
     def fit(self, world: Tensor, depth: Tensor, K: Tensor, T_cw: Tensor) -> Fit:
         """Gauss-Newton on the world-to-camera pose from ``T_cw`` (4, 4), the map points ``world`` (M, 3) (the
@@ -354,29 +359,12 @@ class DenseMap:
 
 
 class _Pool(NamedTuple):
-    """A sequence's pool (:meth:`DenseMap._pool`): voxel keys (M,) ascending, their buffer rows (M,), the thinning
-    ``every`` they were picked with, their points (M, 3) (None: stale, the map changed since)."""
+    """A sequence's pool (:meth:`DenseMap._pool`): voxel keys (M,) int64 ascending (numpy), their points (M, 3) and the
+    thinning ``every`` they were picked with."""
 
-    keys: Tensor
-    rows: Tensor
+    keys: np.ndarray
+    xyz: Tensor
     every: int
-    xyz: Tensor | None
-
-
-def _merge(keys: Tensor, rows: Tensor, new_keys: Tensor, new_rows: Tensor) -> tuple[Tensor, Tensor]:
-    """Two disjoint key-sorted (keys, rows) sets as one, key-sorted: each new key's place among the old ones, in
-    linear time (no sort)."""
-    if len(new_keys) == 0:
-        return keys, rows
-    new_keys, order = torch.sort(new_keys)  # a keyframe's new voxels (sorted when they came from one add)
-    new_rows = new_rows[order]
-    at = torch.searchsorted(keys, new_keys) + torch.arange(len(new_keys), device=keys.device)
-    old = torch.ones(len(keys) + len(new_keys), dtype=torch.bool, device=keys.device)
-    old[at] = False
-    out_k, out_r = keys.new_empty(len(old)), rows.new_empty(len(old))
-    out_k[at], out_r[at] = new_keys, new_rows
-    out_k[old], out_r[old] = keys, rows
-    return out_k, out_r
 
 
 def _inv(T: np.ndarray) -> np.ndarray:

@@ -216,6 +216,28 @@ DENSE_CLONES int64_t normal_equations(const double* X0, const double* Y0, const 
   return pairs;
 }
 
+// The indices (written to seen, returned: how many) of the points P (M, 3) in front of the camera T_cw (row major 4x4),
+// within max_depth and inside the w x h image, in order. Two passes: a flag per point (no branch: the loop
+// vectorises), then the flagged indices packed.
+DENSE_CLONES int64_t visible(const double* P, int64_t M, const double* Tc, double fx, double fy, double cx, double cy,
+                             int w, int h, double max_depth, uint8_t* in, int64_t* seen) {
+  const double wl = w - 0.5, hl = h - 0.5;
+  for (int64_t m = 0; m < M; ++m) {
+    const double px = P[3 * m], py = P[3 * m + 1], pz = P[3 * m + 2];
+    const double x = px * Tc[0] + py * Tc[1] + pz * Tc[2] + Tc[3];
+    const double y = px * Tc[4] + py * Tc[5] + pz * Tc[6] + Tc[7];
+    const double z = px * Tc[8] + py * Tc[9] + pz * Tc[10] + Tc[11];
+    const double u = fx * x + cx * z, v = fy * y + cy * z;
+    in[m] = (z > 0.1) & (z <= max_depth) & (u > -0.5 * z) & (v > -0.5 * z) & (u < wl * z) & (v < hl * z);
+  }
+  int64_t n = 0;
+  for (int64_t m = 0; m < M; ++m) {
+    seen[n] = m;
+    n += in[m];
+  }
+  return n;
+}
+
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> dense_fit_cpu(
     const at::Tensor& world, const at::Tensor& depth, const at::Tensor& K, const at::Tensor& T_cw,
     int64_t max_points, int64_t iterations, double max_depth, double max_distance, double huber, double sigma,
@@ -237,23 +259,13 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> dense_fit_cpu(
   const double fx = k[0], fy = k[4], cx = k[2], cy = k[5];
   Surface s(depth.data_ptr<float>(), depth.size(0), depth.size(1), fx, fy, cx, cy, max_step);
   const int h = s.h, w = s.w;
-
   // the map points the camera can see, evenly thinned
-  const double* Tc = T_cw.data_ptr<double>();
-  const double wl = w - 0.5, hl = h - 0.5;
   const double* P = world.data_ptr<double>();
   const int64_t M = world.size(0);
-  std::vector<int64_t> seen(M);
-  int64_t n = 0;
-  for (int64_t m = 0; m < M; ++m) {  // branch-free: the visible ones' indices, in order
-    const double* p = P + 3 * m;
-    const double x = p[0] * Tc[0] + p[1] * Tc[1] + p[2] * Tc[2] + Tc[3];
-    const double y = p[0] * Tc[4] + p[1] * Tc[5] + p[2] * Tc[6] + Tc[7];
-    const double z = p[0] * Tc[8] + p[1] * Tc[9] + p[2] * Tc[10] + Tc[11];
-    const double u = fx * x + cx * z, v = fy * y + cy * z;
-    seen[n] = m;
-    n += (z > 0.1) & (z <= max_depth) & (u > -0.5 * z) & (v > -0.5 * z) & (u < wl * z) & (v < hl * z);
-  }
+  std::unique_ptr<int64_t[]> seen(new int64_t[M]);
+  std::unique_ptr<uint8_t[]> in(new uint8_t[M]);
+  const double* Tc = T_cw.data_ptr<double>();
+  int64_t n = visible(P, M, Tc, fx, fy, cx, cy, w, h, max_depth, in.get(), seen.get());
   if (n > max_points) {
     for (int64_t i = 0; i < max_points; ++i) seen[i] = seen[max_points > 1 ? i * (n - 1) / (max_points - 1) : 0];
     n = max_points;

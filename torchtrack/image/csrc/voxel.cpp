@@ -18,6 +18,7 @@
 #include <cmath>
 #include <cstdint>
 #include <tuple>
+#include <utility>
 #include <vector>
 
 namespace {
@@ -35,8 +36,9 @@ int shift_of(int64_t size) {  // 64 - log2(size)
   return shift;
 }
 
-// Returns (the keys of the voxels created, ascending; their rows; the points outside the representable range).
-std::tuple<at::Tensor, at::Tensor, int64_t> voxel_add_cpu(at::Tensor& table, at::Tensor& keys, at::Tensor& sums,
+// Returns (the keys of the voxels created, ascending; their rows; the keys of the voxels the map had that took points,
+// ascending; their rows; the points outside the representable range).
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, int64_t> voxel_add_cpu(at::Tensor& table, at::Tensor& keys, at::Tensor& sums,
                                                           int64_t n, const at::Tensor& points, const at::Tensor& rgb,
                                                           const at::Tensor& batch, double voxel_size) {
   TORCH_CHECK(points.dim() == 2 && points.size(1) == 3 && points.scalar_type() == at::kDouble && points.is_contiguous(),
@@ -108,7 +110,8 @@ std::tuple<at::Tensor, at::Tensor, int64_t> voxel_add_cpu(at::Tensor& table, at:
   int64_t* k = keys.data_ptr<int64_t>();
   double* S = sums.data_ptr<double>();
   const int64_t V = static_cast<int64_t>(vkeys.size());
-  std::vector<int64_t> fresh;  // the frame's voxels the map does not have
+  std::vector<int64_t> fresh;                        // the frame's voxels the map does not have
+  std::vector<std::pair<int64_t, int64_t>> known;  // (key, row) of those it has
   for (int64_t j = 0; j < V; ++j) {
     const int64_t key = vkeys[j];
     uint64_t s = slot_of(key, shift, mask);
@@ -116,11 +119,19 @@ std::tuple<at::Tensor, at::Tensor, int64_t> voxel_add_cpu(at::Tensor& table, at:
     if (t[s] >= 0) {
       double* row = S + 7 * t[s];
       for (int a = 0; a < 7; ++a) row[a] += vsums[7 * j + a];
+      known.emplace_back(key, t[s]);
     } else {
       fresh.push_back(j);
     }
   }
   std::sort(fresh.begin(), fresh.end(), [&](int64_t x, int64_t y) { return vkeys[x] < vkeys[y]; });
+  std::sort(known.begin(), known.end());  // by key (distinct)
+  const int64_t G = static_cast<int64_t>(known.size());
+  auto known_keys = at::empty({G}, batch.options()), known_rows = at::empty({G}, batch.options());
+  for (int64_t g = 0; g < G; ++g) {
+    known_keys.data_ptr<int64_t>()[g] = known[g].first;
+    known_rows.data_ptr<int64_t>()[g] = known[g].second;
+  }
   const int64_t F = static_cast<int64_t>(fresh.size());
   auto new_keys = at::empty({F}, batch.options()), new_rows = at::empty({F}, batch.options());
   int64_t* nk = new_keys.data_ptr<int64_t>();
@@ -136,7 +147,29 @@ std::tuple<at::Tensor, at::Tensor, int64_t> voxel_add_cpu(at::Tensor& table, at:
     nk[f] = key;
     nr[f] = r;
   }
-  return {new_keys, new_rows, dropped};
+  return {new_keys, new_rows, known_keys, known_rows, dropped};
+}
+
+// The table (S,) filled anew with the voxels of rows 0 .. n - 1 (keys (C,)): each takes the first free slot from its
+// own, in row order (as VoxelPointMap._rehash's reference, which enters them as new keys of an empty table).
+void voxel_rehash_cpu(at::Tensor& table, const at::Tensor& keys, int64_t n) {
+  TORCH_CHECK(table.dim() == 1 && table.scalar_type() == at::kLong && table.is_contiguous(),
+              "voxel_rehash: table (S,) int64 contiguous");
+  TORCH_CHECK(keys.dim() == 1 && keys.scalar_type() == at::kLong && keys.is_contiguous(),
+              "voxel_rehash: keys (C,) int64 contiguous");
+  const int64_t size = table.size(0);
+  TORCH_CHECK(size >= 2 && (size & (size - 1)) == 0, "voxel_rehash: the table's size must be a power of two");
+  TORCH_CHECK(n >= 0 && n <= keys.size(0) && 2 * n <= size, "voxel_rehash: n rows, the table at most half full");
+  const int shift = shift_of(size);
+  const uint64_t mask = static_cast<uint64_t>(size - 1);
+  int64_t* t = table.data_ptr<int64_t>();
+  const int64_t* k = keys.data_ptr<int64_t>();
+  std::fill(t, t + size, int64_t{-1});
+  for (int64_t r = 0; r < n; ++r) {
+    uint64_t s = slot_of(k[r], shift, mask);
+    while (t[s] >= 0) s = (s + 1) & mask;
+    t[s] = r;
+  }
 }
 
 }  // namespace
@@ -144,9 +177,11 @@ std::tuple<at::Tensor, at::Tensor, int64_t> voxel_add_cpu(at::Tensor& table, at:
 TORCH_LIBRARY_FRAGMENT(torchtrack, m) {
   m.def(
       "voxel_add(Tensor(a!) table, Tensor(b!) keys, Tensor(c!) sums, int n, Tensor points, Tensor rgb, Tensor batch, "
-      "float voxel_size) -> (Tensor, Tensor, int)");
+      "float voxel_size) -> (Tensor, Tensor, Tensor, Tensor, int)");
+  m.def("voxel_rehash(Tensor(a!) table, Tensor keys, int n) -> ()");
 }
 
 TORCH_LIBRARY_IMPL(torchtrack, CPU, m) {
   m.impl("voxel_add", &voxel_add_cpu);
+  m.impl("voxel_rehash", &voxel_rehash_cpu);
 }
