@@ -158,16 +158,19 @@ def test_what_the_map_cannot_correct_is_left_alone(room):
     assert after[0] < 300 + 7 and after[1] < 1.0, after
 
 
-def test_the_pool_kept_up_to_date_is_the_pool_picked_anew():
+@pytest.mark.parametrize("backend", ["cpp", "torch"])
+def test_the_pool_kept_up_to_date_is_the_pool_picked_anew(backend):
     """Keyframes of a rendered room added to two sequences' maps one by one (each its own path), the pool read after
     each: the pool kept up to date by each add (its voxels' means recomputed, the new voxels merged) equals the one
     picked from the whole map, point for point and in the same order, both while the thinning (``every``) stays and
-    when it changes (picked anew)."""
+    when it changes (picked anew); by the compiled ``pool_update`` and by its torch reference."""
+    if backend == "cpp" and not lk_op.available():
+        pytest.skip("the compiled operators do not build here")
     cfg = SyntheticConfig(width=160, height=120, mode="scene", noise="none", seed=1)
     scene = default_scene(cfg)
     T0 = look_at(SCENE_EYE, SCENE_TARGET)
     K = scene.K.float()[None].expand(2, -1, -1)
-    dense = DenseMap(max_points=300, min_pairs=50)  # every: 1 (no hash) to 5 over the twelve keyframes
+    dense = DenseMap(max_points=300, min_pairs=50, backend=backend)  # every: 1 (no hash) to 5 over twelve keyframes
     dense.reset(2)
     merged, everys = 0, set()
     for k in range(12):

@@ -173,8 +173,9 @@ def test_voxel_map_equals_a_direct_numpy_computation(backend):
 
 def test_the_fusion_operator_equals_the_reference():
     """voxel_add (csrc/voxel.cpp) against VoxelPointMap._add_torch over a stream of additions (known and new voxels
-    mixed, points out of range, the table growing) and across a clear: the same voxels created (keys, rows), the same
-    counts, the sums equal within float round-off (the same additions in the same order: measured equal)."""
+    mixed, points out of range, the table growing) and across a clear: the same voxels created (keys, rows) and added
+    to (keys, rows), the same counts, the sums equal within float round-off (the same additions in the same order:
+    measured equal)."""
     if not lk_op.available():
         pytest.skip("the compiled operators do not build here")
     gen = torch.Generator().manual_seed(3)
@@ -184,7 +185,11 @@ def test_the_fusion_operator_equals_the_reference():
         p[:5] += 3000.0 * (i % 3 == 0)  # out of range every third addition
         c, b = torch.rand(3000, 3, generator=gen), torch.randint(0, 4, (3000,), generator=gen)
         made = [m.add(p, c, b) for m in maps]
-        assert all(torch.equal(x, y) for x, y in zip(*made, strict=True)), i
+        assert torch.equal(made[0].keys, made[1].keys) and torch.equal(made[0].rows, made[1].rows), i
+        order = [torch.argsort(x.known_keys) for x in made]  # the operator's in the order the points came
+        for name in ("known_keys", "known_rows"):
+            got, ref = (getattr(x, name)[o] for x, o in zip(made, order, strict=True))
+            assert torch.equal(got, ref), (i, name)
         if i == 6:
             for m in maps:
                 m.clear(2)
@@ -229,6 +234,21 @@ def test_the_fusion_operator_schema_fallback_and_bad_inputs(monkeypatch):
     assert sorted(refill[0].tolist()) == [-1] * 6 + [0, 1]
     with pytest.raises(RuntimeError, match="half full"):
         torch.ops.torchtrack.voxel_rehash(torch.zeros(2, dtype=torch.long), new_keys, 2)
+    # the alignment's pool after an add (tests/test_dense_map.py: against its reference and a pool picked anew)
+    none = torch.zeros(0, dtype=torch.long)
+    update = (new_keys[:1], torch.zeros(1, 3, dtype=torch.float64), args[2], new_keys[:1], known_rows[:0].new_zeros(1),
+              new_keys[1:], rows[1:], 0, 1)  # fmt: skip
+    torch.library.opcheck(
+        torch.ops.torchtrack.pool_update.default, update, test_utils=("test_schema", "test_faketensor")
+    )
+    keys, xyz = torch.ops.torchtrack.pool_update(*update)
+    assert torch.equal(keys, new_keys) and torch.equal(xyz, args[2][:2, :3] / args[2][:2, 6:])
+    with pytest.raises(RuntimeError, match="not in the pool"):
+        torch.ops.torchtrack.pool_update(none, xyz[:0], *update[2:])
+    with pytest.raises(RuntimeError, match="in the pool already"):
+        torch.ops.torchtrack.pool_update(keys, xyz, args[2], none, none, new_keys, rows, 0, 1)
+    with pytest.raises(RuntimeError, match="outside the sums"):
+        torch.ops.torchtrack.pool_update(none, xyz[:0], args[2], none, none, new_keys[:1], rows[:1] + 99, 0, 1)
     # where the operator does not build, "auto" is the reference
     monkeypatch.setenv("TORCHTRACK_NO_BUILD", "1")
     monkeypatch.setattr(lk_op, "_state", {})

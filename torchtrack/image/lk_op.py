@@ -1,7 +1,7 @@
 """The compiled operators ``torch.ops.torchtrack.lk_track`` (csrc/lk.cpp, the LK inner loop),
 ``torch.ops.torchtrack.shape_index_map`` (csrc/sim.cpp, the SIM), ``torch.ops.torchtrack.dense_fit`` (csrc/dense.cpp,
-the dense map's alignment) and ``torch.ops.torchtrack.voxel_add`` (csrc/voxel.cpp, the voxel map's fusion): one
-library, built on first use, cached, with fake kernels; :mod:`torchtrack.image.lk`, :mod:`torchtrack.image.shape_index`,
+the dense map's alignment) and ``torch.ops.torchtrack.voxel_add``, ``voxel_rehash``, ``pool_update`` (csrc/voxel.cpp,
+the voxel map's fusion, its table's refill, the alignment's pool after a fusion): one library, built on first use, cached, with fake kernels; :mod:`torchtrack.image.lk`, :mod:`torchtrack.image.shape_index`,
 :mod:`torchtrack.pipeline.dense_map` and :mod:`torchtrack.mapping.voxel_grid` fall back to their pure-torch references
 where it cannot be built.
 
@@ -159,6 +159,11 @@ def _register_fake() -> None:
     @torch.library.register_fake("torchtrack::voxel_rehash")
     def _(table, keys, n) -> None:
         return None
+
+    @torch.library.register_fake("torchtrack::pool_update")
+    def _(keys, xyz, sums, known_keys, known_rows, new_keys, new_rows, b, every) -> tuple[Tensor, Tensor]:
+        m = torch.library.get_ctx().new_dynamic_size()
+        return keys.new_empty(m), xyz.new_empty(m, 3)
 
     _state["fake"] = True
 

@@ -262,6 +262,11 @@ class VoxelPointMap:
         n = sums[:, 6:]
         return MapPoints(sums[:, :3] / n, (sums[:, 3:6] / n).float(), n[:, 0].long())
 
+    @property
+    def sums(self) -> Tensor:
+        """The voxels' sums (M, 7) float64 by buffer row: x, y, z, r, g, b, count (a view: read, do not write)."""
+        return self._sums[: self._n]
+
     def xyz(self, rows: Tensor) -> Tensor:
         """The mean positions (M, 3) of the voxels at buffer ``rows`` (M,) (:meth:`voxels`): ``points().xyz`` of
         those voxels, without the colours."""

@@ -124,8 +124,9 @@ class DenseMap:
             ~0.4x each: what remains is a few hundredths of a millimetre).
         weak: a direction of the pose in which the depth's information is below this many times the prior's is left
             as the tracker had it (the correction projected off it).
-        backend: "cpp" the compiled ``torch.ops.torchtrack.dense_fit`` (csrc/dense.cpp), "torch" the reference
-            (:meth:`_fit_torch`), "auto" the operator where it builds (the LK operator's switch, ``lk.use_cpp``).
+        backend: "cpp" the compiled ``torch.ops.torchtrack.dense_fit`` (csrc/dense.cpp) and ``pool_update``
+            (csrc/voxel.cpp), "torch" their references (:meth:`_fit_torch`, :meth:`_updated`), "auto" the operators
+            where they build (the LK operator's switch, ``lk.use_cpp``; the voxel map's fusion follows its own).
     """
 
     def __init__(
@@ -242,7 +243,7 @@ class DenseMap:
                 return None
             every = max(1, M // (8 * self.max_points))
             keys, rows = self.map.voxels(b, ordered=True, every=every)
-            self._pools[b] = _Pool(keys.cpu().numpy(), self.map.xyz(rows), every)
+            self._pools[b] = _Pool(keys, self.map.xyz(rows), every)
         return self._pools[b].xyz
 
     def _updated(self, b: int, added: Added) -> _Pool | None:
@@ -250,10 +251,15 @@ class DenseMap:
         thinning ``every`` changed): the means of its voxels that took points recomputed, the new voxels the hash
         picks merged into the sorted keys. The same points in the same order as picked anew (tests/test_dense_map.py),
         at the cost of the voxels the add touched, not of the pool (a gather of ~50,000 means scattered over the
-        map's buffers costs ~2-5 ms)."""
+        map's buffers costs ~2-5 ms). By the compiled ``torch.ops.torchtrack.pool_update`` where the backend runs it,
+        else in torch (its reference)."""
         pool, M = self._pools[b], self.map.size(b)
         if pool is None or M < self.min_pairs or pool.every != max(1, M // (8 * self.max_points)):
             return None
+        if use_cpp(self.backend) and pool.xyz.device.type == "cpu":
+            keys, xyz = torch.ops.torchtrack.pool_update(pool.keys, pool.xyz, self.map.sums, added.known_keys,
+                                                         added.known_rows, added.keys, added.rows, b, pool.every)  # fmt: skip
+            return _Pool(keys, xyz, pool.every)
 
         def picked(keys: Tensor, rows: Tensor) -> tuple[Tensor, Tensor]:
             keep = (keys >> (3 * AXIS_BITS)) == b
@@ -261,15 +267,11 @@ class DenseMap:
                 keep &= spatial_hash(keys) % pool.every == 0
             return keys[keep], rows[keep]
 
-        # the searches and the merge in numpy: on ~50,000 keys torch's per-operation cost is most of it
-        dev = pool.xyz.device
-        keys, rows = picked(added.known_keys, added.known_rows)  # in the pool since it was picked or merged
-        pool.xyz[torch.from_numpy(np.searchsorted(pool.keys, keys.cpu().numpy())).to(dev)] = self.map.xyz(rows)
-        keys, rows = picked(added.keys, added.rows)  # ascending: each one goes before the pool's key it is sorted at
-        keys = keys.cpu().numpy()
-        at = np.searchsorted(pool.keys, keys)
-        xyz = np.insert(pool.xyz.cpu().numpy(), at, self.map.xyz(rows).cpu().numpy(), axis=0)
-        return _Pool(np.insert(pool.keys, at, keys), torch.from_numpy(xyz).to(dev), pool.every)
+        keys, rows = picked(added.keys, added.rows)
+        keys, xyz = _merge((pool.keys, pool.xyz), (keys, self.map.xyz(rows)))
+        known, rows = picked(added.known_keys, added.known_rows)  # in the pool since it was picked or merged
+        xyz[torch.searchsorted(keys, known)] = self.map.xyz(rows)
+        return _Pool(keys, xyz, pool.every)
 
     def fit(self, world: Tensor, depth: Tensor, K: Tensor, T_cw: Tensor) -> Fit:
         """Gauss-Newton on the world-to-camera pose from ``T_cw`` (4, 4), the map points ``world`` (M, 3) (the
@@ -359,12 +361,28 @@ class DenseMap:
 
 
 class _Pool(NamedTuple):
-    """A sequence's pool (:meth:`DenseMap._pool`): voxel keys (M,) int64 ascending (numpy), their points (M, 3) and the
-    thinning ``every`` they were picked with."""
+    """A sequence's pool (:meth:`DenseMap._pool`): voxel keys (M,) ascending, their points (M, 3), and the thinning
+    ``every`` they were picked with."""
 
-    keys: np.ndarray
+    keys: Tensor
     xyz: Tensor
     every: int
+
+
+def _merge(old: tuple[Tensor, ...], new: tuple[Tensor, ...]) -> tuple[Tensor, ...]:
+    """Two disjoint sets of rows, each sorted by its first tensor (keys, ascending), as one sorted set: (keys, ...)
+    tensors of equal length each. Linear: each new key's place among the old ones by binary search, no sort."""
+    M, K = len(old[0]), len(new[0])
+    at = torch.searchsorted(old[0], new[0])  # the old key each new one goes before
+    new_at = at + torch.arange(K, device=at.device)
+    old_at = torch.arange(M, device=at.device) + torch.bincount(at, minlength=M + 1)[:M].cumsum(0)
+    out = []
+    for a, b in zip(old, new, strict=True):
+        o = a.new_empty((M + K, *a.shape[1:]))
+        o.index_copy_(0, old_at, a)
+        o.index_copy_(0, new_at, b)
+        out.append(o)
+    return tuple(out)
 
 
 def _inv(T: np.ndarray) -> np.ndarray:

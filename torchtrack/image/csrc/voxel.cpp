@@ -37,7 +37,7 @@ int shift_of(int64_t size) {  // 64 - log2(size)
 }
 
 // Returns (the keys of the voxels created, ascending; their rows; the keys of the voxels the map had that took points,
-// ascending; their rows; the points outside the representable range).
+// in the order their first points came; their rows; the points outside the representable range).
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, int64_t> voxel_add_cpu(at::Tensor& table, at::Tensor& keys, at::Tensor& sums,
                                                           int64_t n, const at::Tensor& points, const at::Tensor& rgb,
                                                           const at::Tensor& batch, double voxel_size) {
@@ -125,7 +125,6 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, int64_t> voxel_add_cp
     }
   }
   std::sort(fresh.begin(), fresh.end(), [&](int64_t x, int64_t y) { return vkeys[x] < vkeys[y]; });
-  std::sort(known.begin(), known.end());  // by key (distinct)
   const int64_t G = static_cast<int64_t>(known.size());
   auto known_keys = at::empty({G}, batch.options()), known_rows = at::empty({G}, batch.options());
   for (int64_t g = 0; g < G; ++g) {
@@ -172,6 +171,75 @@ void voxel_rehash_cpu(at::Tensor& table, const at::Tensor& keys, int64_t n) {
   }
 }
 
+// A sequence's pool of map points (torchtrack/pipeline/dense_map.py: DenseMap._updated is the reference) after an add:
+// its voxels' keys (M,) ascending and means xyz (M, 3); of the add's voxels those of sequence b that the spatial hash
+// picks (every > 1: hash % every == 0, voxel_grid.spatial_hash) enter it: the known ones (in the pool already) get
+// their means anew from sums (C, 7), the new ones (keys ascending) are merged in. Returns the pool's keys and xyz.
+std::tuple<at::Tensor, at::Tensor> pool_update_cpu(const at::Tensor& keys, const at::Tensor& xyz, const at::Tensor& sums,
+                                                   const at::Tensor& known_keys, const at::Tensor& known_rows,
+                                                   const at::Tensor& new_keys, const at::Tensor& new_rows, int64_t b,
+                                                   int64_t every) {
+  for (const at::Tensor* t : {&keys, &known_keys, &known_rows, &new_keys, &new_rows})
+    TORCH_CHECK(t->dim() == 1 && t->scalar_type() == at::kLong && t->is_contiguous(),
+                "pool_update: keys and rows (n,) int64 contiguous");
+  TORCH_CHECK(xyz.dim() == 2 && xyz.size(0) == keys.size(0) && xyz.size(1) == 3 && xyz.scalar_type() == at::kDouble &&
+                  xyz.is_contiguous(),
+              "pool_update: xyz (M, 3) float64 contiguous, one row per key");
+  TORCH_CHECK(sums.dim() == 2 && sums.size(1) == 7 && sums.scalar_type() == at::kDouble && sums.is_contiguous(),
+              "pool_update: sums (C, 7) float64 contiguous");
+  TORCH_CHECK(known_rows.size(0) == known_keys.size(0) && new_rows.size(0) == new_keys.size(0),
+              "pool_update: one row per key");
+  const int64_t mask = (int64_t{1} << kAxisBits) - 1;
+  const auto picked = [&](int64_t key) {
+    if ((key >> (3 * kAxisBits)) != b) return false;
+    if (every <= 1) return true;
+    const int64_t h = (((key >> (2 * kAxisBits)) & mask) * 73856093) ^ (((key >> kAxisBits) & mask) * 19349663) ^
+                      ((key & mask) * 83492791);
+    return h % every == 0;
+  };
+  const double* S = sums.data_ptr<double>();
+  const int64_t C = sums.size(0);
+  const auto mean = [&](int64_t r, double* out) {
+    TORCH_CHECK(r >= 0 && r < C, "pool_update: a row outside the sums");
+    for (int a = 0; a < 3; ++a) out[a] = S[7 * r + a] / S[7 * r + 6];
+  };
+  const int64_t M = keys.size(0), N = new_keys.size(0);
+  const int64_t* k = keys.data_ptr<int64_t>();
+  const double* X = xyz.data_ptr<double>();
+  const int64_t* nk = new_keys.data_ptr<int64_t>();
+  const int64_t* nr = new_rows.data_ptr<int64_t>();
+  std::vector<int64_t> take;  // the new voxels picked
+  for (int64_t i = 0; i < N; ++i)
+    if (picked(nk[i])) take.push_back(i);
+  const int64_t K = static_cast<int64_t>(take.size());
+  auto out_keys = at::empty({M + K}, keys.options()), out_xyz = at::empty({M + K, 3}, xyz.options());
+  int64_t* ok = out_keys.data_ptr<int64_t>();
+  double* oX = out_xyz.data_ptr<double>();
+  int64_t i = 0, j = 0, o = 0;
+  while (i < M || j < K) {  // both ascending: merged
+    TORCH_CHECK(i == M || j == K || nk[take[j]] != k[i], "pool_update: a new voxel is in the pool already");
+    if (j < K && (i == M || nk[take[j]] < k[i])) {
+      ok[o] = nk[take[j]];
+      mean(nr[take[j]], oX + 3 * o);
+      ++j;
+    } else {
+      ok[o] = k[i];
+      std::copy(X + 3 * i, X + 3 * i + 3, oX + 3 * o);
+      ++i;
+    }
+    ++o;
+  }
+  const int64_t* kk = known_keys.data_ptr<int64_t>();
+  const int64_t* kr = known_rows.data_ptr<int64_t>();
+  for (int64_t g = 0; g < known_keys.size(0); ++g) {
+    if (!picked(kk[g])) continue;
+    const int64_t* at = std::lower_bound(ok, ok + M + K, kk[g]);
+    TORCH_CHECK(at != ok + M + K && *at == kk[g], "pool_update: a known voxel is not in the pool");
+    mean(kr[g], oX + 3 * (at - ok));
+  }
+  return {out_keys, out_xyz};
+}
+
 }  // namespace
 
 TORCH_LIBRARY_FRAGMENT(torchtrack, m) {
@@ -179,9 +247,13 @@ TORCH_LIBRARY_FRAGMENT(torchtrack, m) {
       "voxel_add(Tensor(a!) table, Tensor(b!) keys, Tensor(c!) sums, int n, Tensor points, Tensor rgb, Tensor batch, "
       "float voxel_size) -> (Tensor, Tensor, Tensor, Tensor, int)");
   m.def("voxel_rehash(Tensor(a!) table, Tensor keys, int n) -> ()");
+  m.def(
+      "pool_update(Tensor keys, Tensor xyz, Tensor sums, Tensor known_keys, Tensor known_rows, Tensor new_keys, "
+      "Tensor new_rows, int b, int every) -> (Tensor, Tensor)");
 }
 
 TORCH_LIBRARY_IMPL(torchtrack, CPU, m) {
   m.impl("voxel_add", &voxel_add_cpu);
   m.impl("voxel_rehash", &voxel_rehash_cpu);
+  m.impl("pool_update", &pool_update_cpu);
 }
