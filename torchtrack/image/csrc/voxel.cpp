@@ -112,9 +112,18 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, int64_t> voxel_add_cp
   const int64_t V = static_cast<int64_t>(vkeys.size());
   std::vector<int64_t> fresh;                        // the frame's voxels the map does not have
   std::vector<std::pair<int64_t, int64_t>> known;  // (key, row) of those it has
+  // The table, the keys and the sums are large (MBs) and read at random: their lines are fetched ahead, the table's
+  // slot 16 voxels ahead and, once that has arrived, the row's key and sums 8 ahead.
+  std::vector<uint64_t> first(V);
+  for (int64_t j = 0; j < V; ++j) first[j] = slot_of(vkeys[j], shift, mask);
   for (int64_t j = 0; j < V; ++j) {
+    if (j + 16 < V) __builtin_prefetch(t + first[j + 16]);
+    if (j + 8 < V && t[first[j + 8]] >= 0) {
+      __builtin_prefetch(k + t[first[j + 8]]);
+      __builtin_prefetch(S + 7 * t[first[j + 8]]);
+    }
     const int64_t key = vkeys[j];
-    uint64_t s = slot_of(key, shift, mask);
+    uint64_t s = first[j];
     while (t[s] >= 0 && k[t[s]] != key) s = (s + 1) & mask;
     if (t[s] >= 0) {
       double* row = S + 7 * t[s];
@@ -136,8 +145,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, int64_t> voxel_add_cp
   int64_t* nk = new_keys.data_ptr<int64_t>();
   int64_t* nr = new_rows.data_ptr<int64_t>();
   for (int64_t f = 0; f < F; ++f) {
+    if (f + 16 < F) __builtin_prefetch(t + first[fresh[f + 16]]);
     const int64_t j = fresh[f], key = vkeys[j], r = n + f;
-    uint64_t s = slot_of(key, shift, mask);
+    uint64_t s = first[j];
     while (t[s] >= 0) s = (s + 1) & mask;  // the earlier fresh voxels may have taken its first slot
     t[s] = r;
     k[r] = key;
