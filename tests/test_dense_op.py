@@ -43,7 +43,33 @@ def assert_agree(dense: DenseMap, world, depth, K, T_cw) -> tuple:
     torch.testing.assert_close(op.xi, ref.xi, atol=DENSE_OP_POSE, rtol=0)
     scale = float(ref.info.abs().max())
     torch.testing.assert_close(op.info, ref.info, atol=DENSE_OP_INFO * scale, rtol=0)
+    assert op.weak or lowest_ratio(dense, op) > dense.weak  # the gate's shortcut never skips a weak direction
     return op, ref
+
+
+def lowest_ratio(dense: DenseMap, fit) -> float:
+    """The smallest eigenvalue of the fit's information whitened by the prior (the gate's ratios), by LAPACK."""
+    sd = torch.tensor([dense.prior_m] * 3 + [math.radians(dense.prior_deg)] * 3, dtype=torch.float64)
+    return float(torch.linalg.eigvalsh(fit.info * sd[:, None] * sd[None, :]).min())
+
+
+def test_the_gates_shortcut_agrees_with_the_eigenvalues(room):  # noqa: F811
+    """The operator says no direction is weak (``Fit.weak`` False, the gate's eigenproblem skipped) only where the
+    smallest whitened information ratio is above ``weak``, and says so where it is clearly above: over thresholds
+    around the render's smallest ratio; there the gate's correction is the fit's own, as the eigenproblem finds."""
+    dense = keyframe_map(room)
+    (depth,), (K,) = grid(room["d_cur"], room["K"], dense.stride)
+    world, T_cw = dense._pool(0), T_inv(room["drifted"])
+    fit = dense.fit(world, depth, K, T_cw)
+    lowest = lowest_ratio(dense, fit)
+    sd = torch.tensor([dense.prior_m] * 3 + [math.radians(dense.prior_deg)] * 3, dtype=torch.float64)
+    assert float(torch.linalg.eigvalsh(fit.info * sd[:, None] * sd[None, :]).max()) < 1e4 * lowest  # 0.1 % is clear
+    for factor in (0.0, 0.5, 0.999, 1.001, 2.0, 1e3):
+        dense.weak = factor * lowest
+        fit = dense.fit(world, depth, K, T_cw)
+        assert fit.weak == (factor > 1), (factor, lowest)
+        gated = dense._gated(fit._replace(weak=True))  # the eigenproblem's answer
+        assert (factor > 1) or torch.equal(torch.from_numpy(gated), fit.delta)
 
 
 @pytest.mark.parametrize("iterations", [1, 12])
@@ -112,7 +138,7 @@ def test_fallback_opcheck_and_bad_inputs(room, monkeypatch):  # noqa: F811
     with pytest.raises(ValueError, match="backend"):
         DenseMap(backend="gpu")
     args = (world[:2000].contiguous(), depth.float().contiguous(), K.double(), T_cw.contiguous(), 500, 3, 4.0,
-            0.05, 0.01, 0.005, 0.01, 0.0175, 1e-4, 0.05)  # fmt: skip
+            0.05, 0.01, 0.005, 0.01, 0.0175, 1e-4, 0.05, 3.0)  # fmt: skip
     torch.library.opcheck(torch.ops.torchtrack.dense_fit.default, args)
     with pytest.raises(RuntimeError, match="float64"):
         torch.ops.torchtrack.dense_fit(world.float(), *args[1:])

@@ -148,7 +148,7 @@ def _register_fake() -> None:
 
     @torch.library.register_fake("torchtrack::dense_fit")
     def _(world, depth, K, T_cw, *args) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        return world.new_empty(4, 4), world.new_empty(6), world.new_empty(6, 6), world.new_empty(3)
+        return world.new_empty(4, 4), world.new_empty(6), world.new_empty(6, 6), world.new_empty(4)
 
     @torch.library.register_fake("torchtrack::voxel_add")
     def _(table, keys, sums, n, points, *args) -> tuple[Tensor, Tensor, Tensor, Tensor, int]:

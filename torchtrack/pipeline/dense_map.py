@@ -43,7 +43,9 @@ class Fit(NamedTuple):
     """One camera's Gauss-Newton fit to its map: the correction ``delta`` (4, 4) (the aligned world-to-camera pose is
     delta @ T_cw); its twist ``xi`` (6,) (the sum of the steps: the prior's residual); the data's information
     ``info`` J^T W J (6, 6) of the last iteration; the ``pairs`` of the last iteration; ``step``, the last step's
-    largest component (metres and radians; inf where fewer than 6 pairs were left); ``steps`` taken."""
+    largest component (metres and radians; inf where fewer than 6 pairs were left); ``steps`` taken; ``weak``: False
+    where the information is clearly above ``weak`` times the prior's in every direction (the gate has nothing to
+    project off), True where some direction may be below it (the gate's eigenproblem decides)."""
 
     delta: Tensor
     xi: Tensor
@@ -51,6 +53,7 @@ class Fit(NamedTuple):
     pairs: int
     step: float
     steps: int
+    weak: bool = True
 
 
 def grid(depth: Tensor, K: Tensor, stride: int, region: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -284,10 +287,10 @@ class DenseMap:
             world.double().contiguous(), depth.float().contiguous(), K.double().contiguous(),
             T_cw.double().contiguous(), self.max_points, self.iterations, self.max_depth,
             self.max_distance_m, self.huber_m, self.sigma_m, self.prior_m, math.radians(self.prior_deg),
-            self.tolerance, MAX_STEP,
+            self.tolerance, MAX_STEP, self.weak,
         )  # fmt: skip
-        pairs, step, steps = stats.tolist()
-        return Fit(delta, xi, info, int(pairs), step, int(steps))
+        pairs, step, steps, weak = stats.tolist()
+        return Fit(delta, xi, info, int(pairs), step, int(steps), bool(weak))
 
     def _fit_torch(self, world: Tensor, depth: Tensor, K: Tensor, T_cw: Tensor) -> Fit:
         """:meth:`fit` in torch: the operator's reference (tests/test_dense_op.py), and the path where it does not
@@ -350,6 +353,8 @@ class DenseMap:
         # information is overstated and the correction would follow the depth's correlated errors.
         # The 6x6 eigenproblem in numpy: on a matrix this small torch's per-call overhead (eigh, boolean indexing,
         # small tensors) is most of the cost, and this runs every frame.
+        if not fit.weak:  # the operator's Cholesky test: the eigenproblem (~0.3 ms, caches cold) would find none
+            return fit.delta.cpu().numpy()
         rad = math.radians(self.prior_deg)
         sd = np.array([self.prior_m] * 3 + [rad] * 3)
         ratio, vec = np.linalg.eigh(fit.info.cpu().numpy() * sd[:, None] * sd[None, :])  # whitened: information ratios

@@ -16,7 +16,9 @@
 // Returns the correction delta (4, 4) (the aligned world-to-camera pose is delta @ T_cw), its twist xi (6,) (the sum
 // of the steps: the prior's residual), the data's information sum w J J^T (6, 6) of the last iteration (the weak-
 // direction gate runs in Python on it) and (pairs of the last iteration, the last step's largest component (inf where
-// fewer than 6 pairs were left), the steps taken).
+// fewer than 6 pairs were left), the steps taken, 1 where some direction's information may be below weak times the
+// prior's and 0 where it is clearly above in every one: the information whitened by the prior minus weak x I has
+// Cholesky pivots above 1e-9 of its largest diagonal entry; the gate's eigenproblem is then skipped).
 
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
@@ -241,7 +243,7 @@ DENSE_CLONES int64_t visible(const double* P, int64_t M, const double* Tc, doubl
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> dense_fit_cpu(
     const at::Tensor& world, const at::Tensor& depth, const at::Tensor& K, const at::Tensor& T_cw,
     int64_t max_points, int64_t iterations, double max_depth, double max_distance, double huber, double sigma,
-    double prior_m, double prior_rad, double tolerance, double max_step) {
+    double prior_m, double prior_rad, double tolerance, double max_step, double weak) {
   TORCH_CHECK(world.dim() == 2 && world.size(1) == 3 && world.scalar_type() == at::kDouble && world.is_contiguous(),
               "dense_fit: world (M, 3) float64 contiguous");
   TORCH_CHECK(depth.dim() == 2 && depth.scalar_type() == at::kFloat && depth.is_contiguous(),
@@ -253,7 +255,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> dense_fit_cpu(
   TORCH_CHECK(max_points >= 1 && iterations >= 1, "dense_fit: max_points, iterations >= 1");
   const auto opt = world.options();
   auto delta_t = at::empty({4, 4}, opt), xi_t = at::zeros({6}, opt), info_t = at::zeros({6, 6}, opt);
-  auto stats_t = at::empty({3}, opt);
+  auto stats_t = at::empty({4}, opt);
 
   const double* k = K.data_ptr<double>();
   const double fx = k[0], fy = k[4], cx = k[2], cy = k[5];
@@ -311,12 +313,33 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> dense_fit_cpu(
     ++steps;
     if (last < tolerance) break;
   }
+  // the gate's shortcut: is (whitened information - weak I) clearly positive definite?
+  const double sd[6] = {prior_m, prior_m, prior_m, prior_rad, prior_rad, prior_rad};
+  double A[36], top = 0.0;
+  for (int a = 0; a < 6; ++a)
+    for (int b = 0; b < 6; ++b) A[6 * a + b] = info[6 * a + b] * sd[a] * sd[b] - (a == b ? weak : 0.0);
+  for (int a = 0; a < 6; ++a) top = std::max(top, std::abs(A[7 * a]));
+  bool clear = true;
+  for (int j = 0; j < 6 && clear; ++j) {
+    double d = A[6 * j + j];
+    for (int k = 0; k < j; ++k) d -= A[6 * j + k] * A[6 * j + k];
+    clear = d > 1e-9 * top;
+    if (!clear) break;
+    d = std::sqrt(d);
+    A[6 * j + j] = d;
+    for (int i = j + 1; i < 6; ++i) {
+      double s = A[6 * i + j];
+      for (int k = 0; k < j; ++k) s -= A[6 * i + k] * A[6 * j + k];
+      A[6 * i + j] = s / d;
+    }
+  }
   std::copy(delta.begin(), delta.end(), delta_t.data_ptr<double>());
   std::copy(xi, xi + 6, xi_t.data_ptr<double>());
   std::copy(info, info + 36, info_t.data_ptr<double>());
   stats_t.data_ptr<double>()[0] = static_cast<double>(pairs);
   stats_t.data_ptr<double>()[1] = last;
   stats_t.data_ptr<double>()[2] = static_cast<double>(steps);
+  stats_t.data_ptr<double>()[3] = clear ? 0.0 : 1.0;
   return {delta_t, xi_t, info_t, stats_t};
 }
 
@@ -326,7 +349,7 @@ TORCH_LIBRARY_FRAGMENT(torchtrack, m) {
   m.def(
       "dense_fit(Tensor world, Tensor depth, Tensor K, Tensor T_cw, int max_points, int iterations, "
       "float max_depth, float max_distance, float huber, float sigma, float prior_m, float prior_rad, "
-      "float tolerance, float max_step) -> (Tensor, Tensor, Tensor, Tensor)");
+      "float tolerance, float max_step, float weak) -> (Tensor, Tensor, Tensor, Tensor)");
 }
 
 TORCH_LIBRARY_IMPL(torchtrack, CPU, m) { m.impl("dense_fit", &dense_fit_cpu); }
