@@ -114,14 +114,20 @@ class Surface {
  public:
   Surface(const float* depth, int64_t h, int64_t w, double fx, double fy, double cx, double cy, double max_step)
       : h(static_cast<int>(h)), w(static_cast<int>(w)), depth_(depth), fx_(fx), fy_(fy), cx_(cx), cy_(cy),
-        max_step_(max_step), px_(new Pixel[h * w]), state_(h * w, 0) {}
+        max_step_(max_step), slot_(h * w, kUnknown) {
+    px_.reserve(h * w);  // never moved: at()'s pointers stay valid
+  }
 
   // The vertex (3) and unit normal (3) at pixel (i, j), or nullptr where it has no surface: a border pixel, no depth
   // there or at one of its four neighbours, or one of them farther than max_step x z in depth.
   const double* at(int i, int j) {
-    const int64_t p = static_cast<int64_t>(i) * w + j;
-    if (!state_[p]) state_[p] = compute(i, j, px_[p].vn) ? 1 : 2;
-    return state_[p] == 1 ? px_[p].vn : nullptr;
+    int32_t& s = slot_[static_cast<int64_t>(i) * w + j];
+    if (s == kUnknown) {
+      Pixel px;
+      s = compute(i, j, px.vn) ? static_cast<int32_t>(px_.size()) : kNone;
+      if (s >= 0) px_.push_back(px);
+    }
+    return s >= 0 ? px_[s].vn : nullptr;
   }
 
   const int h, w;
@@ -164,8 +170,11 @@ class Surface {
 
   const float* depth_;
   const double fx_, fy_, cx_, cy_, max_step_;
-  std::unique_ptr<Pixel[]> px_;
-  std::vector<uint8_t> state_;  // 0 not computed yet, 1 a surface, 2 none
+  // The surfaces computed, in the order they were first asked for (written one after the other, not scattered over a
+  // grid-sized array: each scattered first write was a cache miss), and each pixel's place among them.
+  static constexpr int32_t kUnknown = -2, kNone = -1;
+  std::vector<Pixel> px_;
+  std::vector<int32_t> slot_;
 };
 
 // AVX2 + FMA and baseline builds of the hot loop, picked at load time (as csrc/lk.cpp).
