@@ -33,7 +33,7 @@ EMPTY = -1  # a free slot of the table
 
 class Added(NamedTuple):
     """What one :meth:`VoxelPointMap.add` did: the voxels it created, keys (K,) ascending and buffer rows (K,), and
-    the voxels the map had that took points, keys (G,) ascending and rows (G,) (a key's sequence: ``key >> 54``)."""
+    the voxels the map had that took points, keys (G,) and rows (G,) in no set order (a key's sequence: ``key >> 54``)."""
 
     keys: Tensor
     rows: Tensor

@@ -241,23 +241,23 @@ class DenseMap:
         alignment does not depend on the other sequences); kept up to date by :meth:`add` (:meth:`_updated`). None
         while the map has fewer than ``min_pairs`` voxels."""
         if self._pools[b] is None:
-            M = self.map.size(b)
-            if M < self.min_pairs:
+            if self.map.size(b) < self.min_pairs:
                 return None
-            every = max(1, M // (8 * self.max_points))
-            keys, rows = self.map.voxels(b, ordered=True, every=every)
-            self._pools[b] = _Pool(keys, self.map.xyz(rows), every)
+            keys, rows = self.map.voxels(b, ordered=True, every=self._every(b))
+            self._pools[b] = _Pool(keys, self.map.xyz(rows), self._every(b))
         return self._pools[b].xyz
 
+    def _every(self, b: int) -> int:
+        """The pool's thinning for sequence b's map as it is: about 8 ``max_points`` of its voxels kept."""
+        return max(1, self.map.size(b) // (8 * self.max_points))
+
     def _updated(self, b: int, added: Added) -> _Pool | None:
-        """Sequence b's pool after an add (None: picked anew from the whole map at the next alignment, where the
-        thinning ``every`` changed): the means of its voxels that took points recomputed, the new voxels the hash
-        picks merged into the sorted keys. The same points in the same order as picked anew (tests/test_dense_map.py),
-        at the cost of the voxels the add touched, not of the pool (a gather of ~50,000 means scattered over the
-        map's buffers costs ~2-5 ms). By the compiled ``torch.ops.torchtrack.pool_update`` where the backend runs it,
-        else in torch (its reference)."""
-        pool, M = self._pools[b], self.map.size(b)
-        if pool is None or M < self.min_pairs or pool.every != max(1, M // (8 * self.max_points)):
+        """Sequence b's pool after an add (None: picked anew at the next alignment, where the thinning changed): the
+        means of its voxels that took points recomputed, the new voxels the hash picks merged into the sorted keys; the
+        same points in the same order as picked anew (tests/test_dense_map.py), at the cost of what the add touched,
+        not of the pool's ~50,000 means scattered over the map. Compiled (``pool_update``) where the backend runs it."""
+        pool = self._pools[b]
+        if pool is None or self.map.size(b) < self.min_pairs or pool.every != self._every(b):
             return None
         if use_cpp(self.backend) and pool.xyz.device.type == "cpu":
             keys, xyz = torch.ops.torchtrack.pool_update(pool.keys, pool.xyz, self.map.sums, added.known_keys,
@@ -375,19 +375,10 @@ class _Pool(NamedTuple):
 
 
 def _merge(old: tuple[Tensor, ...], new: tuple[Tensor, ...]) -> tuple[Tensor, ...]:
-    """Two disjoint sets of rows, each sorted by its first tensor (keys, ascending), as one sorted set: (keys, ...)
-    tensors of equal length each. Linear: each new key's place among the old ones by binary search, no sort."""
-    M, K = len(old[0]), len(new[0])
-    at = torch.searchsorted(old[0], new[0])  # the old key each new one goes before
-    new_at = at + torch.arange(K, device=at.device)
-    old_at = torch.arange(M, device=at.device) + torch.bincount(at, minlength=M + 1)[:M].cumsum(0)
-    out = []
-    for a, b in zip(old, new, strict=True):
-        o = a.new_empty((M + K, *a.shape[1:]))
-        o.index_copy_(0, old_at, a)
-        o.index_copy_(0, new_at, b)
-        out.append(o)
-    return tuple(out)
+    """Two disjoint sets of rows, each sorted by its first tensor (keys), as one sorted set: (keys, ...) tensors of
+    equal length each (the torch reference of ``pool_update``'s merge)."""
+    order = torch.argsort(torch.cat([old[0], new[0]]))
+    return tuple(torch.cat([a, b])[order] for a, b in zip(old, new, strict=True))
 
 
 def _inv(T: np.ndarray) -> np.ndarray:

@@ -81,11 +81,14 @@ Mat4 se3_exp(const double* xi) {
   return T;
 }
 
-// H x = g for a symmetric positive definite 6x6 H (Cholesky); H is overwritten.
-void solve6(double* H, const double* g, double* x) {
+// The Cholesky factor of a symmetric 6x6 H in its lower triangle (in place); whether every pivot (before its square
+// root) was above `floor`. A pivot at or below 0 leaves NaN behind it: the caller that needs a factor checks first.
+bool cholesky6(double* H, double floor) {
+  bool above = true;
   for (int j = 0; j < 6; ++j) {
     double d = H[6 * j + j];
     for (int k = 0; k < j; ++k) d -= H[6 * j + k] * H[6 * j + k];
+    above &= d > floor;
     d = std::sqrt(d);
     H[6 * j + j] = d;
     for (int i = j + 1; i < 6; ++i) {
@@ -94,6 +97,12 @@ void solve6(double* H, const double* g, double* x) {
       H[6 * i + j] = s / d;
     }
   }
+  return above;
+}
+
+// H x = g for a symmetric positive definite 6x6 H (Cholesky); H is overwritten.
+void solve6(double* H, const double* g, double* x) {
+  cholesky6(H, 0.0);
   double y[6];
   for (int i = 0; i < 6; ++i) {
     double s = g[i];
@@ -328,20 +337,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> dense_fit_cpu(
   for (int a = 0; a < 6; ++a)
     for (int b = 0; b < 6; ++b) A[6 * a + b] = info[6 * a + b] * sd[a] * sd[b] - (a == b ? weak : 0.0);
   for (int a = 0; a < 6; ++a) top = std::max(top, std::abs(A[7 * a]));
-  bool clear = true;
-  for (int j = 0; j < 6 && clear; ++j) {
-    double d = A[6 * j + j];
-    for (int k = 0; k < j; ++k) d -= A[6 * j + k] * A[6 * j + k];
-    clear = d > 1e-9 * top;
-    if (!clear) break;
-    d = std::sqrt(d);
-    A[6 * j + j] = d;
-    for (int i = j + 1; i < 6; ++i) {
-      double s = A[6 * i + j];
-      for (int k = 0; k < j; ++k) s -= A[6 * i + k] * A[6 * j + k];
-      A[6 * i + j] = s / d;
-    }
-  }
+  const bool clear = cholesky6(A, 1e-9 * top);
   std::copy(delta.begin(), delta.end(), delta_t.data_ptr<double>());
   std::copy(xi, xi + 6, xi_t.data_ptr<double>());
   std::copy(info, info + 36, info_t.data_ptr<double>());

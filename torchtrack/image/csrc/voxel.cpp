@@ -1,5 +1,7 @@
-// A frame's fusion into the voxel map (torchtrack/mapping/voxel_grid.py, VoxelPointMap.add) as one CPU operator,
-// torchtrack::voxel_add; VoxelPointMap._add_torch is the reference (tests/test_mapping.py). The map's index is a hash
+// The voxel map's CPU operators (torchtrack/mapping/voxel_grid.py): a frame's fusion, torchtrack::voxel_add
+// (VoxelPointMap.add; VoxelPointMap._add_torch is the reference, tests/test_mapping.py), the table's refill,
+// torchtrack::voxel_rehash, and the dense alignment's pool after a fusion, torchtrack::pool_update (DenseMap._updated
+// in torchtrack/pipeline/dense_map.py is its reference). The map's index is a hash
 // table with open addressing and linear probing, slot -> row of the voxel (-1: free), the voxel's key read from the
 // rows' keys; the slot of a key: Fibonacci hashing, the top log2(size) bits of key x 0x9E3779B97F4A7C15 (wrapping),
 // as the reference computes it in int64.
@@ -30,6 +32,12 @@ inline uint64_t slot_of(int64_t key, int shift, uint64_t mask) {
   return ((static_cast<uint64_t>(key) * 0x9E3779B97F4A7C15ull) >> shift) & mask;
 }
 
+// The first free slot (-1) of table t from slot s on, probing linearly.
+inline uint64_t free_slot(const int64_t* t, uint64_t s, uint64_t mask) {
+  while (t[s] >= 0) s = (s + 1) & mask;
+  return s;
+}
+
 int shift_of(int64_t size) {  // 64 - log2(size)
   int shift = 64;
   for (int64_t s = size; s > 1; s >>= 1) --shift;
@@ -38,9 +46,9 @@ int shift_of(int64_t size) {  // 64 - log2(size)
 
 // Returns (the keys of the voxels created, ascending; their rows; the keys of the voxels the map had that took points,
 // in the order their first points came; their rows; the points outside the representable range).
-std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, int64_t> voxel_add_cpu(at::Tensor& table, at::Tensor& keys, at::Tensor& sums,
-                                                          int64_t n, const at::Tensor& points, const at::Tensor& rgb,
-                                                          const at::Tensor& batch, double voxel_size) {
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, int64_t> voxel_add_cpu(
+    at::Tensor& table, at::Tensor& keys, at::Tensor& sums, int64_t n, const at::Tensor& points, const at::Tensor& rgb,
+    const at::Tensor& batch, double voxel_size) {
   TORCH_CHECK(points.dim() == 2 && points.size(1) == 3 && points.scalar_type() == at::kDouble && points.is_contiguous(),
               "voxel_add: points (P, 3) float64 contiguous");
   TORCH_CHECK(rgb.sizes() == points.sizes() && rgb.scalar_type() == at::kDouble && rgb.is_contiguous(),
@@ -136,10 +144,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, int64_t> voxel_add_cp
   std::sort(fresh.begin(), fresh.end(), [&](int64_t x, int64_t y) { return vkeys[x] < vkeys[y]; });
   const int64_t G = static_cast<int64_t>(known.size());
   auto known_keys = at::empty({G}, batch.options()), known_rows = at::empty({G}, batch.options());
-  for (int64_t g = 0; g < G; ++g) {
-    known_keys.data_ptr<int64_t>()[g] = known[g].first;
-    known_rows.data_ptr<int64_t>()[g] = known[g].second;
-  }
+  int64_t* kk = known_keys.data_ptr<int64_t>();
+  int64_t* kr = known_rows.data_ptr<int64_t>();
+  for (int64_t g = 0; g < G; ++g) std::tie(kk[g], kr[g]) = known[g];
   const int64_t F = static_cast<int64_t>(fresh.size());
   auto new_keys = at::empty({F}, batch.options()), new_rows = at::empty({F}, batch.options());
   int64_t* nk = new_keys.data_ptr<int64_t>();
@@ -147,9 +154,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, int64_t> voxel_add_cp
   for (int64_t f = 0; f < F; ++f) {
     if (f + 16 < F) __builtin_prefetch(t + first[fresh[f + 16]]);
     const int64_t j = fresh[f], key = vkeys[j], r = n + f;
-    uint64_t s = first[j];
-    while (t[s] >= 0) s = (s + 1) & mask;  // the earlier fresh voxels may have taken its first slot
-    t[s] = r;
+    t[free_slot(t, first[j], mask)] = r;  // the earlier fresh voxels may have taken its first slot
     k[r] = key;
     double* row = S + 7 * r;
     for (int a = 0; a < 7; ++a) row[a] = 0.0 + vsums[7 * j + a];  // as the reference: zeros, then its sum added
@@ -174,11 +179,7 @@ void voxel_rehash_cpu(at::Tensor& table, const at::Tensor& keys, int64_t n) {
   int64_t* t = table.data_ptr<int64_t>();
   const int64_t* k = keys.data_ptr<int64_t>();
   std::fill(t, t + size, int64_t{-1});
-  for (int64_t r = 0; r < n; ++r) {
-    uint64_t s = slot_of(k[r], shift, mask);
-    while (t[s] >= 0) s = (s + 1) & mask;
-    t[s] = r;
-  }
+  for (int64_t r = 0; r < n; ++r) t[free_slot(t, slot_of(k[r], shift, mask), mask)] = r;
 }
 
 // A sequence's pool of map points (torchtrack/pipeline/dense_map.py: DenseMap._updated is the reference) after an add:
@@ -241,7 +242,8 @@ std::tuple<at::Tensor, at::Tensor> pool_update_cpu(const at::Tensor& keys, const
   }
   const int64_t* kk = known_keys.data_ptr<int64_t>();
   const int64_t* kr = known_rows.data_ptr<int64_t>();
-  for (int64_t g = 0; g < known_keys.size(0); ++g) {
+  const int64_t G = known_keys.size(0);
+  for (int64_t g = 0; g < G; ++g) {
     if (!picked(kk[g])) continue;
     const int64_t* at = std::lower_bound(ok, ok + M + K, kk[g]);
     TORCH_CHECK(at != ok + M + K && *at == kk[g], "pool_update: a known voxel is not in the pool");
