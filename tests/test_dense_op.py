@@ -5,7 +5,8 @@ Oracles: the reference on a rendered room from cameras near and far from the tru
 twist and the data's information within tests/tolerances.py DENSE_OP_*), and both at the render's exact ground truth;
 the same on real depth (a map of 7-Scenes keyframes placed by their ground-truth poses); fewer than 6 pairs: no
 correction from either; the fallback where the operator does not build; torch.library.opcheck for the schema and the
-fake kernel; bad inputs raise.
+fake kernel; bad inputs raise. The points a keyframe adds (torch.ops.torchtrack.depth_points) against their reference
+(``DenseMap._points_torch``): the same pixels in the same order, the points within float round-off.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from pathlib import Path
 import pytest
 import torch
 from test_dense_map import keyframe_map, pose_error, room  # noqa: F401 (room: the fixture)
-from tolerances import DENSE_OP_INFO, DENSE_OP_PAIRS, DENSE_OP_POSE
+from tolerances import DENSE_OP_INFO, DENSE_OP_PAIRS, DENSE_OP_POSE, DEPTH_POINTS
 
 from torchtrack.data import TumSequence, iterate_batched
 from torchtrack.geometry import T_inv, se3_exp
@@ -143,3 +144,30 @@ def test_fallback_opcheck_and_bad_inputs(room, monkeypatch):  # noqa: F811
         torch.ops.torchtrack.dense_fit(world.float(), *args[1:])
     with pytest.raises(RuntimeError, match="float32"):
         torch.ops.torchtrack.dense_fit(args[0], depth.double(), *args[2:])
+
+
+def test_a_keyframes_points_are_the_references(room):  # noqa: F811
+    """Two sequences (the second through other intrinsics, from another pose), depth with holes, NaN, negative values
+    and depth beyond max_depth, with and without a region, one sequence masked off: the same pixels in the same
+    (sequence, row, column) order as the reference, the points within DEPTH_POINTS."""
+    g = torch.Generator().manual_seed(5)
+    depth = torch.cat([room["d_kf"], room["d_cur"] * 1.5])
+    depth[0, 0, :20] = 0.0
+    depth[1, 0, 8, ::3] = float("nan")
+    depth[1, 0, 12, ::5] = -1.0
+    K = torch.cat([room["K"], room["K"] * torch.tensor([[1.1], [0.9], [1.0]])]).double()
+    T = torch.stack([room["T_kf"], room["drifted"]]).contiguous()
+    region = torch.rand(depth.shape, generator=g) > 0.3
+    dense = DenseMap(max_depth=3.0)
+    for mask in (torch.tensor([True, True]), torch.tensor([False, True])):
+        for reg in (None, region):
+            ref, b_ref = dense._points_torch(depth, K, T, mask, reg)
+            out, b = torch.ops.torchtrack.depth_points(depth, reg, K, T, mask, dense.stride, dense.max_depth)
+            assert torch.equal(b, b_ref) and len(b) > 500 and int(b.bincount(minlength=2)[1]) > 0
+            torch.testing.assert_close(out, ref, atol=DEPTH_POINTS, rtol=0)
+    args = (depth, region, K, T, torch.tensor([True, False]), 4, 3.0)
+    torch.library.opcheck(torch.ops.torchtrack.depth_points.default, args)
+    for bad, match in (((depth.double(), *args[1:]), "float32"), ((depth, region[:1], *args[2:]), "region"),
+                       ((*args[:4], args[4][:1], 4, 3.0), "mask"), ((*args[:5], 0, 3.0), "stride")):  # fmt: skip
+        with pytest.raises(RuntimeError, match=match):
+            torch.ops.torchtrack.depth_points(*bad)

@@ -78,3 +78,6 @@ SIM_OP_QUANTA = 1e-3
 DENSE_OP_POSE = 1e-9  # correction entries (metres, rotation entries) and its twist
 DENSE_OP_INFO = 1e-9  # the data's information, relative to its largest entry
 DENSE_OP_PAIRS = 0.0  # pairs (fraction): the same points pair
+# a keyframe's world points, metres: R p + t of a few-metre point in another summation order (and FMA) than torch's
+# matmul, each of its ~6 roundings ~1.1e-16 relative
+DEPTH_POINTS = 1e-14

@@ -1,6 +1,6 @@
 """The compiled operators ``torch.ops.torchtrack.lk_track`` (csrc/lk.cpp, the LK inner loop),
-``torch.ops.torchtrack.shape_index_map`` (csrc/sim.cpp, the SIM), ``torch.ops.torchtrack.dense_fit`` (csrc/dense.cpp,
-the dense map's alignment) and ``torch.ops.torchtrack.voxel_add``, ``voxel_rehash``, ``pool_update`` (csrc/voxel.cpp,
+``torch.ops.torchtrack.shape_index_map`` (csrc/sim.cpp, the SIM), ``torch.ops.torchtrack.dense_fit`` and ``depth_points``
+(csrc/dense.cpp, the dense map's alignment and the points a keyframe adds) and ``torch.ops.torchtrack.voxel_add``, ``voxel_rehash``, ``pool_update`` (csrc/voxel.cpp,
 the voxel map's fusion, its table's refill, the alignment's pool after a fusion): one library, built on first use,
 cached, with fake kernels; :mod:`torchtrack.image.lk`, :mod:`torchtrack.image.shape_index`,
 :mod:`torchtrack.pipeline.dense_map` and :mod:`torchtrack.mapping.voxel_grid` fall back to their pure-torch references
@@ -150,6 +150,11 @@ def _register_fake() -> None:
     @torch.library.register_fake("torchtrack::dense_fit")
     def _(world, depth, K, T_cw, *args) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         return world.new_empty(4, 4), world.new_empty(6), world.new_empty(6, 6), world.new_empty(4)
+
+    @torch.library.register_fake("torchtrack::depth_points")
+    def _(depth, region, K, T, mask, stride, max_depth) -> tuple[Tensor, Tensor]:
+        p = torch.library.get_ctx().new_dynamic_size()
+        return depth.new_empty(p, 3, dtype=torch.float64), depth.new_empty(p, dtype=torch.long)
 
     @torch.library.register_fake("torchtrack::voxel_add")
     def _(table, keys, sums, n, points, *args) -> tuple[Tensor, Tensor, Tensor, Tensor, int]:

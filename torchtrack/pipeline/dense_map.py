@@ -190,14 +190,27 @@ class DenseMap:
         bool where given)."""
         if self.map is None:
             raise ValueError("DenseMap: call reset(B) before add")
-        d, Ks = grid(depth, K, self.stride, region)
-        V = backproject_depth(Ks, d[:, None].double()).flatten(1, 2)
-        ok = (V[..., 2] > 0) & (V[..., 2] <= self.max_depth) & mask[:, None]
-        world = transform_points(T_world_cam.double(), V)[ok].to(self.map.device)
-        b = torch.arange(len(mask), device=ok.device)[:, None].expand_as(ok)[ok].to(self.map.device)
+        if use_cpp(self.backend) and depth.device.type == "cpu":
+            world, b = torch.ops.torchtrack.depth_points(
+                depth.float().contiguous(), None if region is None else region.contiguous(), K.double().contiguous(),
+                T_world_cam.double().contiguous(), mask.contiguous(), self.stride, self.max_depth,
+            )  # fmt: skip
+        else:
+            world, b = self._points_torch(depth, K, T_world_cam, mask, region)
+        world, b = world.to(self.map.device), b.to(self.map.device)
         added = self.map.add(world, torch.zeros_like(world), b)
         for i in mask.nonzero().squeeze(1).tolist():
             self._pools[i] = self._updated(i, added)
+
+    def _points_torch(self, depth: Tensor, K: Tensor, T_world_cam: Tensor, mask: Tensor,
+                      region: Tensor | None) -> tuple[Tensor, Tensor]:  # fmt: skip
+        """The world points (P, 3) float64 :meth:`add` fuses and their sequences (P,), in (sequence, row, column) order:
+        the compiled ``depth_points``'s reference (tests/test_dense_op.py)."""
+        d, Ks = grid(depth, K, self.stride, region)
+        V = backproject_depth(Ks, d[:, None].double()).flatten(1, 2)
+        ok = (V[..., 2] > 0) & (V[..., 2] <= self.max_depth) & mask[:, None]
+        b = torch.arange(len(mask), device=ok.device)[:, None].expand_as(ok)[ok]
+        return transform_points(T_world_cam.double(), V)[ok], b
 
     def align(self, depth: Tensor, K: Tensor, T_world_cam: Tensor, mask: Tensor,
               region: Tensor | None = None) -> Alignment:  # fmt: skip

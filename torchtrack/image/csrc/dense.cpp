@@ -19,6 +19,12 @@
 // fewer than 6 pairs were left), the steps taken, 1 where some direction's information may be below weak times the
 // prior's and 0 where it is clearly above in every one: the information whitened by the prior minus weak x I has
 // Cholesky pivots above 1e-9 of its largest diagonal entry; the gate's eigenproblem is then skipped).
+//
+// torchtrack::depth_points: the points a keyframe's depth adds to the map (DenseMap.add; DenseMap._points_torch is
+// the reference): every stride-th pixel of the depth with 0 < z <= max_depth (inside the region where given) of the
+// sequences in mask, back-projected through the strided grid's intrinsics and moved into the world, in (sequence,
+// row, column) order. The reference's ~10 tensor operations over the whole grid cost ~2.5 ms per keyframe; this one
+// pass ~0.1 ms.
 
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
@@ -31,6 +37,8 @@
 #include <cstdint>
 #include <limits>
 #include <memory>
+#include <optional>
+#include <tuple>
 #include <vector>
 
 namespace {
@@ -348,6 +356,59 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> dense_fit_cpu(
   return {delta_t, xi_t, info_t, stats_t};
 }
 
+// Returns the world points (P, 3) float64 and their sequence (P,) int64 (see the header).
+std::tuple<at::Tensor, at::Tensor> depth_points_cpu(const at::Tensor& depth, const std::optional<at::Tensor>& region,
+                                                    const at::Tensor& K, const at::Tensor& T, const at::Tensor& mask,
+                                                    int64_t stride, double max_depth) {
+  TORCH_CHECK(depth.dim() == 4 && depth.size(1) == 1 && depth.scalar_type() == at::kFloat && depth.is_contiguous(),
+              "depth_points: depth (B, 1, H, W) float32 contiguous");
+  const int64_t B = depth.size(0), H = depth.size(2), W = depth.size(3);
+  TORCH_CHECK(K.sizes() == at::IntArrayRef({B, 3, 3}) && K.scalar_type() == at::kDouble && K.is_contiguous(),
+              "depth_points: K (B, 3, 3) float64 contiguous");
+  TORCH_CHECK(T.sizes() == at::IntArrayRef({B, 4, 4}) && T.scalar_type() == at::kDouble && T.is_contiguous(),
+              "depth_points: T (B, 4, 4) float64 contiguous");
+  TORCH_CHECK(mask.sizes() == at::IntArrayRef({B}) && mask.scalar_type() == at::kBool && mask.is_contiguous(),
+              "depth_points: mask (B,) bool contiguous");
+  TORCH_CHECK(!region || (region->sizes() == depth.sizes() && region->scalar_type() == at::kBool &&
+                          region->is_contiguous()),
+              "depth_points: region (B, 1, H, W) bool contiguous, as depth");
+  TORCH_CHECK(stride >= 1, "depth_points: stride >= 1");
+  const int64_t h = (H + stride - 1) / stride, w = (W + stride - 1) / stride;
+  const float* d = depth.data_ptr<float>();
+  const bool* r = region ? region->data_ptr<bool>() : nullptr;
+  const bool* m = mask.data_ptr<bool>();
+  auto taken = [&](int64_t at) {
+    const float z = d[at];
+    return z > 0 && z <= max_depth && (!r || r[at]);  // NaN fails z > 0
+  };
+  int64_t P = 0;  // two passes: count, then write
+  for (int64_t b = 0; b < B; ++b)
+    for (int64_t i = 0; m[b] && i < h; ++i)
+      for (int64_t j = 0, row = (b * H + i * stride) * W; j < w; ++j) P += taken(row + j * stride);
+  at::Tensor points = at::empty({P, 3}, depth.options().dtype(at::kDouble));
+  at::Tensor batch = at::empty({P}, depth.options().dtype(at::kLong));
+  double* X = points.data_ptr<double>();
+  int64_t* bo = batch.data_ptr<int64_t>();
+  for (int64_t b = 0; b < B; ++b) {
+    if (!m[b]) continue;
+    const double* k = K.data_ptr<double>() + 9 * b;
+    const double* t = T.data_ptr<double>() + 16 * b;
+    // the reference's arithmetic: the strided grid's intrinsics, then x = (j - cx) / fx * z
+    const double fx = k[0] / stride, cx = k[2] / stride, fy = k[4] / stride, cy = k[5] / stride;
+    for (int64_t i = 0; i < h; ++i) {
+      const double y1 = (i - cy) / fy;
+      for (int64_t j = 0, row = (b * H + i * stride) * W; j < w; ++j) {
+        if (!taken(row + j * stride)) continue;
+        const double z = d[row + j * stride], x = (j - cx) / fx * z, y = y1 * z;
+        for (int a = 0; a < 3; ++a) X[a] = t[4 * a] * x + t[4 * a + 1] * y + t[4 * a + 2] * z + t[4 * a + 3];
+        X += 3;
+        *bo++ = b;
+      }
+    }
+  }
+  return {points, batch};
+}
+
 }  // namespace
 
 TORCH_LIBRARY_FRAGMENT(torchtrack, m) {
@@ -355,6 +416,12 @@ TORCH_LIBRARY_FRAGMENT(torchtrack, m) {
       "dense_fit(Tensor world, Tensor depth, Tensor K, Tensor T_cw, int max_points, int iterations, "
       "float max_depth, float max_distance, float huber, float sigma, float prior_m, float prior_rad, "
       "float tolerance, float max_step, float weak) -> (Tensor, Tensor, Tensor, Tensor)");
+  m.def(
+      "depth_points(Tensor depth, Tensor? region, Tensor K, Tensor T, Tensor mask, int stride, float max_depth) -> "
+      "(Tensor, Tensor)");
 }
 
-TORCH_LIBRARY_IMPL(torchtrack, CPU, m) { m.impl("dense_fit", &dense_fit_cpu); }
+TORCH_LIBRARY_IMPL(torchtrack, CPU, m) {
+  m.impl("dense_fit", &dense_fit_cpu);
+  m.impl("depth_points", &depth_points_cpu);
+}
