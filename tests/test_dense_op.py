@@ -140,6 +140,13 @@ def test_fallback_opcheck_and_bad_inputs(room, monkeypatch):  # noqa: F811
     args = (world[:2000].contiguous(), depth.float().contiguous(), K.double(), T_cw.contiguous(), 500, 3, 4.0,
             0.05, 0.01, 0.005, 0.01, 0.0175, 1e-4, 0.05, 3.0)  # fmt: skip
     torch.library.opcheck(torch.ops.torchtrack.dense_fit.default, args)
+    # a strided view of the full image (what align passes), with holes, NaN and negative depth: as its cleaned copy
+    full = room["d_cur"][0, 0].clone()
+    full[::40, ::36], full[20::40, ::36] = float("nan"), -1.0
+    view, clean = full[::4, ::4], grid(full[None, None], room["K"], 4)[0][0]
+    assert not view.is_contiguous() and int((clean == 0).sum()) > int((view == 0).sum())
+    a, b = (torch.ops.torchtrack.dense_fit(args[0], x, *args[2:]) for x in (view, clean))
+    assert all(torch.equal(x, y) for x, y in zip(a, b, strict=True)) and a[3][0] > 300
     with pytest.raises(RuntimeError, match="float64"):
         torch.ops.torchtrack.dense_fit(world.float(), *args[1:])
     with pytest.raises(RuntimeError, match="float32"):

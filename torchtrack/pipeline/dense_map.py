@@ -224,7 +224,11 @@ class DenseMap:
         applied, pairs = [False] * B, [0] * B
         if bool(mask.any()):
             # Per sequence a handful of 4x4 and 6x6 products: in numpy, whose per-call cost is a fraction of torch's.
-            d, Ks = grid(depth, K, self.stride, region)
+            st = self.stride  # the grid a view: the fit finds no surface where there is no depth (0, negative, NaN)
+            d, Ks = depth[:, 0, ::st, ::st], K.double().clone()
+            if region is not None:
+                d = d.where(region[:, 0, ::st, ::st], 0.0)
+            Ks[:, :2] /= st
             for b in mask.nonzero().squeeze(1).tolist():
                 world = self._pool(b)
                 if world is None:
@@ -291,13 +295,13 @@ class DenseMap:
 
     def fit(self, world: Tensor, depth: Tensor, K: Tensor, T_cw: Tensor) -> Fit:
         """Gauss-Newton on the world-to-camera pose from ``T_cw`` (4, 4), the map points ``world`` (M, 3) (the
-        :meth:`_pool`) against the surface of the depth grid (h, w) seen through K (3, 3) (:func:`grid`, then
-        :func:`surface`), by the compiled ``torch.ops.torchtrack.dense_fit`` (csrc/dense.cpp) where the backend runs it,
+        :meth:`_pool`) against the surface of the depth grid (h, w) (any strides; no depth where 0, negative or NaN)
+        seen through K (3, 3) (:func:`surface`), by the compiled ``torch.ops.torchtrack.dense_fit`` (csrc/dense.cpp) where the backend runs it,
         else by :meth:`_fit_torch`. Stops early once a step is below ``tolerance``."""
         if not (use_cpp(self.backend) and depth.device.type == "cpu"):
             return self._fit_torch(world, depth, K, T_cw)
         delta, xi, info, stats = torch.ops.torchtrack.dense_fit(
-            world.double().contiguous(), depth.float().contiguous(), K.double().contiguous(),
+            world.double().contiguous(), depth.float(), K.double().contiguous(),
             T_cw.double().contiguous(), self.max_points, self.iterations, self.max_depth,
             self.max_distance_m, self.huber_m, self.sigma_m, self.prior_m, math.radians(self.prior_deg),
             self.tolerance, MAX_STEP, self.weak,

@@ -129,8 +129,11 @@ void solve6(double* H, const double* g, double* x) {
 // reference's, pixel by pixel. A pixel's vertex and normal share one cache line.
 class Surface {
  public:
-  Surface(const float* depth, int64_t h, int64_t w, double fx, double fy, double cx, double cy, double max_step)
-      : h(static_cast<int>(h)), w(static_cast<int>(w)), depth_(depth), fx_(fx), fy_(fy), cx_(cx), cy_(cy),
+  // depth: pixel (i, j) at depth[i * row + j * col] (a strided view of a larger image needs no copy)
+  Surface(const float* depth, int64_t h, int64_t w, int64_t row, int64_t col, double fx, double fy, double cx,
+          double cy, double max_step)
+      : h(static_cast<int>(h)), w(static_cast<int>(w)), row_(row), col_(col), depth_(depth), fx_(fx), fy_(fy), cx_(cx),
+        cy_(cy),
         max_step_(max_step), slot_(h * w, kUnknown) {
     px_.reserve(h * w);  // never moved: at()'s pointers stay valid
   }
@@ -155,7 +158,7 @@ class Surface {
   };
 
   void vertex(int i, int j, double* p) const {
-    const double z = depth_[static_cast<int64_t>(i) * w + j];
+    const double z = depth_[i * row_ + j * col_];
     p[0] = (j - cx_) / fx_ * z;
     p[1] = (i - cy_) / fy_ * z;
     p[2] = z;
@@ -185,6 +188,7 @@ class Surface {
     return true;
   }
 
+  const int64_t row_, col_;
   const float* depth_;
   const double fx_, fy_, cx_, cy_, max_step_;
   // The surfaces computed, in the order they were first asked for (written one after the other, not scattered over a
@@ -272,8 +276,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> dense_fit_cpu(
     double prior_m, double prior_rad, double tolerance, double max_step, double weak) {
   TORCH_CHECK(world.dim() == 2 && world.size(1) == 3 && world.scalar_type() == at::kDouble && world.is_contiguous(),
               "dense_fit: world (M, 3) float64 contiguous");
-  TORCH_CHECK(depth.dim() == 2 && depth.scalar_type() == at::kFloat && depth.is_contiguous(),
-              "dense_fit: depth (H, W) float32 contiguous");
+  TORCH_CHECK(depth.dim() == 2 && depth.scalar_type() == at::kFloat, "dense_fit: depth (H, W) float32");
   TORCH_CHECK(K.sizes() == at::IntArrayRef({3, 3}) && K.scalar_type() == at::kDouble && K.is_contiguous(),
               "dense_fit: K (3, 3) float64 contiguous");
   TORCH_CHECK(T_cw.sizes() == at::IntArrayRef({4, 4}) && T_cw.scalar_type() == at::kDouble && T_cw.is_contiguous(),
@@ -285,7 +288,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> dense_fit_cpu(
 
   const double* k = K.data_ptr<double>();
   const double fx = k[0], fy = k[4], cx = k[2], cy = k[5];
-  Surface s(depth.data_ptr<float>(), depth.size(0), depth.size(1), fx, fy, cx, cy, max_step);
+  Surface s(depth.data_ptr<float>(), depth.size(0), depth.size(1), depth.stride(0), depth.stride(1), fx, fy, cx, cy,
+            max_step);
   const int h = s.h, w = s.w;
   // the map points the camera can see, evenly thinned
   const double* P = world.data_ptr<double>();
