@@ -70,13 +70,6 @@ def grid(depth: Tensor, K: Tensor, stride: int, region: Tensor | None = None) ->
     return d, Ks
 
 
-def strided_points(depth: Tensor, K: Tensor, stride: int) -> tuple[Tensor, Tensor]:
-    """The points (B, h, w, 3) float64 of every ``stride``-th pixel of a depth image (B, 1, H, W) seen through K
-    (B, 3, 3), in its camera (0 depth: the origin), and the intrinsics (B, 3, 3) of that strided grid."""
-    d, Ks = grid(depth, K, stride)
-    return backproject_depth(Ks, d[:, None].double()), Ks
-
-
 MAX_STEP = 0.05  # surface(): no normal across a depth step larger than this fraction of the depth
 
 
@@ -85,7 +78,8 @@ def surface(depth: Tensor, K: Tensor, stride: int, max_step: float = MAX_STEP) -
     K (B, 3, 3), unit normals (B, h, w, 3) (the cross product of the central differences), valid (B, h, w) (depth
     there and at the four neighbours, none farther than ``max_step`` x z in depth: no normal across a depth step),
     and the intrinsics of the strided grid (B, 3, 3); float64."""
-    V, Ks = strided_points(depth, K, stride)
+    d, Ks = grid(depth, K, stride)
+    V = backproject_depth(Ks, d[:, None].double())  # 0 depth: the origin
     z = V[..., 2]
     n = torch.linalg.cross(V[:, 1:-1, 2:] - V[:, 1:-1, :-2], V[:, 2:, 1:-1] - V[:, :-2, 1:-1])
     zc = z[:, 1:-1, 1:-1]
@@ -127,8 +121,9 @@ class DenseMap:
             ~0.4x each: what remains is a few hundredths of a millimetre).
         weak: a direction of the pose in which the depth's information is below this many times the prior's is left
             as the tracker had it (the correction projected off it).
-        backend: "cpp" the compiled ``torch.ops.torchtrack.dense_fit`` (csrc/dense.cpp) and ``pool_update``
-            (csrc/voxel.cpp), "torch" their references (:meth:`_fit_torch`, :meth:`_updated`), "auto" the operators
+        backend: "cpp" the compiled ``torch.ops.torchtrack.dense_fit``, ``depth_points`` (csrc/dense.cpp) and
+            ``pool_update`` (csrc/voxel.cpp), "torch" their references (:meth:`_fit_torch`, :meth:`_points_torch`,
+            :meth:`_updated`), "auto" the operators
             where they build (the LK operator's switch, ``lk.use_cpp``; the voxel map's fusion follows its own).
     """
 
