@@ -7,6 +7,7 @@ pixel grid: a feature tracked at colour pixel x reads its depth and its SIM at x
 
 from __future__ import annotations
 
+import os
 import queue
 import threading
 from collections.abc import Callable, Iterable, Iterator
@@ -29,6 +30,7 @@ class PreparedFrame:
     depth: Tensor
     sim: SIM | None
     flow: FlowFrame
+    measure_depth: Tensor | None = None  # EXPERIMENT (oracle): the depth Measure starts its rays from
 
 
 class FrameBatch(Protocol):
@@ -48,6 +50,23 @@ class FrameBatch(Protocol):
 
 def _gray(frame: FrameBatch) -> Tensor:
     return frame.gray
+
+
+_ORACLE: dict = {}
+
+
+def _oracle_depth(frame) -> Tensor | None:
+    """EXPERIMENT: TT_ORACLE_DEPTH=<TUM folder of the registered render>: its depth image at this frame's index."""
+    root = os.environ.get("TT_ORACLE_DEPTH")
+    if not root or is_registered(frame):
+        return None
+    import cv2
+
+    if root not in _ORACLE:
+        lines = [ln.split() for ln in open(os.path.join(root, "depth.txt")) if not ln.startswith("#")]
+        _ORACLE[root] = [os.path.join(root, ln[1]) for ln in lines if ln]
+    z = cv2.imread(_ORACLE[root][int(frame.index[0])], cv2.IMREAD_UNCHANGED).astype("float32") / 5000.0
+    return torch.from_numpy(z)[None, None].to(frame.depth)
 
 
 def is_registered(frame: FrameBatch) -> bool:
@@ -113,9 +132,15 @@ class FrontEnd:
         """Prepare ``frame`` now, in the calling thread."""
         gray = self.gray(frame)
         depth = depth_in_colour(frame)
-        sim = compute_sim(depth, frame.K, self.sim_backend, **self.sim_kwargs) if self.use_sim else None  # eq. (8)
+        sim_depth, sel_depth = depth, depth
+        oracle = _oracle_depth(frame)  # EXPERIMENT: the colour camera's true depth for the SIM and/or selection
+        if oracle is not None:
+            use = os.environ.get("TT_ORACLE_USE", "all")
+            sim_depth = oracle if use in ("all", "sim") else depth
+            sel_depth = oracle if use in ("all", "sel") else depth
+        sim = compute_sim(sim_depth, frame.K, self.sim_backend, **self.sim_kwargs) if self.use_sim else None  # eq. (8)
         flow = prepare_frame(gray, sim.image if sim is not None else None, self.levels)
-        return PreparedFrame(gray, depth, sim, flow)
+        return PreparedFrame(gray, sel_depth, sim, flow, measure_depth=depth)
 
     def prepared_ahead(self, frames: Iterable[FrameBatch], depth: int = 1) -> Iterator[FrameBatch]:
         """Yield ``frames`` in order while a thread takes them from ``frames`` and prepares them, at most ``depth``
