@@ -79,7 +79,8 @@ def depth_in_colour(frame: FrameBatch) -> Tensor:
     if is_registered(frame):
         return frame.depth
     H, W = frame.rgb.shape[-2:]
-    return fill_cracks(warp_depth(frame.depth, frame.K_depth, frame.K, frame.T_color_depth, (H, W)))
+    warped = warp_depth(frame.depth, frame.K_depth, frame.K, frame.T_color_depth, (H, W))
+    return fill_cracks(warped) if os.environ.get("TT_FILL", "1") == "1" else warped  # EXPERIMENT switch
 
 
 def fill_cracks(depth: Tensor, min_neighbours: int = 5, max_rel_step: float = 0.03) -> Tensor:
@@ -166,6 +167,10 @@ class FrontEnd:
         oracle = _oracle_depth(frame)  # EXPERIMENT: the colour camera's true depth for the SIM and/or selection
         if oracle is not None:
             use = os.environ.get("TT_ORACLE_USE", "all")
+            if use == "h1":  # the truth's values where the rig has depth: the rig's holes
+                oracle, use = torch.where(depth > 0, oracle, 0.0), "all"
+            elif use == "h2":  # the rig's values where it has depth, the truth in its holes: the truth's holes
+                oracle, use = torch.where((depth > 0) & (oracle > 0), depth, oracle), "all"
             sim_depth = oracle if use in ("all", "sim") else depth
             sel_depth = oracle if use in ("all", "sel") else depth
         sim = compute_sim(sim_depth, frame.K, self.sim_backend, **self.sim_kwargs) if self.use_sim else None  # eq. (8)
