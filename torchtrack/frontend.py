@@ -17,7 +17,7 @@ from typing import Protocol
 import torch
 from torch import Tensor
 
-from torchtrack.geometry import warp_depth
+from torchtrack.geometry import T_inv, backproject_depth, project, warp_depth
 from torchtrack.image.flow import FlowFrame, prepare_frame
 from torchtrack.image.shape_index import SIM, compute_sim
 
@@ -113,6 +113,27 @@ def _window_sum(x: Tensor) -> Tensor:
     return x
 
 
+def sim_in_colour(sim_d: SIM, depth: Tensor, frame: FrameBatch, fill: float = 0.5) -> SIM:
+    """Attempt (a): the SIM computed on the depth camera's own grid (``sim_d``, (B, 1, H_d, W_d)) read into the colour
+    grid: each colour pixel with registered ``depth`` (B, 1, H, W) is moved into the depth camera and reads the SIM
+    at its nearest pixel; no depth: masked, ``fill``."""
+    B, _, H, W = depth.shape
+    Hd, Wd = sim_d.si.shape[-2:]
+    p = backproject_depth(frame.K, depth).reshape(B, -1, 3)
+    T_dc = T_inv(frame.T_color_depth.to(p.dtype))
+    p = p @ T_dc[:, :3, :3].transpose(-1, -2) + T_dc[:, None, :3, 3]
+    ok = (depth.reshape(B, -1) > 0) & (p[..., 2] > 1e-3)
+    uv = project(frame.K_depth.to(p.dtype), torch.where(ok[..., None], p, 1.0)).round()
+    ok = ok & (uv[..., 0] >= 0) & (uv[..., 0] < Wd) & (uv[..., 1] >= 0) & (uv[..., 1] < Hd)
+    idx = (uv[..., 1].clamp(0, Hd - 1) * Wd + uv[..., 0].clamp(0, Wd - 1)).long()
+
+    def read(x: Tensor, empty) -> Tensor:
+        v = x.reshape(B, -1).gather(1, idx)
+        return torch.where(ok, v, torch.full_like(v, empty)).reshape(B, 1, H, W)
+
+    return SIM(si=read(sim_d.si, fill), valid=read(sim_d.valid, False), image=read(sim_d.image, fill))
+
+
 class FrontEnd:
     """Builds a :class:`PreparedFrame`: gray, colour-registered depth, SIM (eq. 8) and LK pyramids.
 
@@ -173,7 +194,11 @@ class FrontEnd:
                 oracle, use = torch.where((depth > 0) & (oracle > 0), depth, oracle), "all"
             sim_depth = oracle if use in ("all", "sim") else depth
             sel_depth = oracle if use in ("all", "sel") else depth
-        sim = compute_sim(sim_depth, frame.K, self.sim_backend, **self.sim_kwargs) if self.use_sim else None  # eq. (8)
+        if self.use_sim and oracle is None and os.environ.get("TT_SIM_A") == "1" and not is_registered(frame):
+            sim = sim_in_colour(compute_sim(frame.depth, frame.K_depth, self.sim_backend, **self.sim_kwargs),
+                                depth, frame)  # fmt: skip  # EXPERIMENT (a)
+        else:
+            sim = compute_sim(sim_depth, frame.K, self.sim_backend, **self.sim_kwargs) if self.use_sim else None
         flow = prepare_frame(gray, sim.image if sim is not None else None, self.levels)
         return PreparedFrame(gray, sel_depth, sim, flow, measure_depth=depth)
 
