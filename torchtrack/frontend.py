@@ -17,7 +17,7 @@ from typing import Protocol
 import torch
 from torch import Tensor
 
-from torchtrack.geometry import T_inv, backproject_depth, project, warp_depth
+from torchtrack.geometry import T_inv, backproject_depth, depth_along_rays, project, warp_depth
 from torchtrack.image.flow import FlowFrame, prepare_frame
 from torchtrack.image.shape_index import SIM, compute_sim
 
@@ -80,7 +80,29 @@ def depth_in_colour(frame: FrameBatch) -> Tensor:
         return frame.depth
     H, W = frame.rgb.shape[-2:]
     warped = warp_depth(frame.depth, frame.K_depth, frame.K, frame.T_color_depth, (H, W))
-    return fill_cracks(warped) if os.environ.get("TT_FILL", "1") == "1" else warped  # EXPERIMENT switch
+    warped = fill_cracks(warped) if os.environ.get("TT_FILL", "1") == "1" else warped  # EXPERIMENT switch
+    if os.environ.get("TT_RAYS_FULL") == "1":
+        warped = refine_along_rays(warped, frame)
+    return warped
+
+
+def refine_along_rays(depth: Tensor, frame: FrameBatch) -> Tensor:
+    """Attempt (c): every colour pixel with warped depth (B, 1, H, W) re-read along its ray in the depth camera's image
+    (:func:`~torchtrack.geometry.depth_along_rays`, the features' measurement): the forward warp's half-pixel
+    staircase on slopes goes; a pixel whose ray does not settle keeps the warp's value."""
+    B, _, H, W = depth.shape
+    b, _, y, x = torch.nonzero(depth > 0, as_tuple=True)
+    if b.numel() == 0:
+        return depth
+    out = depth.clone()
+    for i in range(B):  # B is 1 in the bench; the pixels of each row
+        m = b == i
+        pix = torch.stack([x[m], y[m]], -1).to(depth.dtype)[None]
+        z0 = depth[i, 0, y[m], x[m]][None]
+        z = depth_along_rays(frame.depth[i : i + 1], frame.K_depth[i : i + 1], frame.K[i : i + 1],
+                             frame.T_color_depth[i : i + 1], pix, z0)[0]  # fmt: skip
+        out[i, 0, y[m], x[m]] = torch.where(z > 0, z, z0[0])
+    return out
 
 
 def fill_cracks(depth: Tensor, min_neighbours: int = 5, max_rel_step: float = 0.03) -> Tensor:
