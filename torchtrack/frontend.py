@@ -101,7 +101,8 @@ def refine_along_rays(depth: Tensor, frame: FrameBatch) -> Tensor:
         z0 = depth[i, 0, y[m], x[m]][None]
         z = depth_along_rays(frame.depth[i : i + 1], frame.K_depth[i : i + 1], frame.K[i : i + 1],
                              frame.T_color_depth[i : i + 1], pix, z0)[0]  # fmt: skip
-        out[i, 0, y[m], x[m]] = torch.where(z > 0, z, z0[0])
+        keep = z0[0] if os.environ.get("TT_RAYS_DROP") != "1" else torch.zeros_like(z)  # unsettled: warp's value or none
+        out[i, 0, y[m], x[m]] = torch.where(z > 0, z, keep)
     return out
 
 
