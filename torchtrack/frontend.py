@@ -7,7 +7,6 @@ pixel grid: a feature tracked at colour pixel x reads its depth and its SIM at x
 
 from __future__ import annotations
 
-import os
 import queue
 import threading
 from collections.abc import Callable, Iterable, Iterator
@@ -17,7 +16,7 @@ from typing import Protocol
 import torch
 from torch import Tensor
 
-from torchtrack.geometry import T_inv, backproject_depth, depth_along_rays, project, warp_depth
+from torchtrack.geometry import depth_along_rays, warp_depth
 from torchtrack.image.flow import FlowFrame, prepare_frame
 from torchtrack.image.shape_index import SIM, compute_sim
 
@@ -30,7 +29,6 @@ class PreparedFrame:
     depth: Tensor
     sim: SIM | None
     flow: FlowFrame
-    measure_depth: Tensor | None = None  # EXPERIMENT (oracle): the depth Measure starts its rays from
 
 
 class FrameBatch(Protocol):
@@ -52,23 +50,6 @@ def _gray(frame: FrameBatch) -> Tensor:
     return frame.gray
 
 
-_ORACLE: dict = {}
-
-
-def _oracle_depth(frame) -> Tensor | None:
-    """EXPERIMENT: TT_ORACLE_DEPTH=<TUM folder of the registered render>: its depth image at this frame's index."""
-    root = os.environ.get("TT_ORACLE_DEPTH")
-    if not root or is_registered(frame):
-        return None
-    import cv2
-
-    if root not in _ORACLE:
-        lines = [ln.split() for ln in open(os.path.join(root, "depth.txt")) if not ln.startswith("#")]
-        _ORACLE[root] = [os.path.join(root, ln[1]) for ln in lines if ln]
-    z = cv2.imread(_ORACLE[root][int(frame.index[0])], cv2.IMREAD_UNCHANGED).astype("float32") / 5000.0
-    return torch.from_numpy(z)[None, None].to(frame.depth)
-
-
 def is_registered(frame: FrameBatch) -> bool:
     eye = torch.eye(4, dtype=frame.T_color_depth.dtype, device=frame.T_color_depth.device)
     return bool(torch.allclose(frame.T_color_depth, eye) and torch.allclose(frame.K_depth, frame.K))
@@ -79,31 +60,8 @@ def depth_in_colour(frame: FrameBatch) -> Tensor:
     if is_registered(frame):
         return frame.depth
     H, W = frame.rgb.shape[-2:]
-    warped = warp_depth(frame.depth, frame.K_depth, frame.K, frame.T_color_depth, (H, W))
-    warped = fill_cracks(warped) if os.environ.get("TT_FILL", "1") == "1" else warped  # EXPERIMENT switch
-    if os.environ.get("TT_RAYS_FULL") == "1":
-        warped = refine_along_rays(warped, frame)
-    return warped
-
-
-def refine_along_rays(depth: Tensor, frame: FrameBatch) -> Tensor:
-    """Attempt (c): every colour pixel with warped depth (B, 1, H, W) re-read along its ray in the depth camera's image
-    (:func:`~torchtrack.geometry.depth_along_rays`, the features' measurement): the forward warp's half-pixel
-    staircase on slopes goes; a pixel whose ray does not settle keeps the warp's value."""
-    B, _, H, W = depth.shape
-    b, _, y, x = torch.nonzero(depth > 0, as_tuple=True)
-    if b.numel() == 0:
-        return depth
-    out = depth.clone()
-    for i in range(B):  # B is 1 in the bench; the pixels of each row
-        m = b == i
-        pix = torch.stack([x[m], y[m]], -1).to(depth.dtype)[None]
-        z0 = depth[i, 0, y[m], x[m]][None]
-        z = depth_along_rays(frame.depth[i : i + 1], frame.K_depth[i : i + 1], frame.K[i : i + 1],
-                             frame.T_color_depth[i : i + 1], pix, z0)[0]  # fmt: skip
-        keep = z0[0] if os.environ.get("TT_RAYS_DROP") != "1" else torch.zeros_like(z)  # unsettled: warp's value or none
-        out[i, 0, y[m], x[m]] = torch.where(z > 0, z, keep)
-    return out
+    warped = fill_cracks(warp_depth(frame.depth, frame.K_depth, frame.K, frame.T_color_depth, (H, W)))
+    return refine_along_rays(warped, frame)
 
 
 def fill_cracks(depth: Tensor, min_neighbours: int = 5, max_rel_step: float = 0.03) -> Tensor:
@@ -126,6 +84,22 @@ def fill_cracks(depth: Tensor, min_neighbours: int = 5, max_rel_step: float = 0.
     return out
 
 
+def refine_along_rays(depth: Tensor, frame: FrameBatch) -> Tensor:
+    """Every colour pixel with warped depth (B, 1, H, W) re-read along its ray in the depth camera's image
+    (:func:`~torchtrack.geometry.depth_along_rays`, as the features' measurement, eq. 6): the forward warp's
+    half-pixel staircase on slopes goes, which the SIM's curvatures (eq. 8) would read as shape. A pixel whose ray
+    does not settle keeps the warp's value."""
+    b, _, y, x = torch.nonzero(depth > 0, as_tuple=True)
+    out = depth.clone()
+    for i in range(depth.shape[0]):  # the pixels with depth differ per sequence
+        m = b == i
+        pix, z0 = torch.stack([x[m], y[m]], -1).to(depth.dtype)[None], depth[i, 0, y[m], x[m]][None]  # 1,n,2 / 1,n
+        z = depth_along_rays(frame.depth[i : i + 1], frame.K_depth[i : i + 1], frame.K[i : i + 1],
+                             frame.T_color_depth[i : i + 1], pix, z0)[0]  # fmt: skip
+        out[i, 0, y[m], x[m]] = torch.where(z > 0, z, z0[0])
+    return out
+
+
 def _window_sum(x: Tensor) -> Tensor:
     """Sum of (..., H, W) over 3x3 windows clipped at the border: separable, by shifted additions."""
     for dim in (-1, -2):
@@ -134,27 +108,6 @@ def _window_sum(x: Tensor) -> Tensor:
         y.narrow(dim, 0, n - 1).add_(x.narrow(dim, 1, n - 1))
         x = y
     return x
-
-
-def sim_in_colour(sim_d: SIM, depth: Tensor, frame: FrameBatch, fill: float = 0.5) -> SIM:
-    """Attempt (a): the SIM computed on the depth camera's own grid (``sim_d``, (B, 1, H_d, W_d)) read into the colour
-    grid: each colour pixel with registered ``depth`` (B, 1, H, W) is moved into the depth camera and reads the SIM
-    at its nearest pixel; no depth: masked, ``fill``."""
-    B, _, H, W = depth.shape
-    Hd, Wd = sim_d.si.shape[-2:]
-    p = backproject_depth(frame.K, depth).reshape(B, -1, 3)
-    T_dc = T_inv(frame.T_color_depth.to(p.dtype))
-    p = p @ T_dc[:, :3, :3].transpose(-1, -2) + T_dc[:, None, :3, 3]
-    ok = (depth.reshape(B, -1) > 0) & (p[..., 2] > 1e-3)
-    uv = project(frame.K_depth.to(p.dtype), torch.where(ok[..., None], p, 1.0)).round()
-    ok = ok & (uv[..., 0] >= 0) & (uv[..., 0] < Wd) & (uv[..., 1] >= 0) & (uv[..., 1] < Hd)
-    idx = (uv[..., 1].clamp(0, Hd - 1) * Wd + uv[..., 0].clamp(0, Wd - 1)).long()
-
-    def read(x: Tensor, empty) -> Tensor:
-        v = x.reshape(B, -1).gather(1, idx)
-        return torch.where(ok, v, torch.full_like(v, empty)).reshape(B, 1, H, W)
-
-    return SIM(si=read(sim_d.si, fill), valid=read(sim_d.valid, False), image=read(sim_d.image, fill))
 
 
 class FrontEnd:
@@ -207,23 +160,9 @@ class FrontEnd:
         """Prepare ``frame`` now, in the calling thread."""
         gray = self.gray(frame)
         depth = depth_in_colour(frame)
-        sim_depth, sel_depth = depth, depth
-        oracle = _oracle_depth(frame)  # EXPERIMENT: the colour camera's true depth for the SIM and/or selection
-        if oracle is not None:
-            use = os.environ.get("TT_ORACLE_USE", "all")
-            if use == "h1":  # the truth's values where the rig has depth: the rig's holes
-                oracle, use = torch.where(depth > 0, oracle, 0.0), "all"
-            elif use == "h2":  # the rig's values where it has depth, the truth in its holes: the truth's holes
-                oracle, use = torch.where((depth > 0) & (oracle > 0), depth, oracle), "all"
-            sim_depth = oracle if use in ("all", "sim") else depth
-            sel_depth = oracle if use in ("all", "sel") else depth
-        if self.use_sim and oracle is None and os.environ.get("TT_SIM_A") == "1" and not is_registered(frame):
-            sim = sim_in_colour(compute_sim(frame.depth, frame.K_depth, self.sim_backend, **self.sim_kwargs),
-                                depth, frame)  # fmt: skip  # EXPERIMENT (a)
-        else:
-            sim = compute_sim(sim_depth, frame.K, self.sim_backend, **self.sim_kwargs) if self.use_sim else None
+        sim = compute_sim(depth, frame.K, self.sim_backend, **self.sim_kwargs) if self.use_sim else None  # eq. (8)
         flow = prepare_frame(gray, sim.image if sim is not None else None, self.levels)
-        return PreparedFrame(gray, sel_depth, sim, flow, measure_depth=depth)
+        return PreparedFrame(gray, depth, sim, flow)
 
     def prepared_ahead(self, frames: Iterable[FrameBatch], depth: int = 1) -> Iterator[FrameBatch]:
         """Yield ``frames`` in order while a thread takes them from ``frames`` and prepares them, at most ``depth``

@@ -125,7 +125,7 @@ class Tracker:
         self._map_held = None
         cur = self.frontend(frame)  # prepare: depth in the colour camera, SIM (eq. 8), LK pyramids
         raw = None if is_registered(frame) else frame.depth  # a separate depth camera: rays meet its surface
-        measure = Measure(cur.depth if cur.measure_depth is None else cur.measure_depth, frame.K, frame.T_color_depth, raw, frame.K_depth)  # a pixel's 3D point, eq. (6)
+        measure = Measure(cur.depth, frame.K, frame.T_color_depth, raw, frame.K_depth)  # a pixel's 3D point, eq. (6)
         if not s.started:
             res = self._start(frame, cur, measure)
         else:
