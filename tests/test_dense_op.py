@@ -155,8 +155,9 @@ def test_fallback_opcheck_and_bad_inputs(room, monkeypatch):  # noqa: F811
 
 def test_a_keyframes_points_are_the_references(room):  # noqa: F811
     """Two sequences (the second through other intrinsics, from another pose), depth with holes, NaN, negative values
-    and depth beyond max_depth, with and without a region, one sequence masked off: the same pixels in the same
-    (sequence, row, column) order as the reference, the points within DEPTH_POINTS."""
+    and depth beyond max_depth, with and without a region, one or both sequences masked off, a stride that divides the
+    image and one that does not: the same pixels in the same (sequence, row, column) order as the reference, the points
+    within DEPTH_POINTS; a masked-off sequence adds nothing."""
     g = torch.Generator().manual_seed(5)
     depth = torch.cat([room["d_kf"], room["d_cur"] * 1.5])
     depth[0, 0, :20] = 0.0
@@ -165,16 +166,42 @@ def test_a_keyframes_points_are_the_references(room):  # noqa: F811
     K = torch.cat([room["K"], room["K"] * torch.tensor([[1.1], [0.9], [1.0]])]).double()
     T = torch.stack([room["T_kf"], room["drifted"]]).contiguous()
     region = torch.rand(depth.shape, generator=g) > 0.3
-    dense = DenseMap(max_depth=3.0)
-    for mask in (torch.tensor([True, True]), torch.tensor([False, True])):
-        for reg in (None, region):
-            ref, b_ref = dense._points_torch(depth, K, T, mask, reg)
-            out, b = torch.ops.torchtrack.depth_points(depth, reg, K, T, mask, dense.stride, dense.max_depth)
-            assert torch.equal(b, b_ref) and len(b) > 500 and int(b.bincount(minlength=2)[1]) > 0
-            torch.testing.assert_close(out, ref, atol=DEPTH_POINTS, rtol=0)
+    for stride in (4, 3):
+        dense = DenseMap(max_depth=3.0, stride=stride)
+        for mask in ([True, True], [False, True], [False, False]):
+            mask = torch.tensor(mask)
+            for reg in (None, region):
+                ref, b_ref = dense._points_torch(depth, K, T, mask, reg)
+                out, b = torch.ops.torchtrack.depth_points(depth, reg, K, T, mask, stride, dense.max_depth)
+                assert torch.equal(b, b_ref) and out.shape == ref.shape
+                assert torch.equal(b.unique(), mask.nonzero().squeeze(1)) and (mask.any() or len(b) == 0)
+                torch.testing.assert_close(out, ref, atol=DEPTH_POINTS, rtol=0)
+    for mask in ([True, False], [False, False]):  # the fake kernel's size also at 0
+        torch.library.opcheck(
+            torch.ops.torchtrack.depth_points.default, (depth, region, K, T, torch.tensor(mask), 3, 3.0)
+        )
     args = (depth, region, K, T, torch.tensor([True, False]), 4, 3.0)
-    torch.library.opcheck(torch.ops.torchtrack.depth_points.default, args)
     for bad, match in (((depth.double(), *args[1:]), "float32"), ((depth, region[:1], *args[2:]), "region"),
-                       ((*args[:4], args[4][:1], 4, 3.0), "mask"), ((*args[:5], 0, 3.0), "stride")):  # fmt: skip
+                       ((depth, region.byte(), *args[2:]), "region"), ((depth, region, K[:1], *args[3:]), "K"),
+                       ((*args[:3], T.float(), *args[4:]), "T"), ((*args[:4], args[4][:1], 4, 3.0), "mask"),
+                       ((*args[:5], 0, 3.0), "stride")):  # fmt: skip
         with pytest.raises(RuntimeError, match=match):
             torch.ops.torchtrack.depth_points(*bad)
+
+
+def test_the_map_is_the_same_on_both_backends(room):  # noqa: F811
+    """DenseMap.add through the operator and through the reference, the depth an expanded (non-contiguous) batch with a
+    region on the second sequence: the same voxels, their means within DEPTH_POINTS."""
+    depth, K, T = room["d_kf"].expand(2, -1, -1, -1), room["K"].expand(2, -1, -1), room["T_kf"].expand(2, 4, 4)
+    region = torch.ones(2, *depth.shape[1:], dtype=torch.bool)
+    region[1, :, :, : depth.shape[-1] // 2] = False
+    maps = []
+    for backend in ("cpp", "torch"):
+        dense = DenseMap(backend=backend)
+        dense.reset(2)
+        dense.add(depth, K, T, torch.tensor([True, True]), region)
+        maps.append([dense.map.points(b) for b in range(2)])
+    for cpp, ref in zip(*maps, strict=True):
+        assert torch.equal(cpp.count, ref.count) and len(cpp.count) > 1000
+        torch.testing.assert_close(cpp.xyz, ref.xyz, atol=DEPTH_POINTS, rtol=0)
+    assert len(maps[0][1].count) < len(maps[0][0].count)  # the region kept half the second sequence's voxels out

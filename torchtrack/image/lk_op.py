@@ -1,6 +1,7 @@
 """The compiled operators ``torch.ops.torchtrack.lk_track`` (csrc/lk.cpp, the LK inner loop),
-``torch.ops.torchtrack.shape_index_map`` (csrc/sim.cpp, the SIM), ``torch.ops.torchtrack.dense_fit`` and ``depth_points``
-(csrc/dense.cpp, the dense map's alignment and the points a keyframe adds) and ``torch.ops.torchtrack.voxel_add``, ``voxel_rehash``, ``pool_update`` (csrc/voxel.cpp,
+``torch.ops.torchtrack.shape_index_map`` (csrc/sim.cpp, the SIM), ``torch.ops.torchtrack.dense_fit`` and
+``depth_points`` (csrc/dense.cpp, the dense map's alignment and the points a keyframe adds) and
+``torch.ops.torchtrack.voxel_add``, ``voxel_rehash``, ``pool_update`` (csrc/voxel.cpp,
 the voxel map's fusion, its table's refill, the alignment's pool after a fusion): one library, built on first use,
 cached, with fake kernels; :mod:`torchtrack.image.lk`, :mod:`torchtrack.image.shape_index`,
 :mod:`torchtrack.pipeline.dense_map` and :mod:`torchtrack.mapping.voxel_grid` fall back to their pure-torch references

@@ -9,8 +9,8 @@ the point-to-plane distances ``n . (T p - v)`` (n the current frame's normal at 
 camera as a prior, gives the posterior camera. The tracker then moves its model in the world (``T_world_obj``) so that
 the camera is there: the features and the filter are untouched (they measure the camera against the model), and the
 model's world pose, which a chain of re-selections would only accumulate, is estimated against everything the camera
-saw before, however long ago. The Gauss-Newton fit runs as the compiled ``torch.ops.torchtrack.dense_fit``
-(csrc/dense.cpp) where it builds, else as :meth:`DenseMap._fit_torch`, its reference.
+saw before, however long ago. The Gauss-Newton fit, a keyframe's points and the pool's upkeep run as compiled
+operators (csrc/dense.cpp, csrc/voxel.cpp) where they build, else as their torch references.
 
 Frames: ``world`` is the tracker's world (its first depth camera); the map and the alignment work in the depth camera,
 on its own pixel grid and intrinsics (a separate depth camera's frames are used as taken, not warped).
@@ -56,18 +56,23 @@ class Fit(NamedTuple):
     weak: bool = True
 
 
-def grid(depth: Tensor, K: Tensor, stride: int, region: Tensor | None = None) -> tuple[Tensor, Tensor]:
+def grid(depth: Tensor, K: Tensor, stride: int, region: Tensor | None = None, clean: bool = True) -> tuple[Tensor, ...]:
     """Every ``stride``-th pixel of a depth image (B, 1, H, W) seen through K (B, 3, 3): the depth grid (B, h, w), 0
-    where there is no depth (0, negative or NaN) and outside ``region`` (B, 1, H, W) bool (None: everywhere), and its
-    intrinsics (B, 3, 3) float64."""
+    outside ``region`` (B, 1, H, W) bool (None: everywhere) and, if ``clean``, where there is no depth (0, negative or
+    NaN; else, without a region, a view of the image), and its intrinsics (B, 3, 3) float64."""
     d = depth[:, 0, ::stride, ::stride]
-    keep = d > 0  # a NaN would reach the fit's sums (0 x NaN is NaN)
+    if clean:  # a NaN would reach the torch fit's sums (0 x NaN is NaN)
+        d = torch.where(d > 0, d, torch.zeros_like(d))
     if region is not None:
-        keep &= region[:, 0, ::stride, ::stride]
-    d = torch.where(keep, d, torch.zeros_like(d))
+        d = torch.where(region[:, 0, ::stride, ::stride], d, torch.zeros_like(d))
+    return d, _strided(K, stride)
+
+
+def _strided(K: Tensor, stride: int) -> Tensor:
+    """The intrinsics (B, 3, 3) float64 of every ``stride``-th pixel: pixel (i, j) of the grid is (i, j) x stride."""
     Ks = K.double().clone()
-    Ks[:, :2] /= stride  # pixel (i, j) of the grid is pixel (i, j) x stride of the image
-    return d, Ks
+    Ks[:, :2] /= stride
+    return Ks
 
 
 MAX_STEP = 0.05  # surface(): no normal across a depth step larger than this fraction of the depth
@@ -181,8 +186,8 @@ class DenseMap:
 
     def add(self, depth: Tensor, K: Tensor, T_world_cam: Tensor, mask: Tensor, region: Tensor | None = None) -> None:
         """Fuse the depth (B, 1, H, W) of the sequences in ``mask`` (B,), seen through the intrinsics K (B, 3, 3) of its
-        camera from ``T_world_cam`` (B, 4, 4), into their maps (0 depth: nothing; only inside ``region`` (B, 1, H, W)
-        bool where given)."""
+        camera from ``T_world_cam`` (B, 4, 4), into their maps (no depth (0, negative, NaN) or beyond ``max_depth``:
+        nothing; only inside ``region`` (B, 1, H, W) bool where given)."""
         if self.map is None:
             raise ValueError("DenseMap: call reset(B) before add")
         if use_cpp(self.backend) and depth.device.type == "cpu":
@@ -199,9 +204,10 @@ class DenseMap:
 
     def _points_torch(self, depth: Tensor, K: Tensor, T_world_cam: Tensor, mask: Tensor,
                       region: Tensor | None) -> tuple[Tensor, Tensor]:  # fmt: skip
-        """The world points (P, 3) float64 :meth:`add` fuses and their sequences (P,), in (sequence, row, column) order:
-        the compiled ``depth_points``'s reference (tests/test_dense_op.py)."""
-        d, Ks = grid(depth, K, self.stride, region)
+        """The world points (P, 3) float64 :meth:`add` fuses and their sequences (P,), in (sequence, row, column) order,
+        of the depth (B, 1, H, W) (read as float32), K (B, 3, 3), T_world_cam (B, 4, 4), mask (B,) and region as
+        :meth:`add`'s: the compiled ``depth_points``'s reference (tests/test_dense_op.py)."""
+        d, Ks = grid(depth.float(), K, self.stride, region)
         V = backproject_depth(Ks, d[:, None].double()).flatten(1, 2)
         ok = (V[..., 2] > 0) & (V[..., 2] <= self.max_depth) & mask[:, None]
         b = torch.arange(len(mask), device=ok.device)[:, None].expand_as(ok)[ok]
@@ -219,11 +225,7 @@ class DenseMap:
         applied, pairs = [False] * B, [0] * B
         if bool(mask.any()):
             # Per sequence a handful of 4x4 and 6x6 products: in numpy, whose per-call cost is a fraction of torch's.
-            st = self.stride  # the grid a view: the fit finds no surface where there is no depth (0, negative, NaN)
-            d, Ks = depth[:, 0, ::st, ::st], K.double().clone()
-            if region is not None:
-                d = d.where(region[:, 0, ::st, ::st], 0.0)
-            Ks[:, :2] /= st
+            d, Ks = grid(depth, K, self.stride, region, clean=False)  # the fit finds no surface where depth is not > 0
             for b in mask.nonzero().squeeze(1).tolist():
                 world = self._pool(b)
                 if world is None:
@@ -291,8 +293,8 @@ class DenseMap:
     def fit(self, world: Tensor, depth: Tensor, K: Tensor, T_cw: Tensor) -> Fit:
         """Gauss-Newton on the world-to-camera pose from ``T_cw`` (4, 4), the map points ``world`` (M, 3) (the
         :meth:`_pool`) against the surface of the depth grid (h, w) (any strides; no depth where 0, negative or NaN)
-        seen through K (3, 3) (:func:`surface`), by the compiled ``torch.ops.torchtrack.dense_fit`` (csrc/dense.cpp) where the backend runs it,
-        else by :meth:`_fit_torch`. Stops early once a step is below ``tolerance``."""
+        seen through K (3, 3) (:func:`surface`), by the compiled ``torch.ops.torchtrack.dense_fit`` (csrc/dense.cpp)
+        where the backend runs it, else by :meth:`_fit_torch`. Stops early once a step is below ``tolerance``."""
         if not (use_cpp(self.backend) and depth.device.type == "cpu"):
             return self._fit_torch(world, depth, K, T_cw)
         delta, xi, info, stats = torch.ops.torchtrack.dense_fit(

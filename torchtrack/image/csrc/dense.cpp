@@ -1,10 +1,12 @@
 // Point-to-plane alignment of one depth camera to its dense map: torchtrack/pipeline/dense_map.py's DenseMap._fit_torch
-// (the reference and test oracle, tests/test_dense_op.py) as one CPU operator, torchtrack::dense_fit. The reference
-// spends ~30 ms per alignment in ~150 tensor operations on a few thousand points; here each stage is one loop.
+// (the reference and test oracle, tests/test_dense_op.py) as one CPU operator, torchtrack::dense_fit, and the points
+// a keyframe adds to the map, torchtrack::depth_points (below). The reference spends ~30 ms per alignment in ~150
+// tensor operations on a few thousand points; here each stage is one loop.
 //
-// Stages, as in the reference: the surface of the depth grid (vertices, normals of the central differences,
-// validity: depth at the pixel and its four neighbours, none farther than max_step x z; here computed at a pixel when
-// a point first lands on it, not over the whole grid); the map points culled to
+// Stages, as in the reference: the surface of the depth grid (any strides: a view of the frame needs no copy;
+// vertices, normals of the central differences, validity: depth (> 0: not 0, negative or NaN) at the pixel and its
+// four neighbours, none farther than max_step x z; here computed at a pixel when a point first lands on it, not over
+// the whole grid); the map points culled to
 // those in front of the camera and inside the image and evenly thinned to max_points
 // (point i * (n - 1) / (max_points - 1), integer division); then Gauss-Newton on the pose: each point projected to
 // its nearest pixel, paired with the surface there, the Huber- and depth-weighted point-to-plane normal equations
@@ -23,8 +25,8 @@
 // torchtrack::depth_points: the points a keyframe's depth adds to the map (DenseMap.add; DenseMap._points_torch is
 // the reference): every stride-th pixel of the depth with 0 < z <= max_depth (inside the region where given) of the
 // sequences in mask, back-projected through the strided grid's intrinsics and moved into the world, in (sequence,
-// row, column) order. The reference's ~10 tensor operations over the whole grid cost ~2.5 ms per keyframe; this one
-// pass ~0.1 ms.
+// row, column) order. The reference's ~10 tensor operations over the whole grid: 3.4 ms per 640x480 keyframe
+// against 0.49 ms here (experiments/RESULTS.md, "The map's calls, session 17").
 
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
@@ -132,9 +134,8 @@ class Surface {
   // depth: pixel (i, j) at depth[i * row + j * col] (a strided view of a larger image needs no copy)
   Surface(const float* depth, int64_t h, int64_t w, int64_t row, int64_t col, double fx, double fy, double cx,
           double cy, double max_step)
-      : h(static_cast<int>(h)), w(static_cast<int>(w)), row_(row), col_(col), depth_(depth), fx_(fx), fy_(fy), cx_(cx),
-        cy_(cy),
-        max_step_(max_step), slot_(h * w, kUnknown) {
+      : h(static_cast<int>(h)), w(static_cast<int>(w)), row_(row), col_(col), depth_(depth), fx_(fx), fy_(fy),
+        cx_(cx), cy_(cy), max_step_(max_step), slot_(h * w, kUnknown) {
     px_.reserve(h * w);  // never moved: at()'s pointers stay valid
   }
 
@@ -402,8 +403,9 @@ std::tuple<at::Tensor, at::Tensor> depth_points_cpu(const at::Tensor& depth, con
     for (int64_t i = 0; i < h; ++i) {
       const double y1 = (i - cy) / fy;
       for (int64_t j = 0, row = (b * H + i * stride) * W; j < w; ++j) {
-        if (!taken(row + j * stride)) continue;
-        const double z = d[row + j * stride], x = (j - cx) / fx * z, y = y1 * z;
+        const int64_t at = row + j * stride;
+        if (!taken(at)) continue;
+        const double z = d[at], x = (j - cx) / fx * z, y = y1 * z;
         for (int a = 0; a < 3; ++a) X[a] = t[4 * a] * x + t[4 * a + 1] * y + t[4 * a + 2] * z + t[4 * a + 3];
         X += 3;
         *bo++ = b;
