@@ -25,7 +25,8 @@ from torchtrack.data.synthetic.scene import default_scene
 from torchtrack.factory import build_tracker
 from torchtrack.geometry import T_inv, rotation_angle, se3_exp
 from torchtrack.image import lk_op
-from torchtrack.pipeline.dense_map import DenseMap, grid, surface
+from torchtrack.pipeline.dense_map import DenseMap
+from torchtrack.pipeline.depth_grid import grid, surface
 
 ONE = torch.ones(1, dtype=torch.bool)
 

@@ -22,7 +22,8 @@ from tolerances import DENSE_OP_INFO, DENSE_OP_PAIRS, DENSE_OP_POSE, DEPTH_POINT
 from torchtrack.data import TumSequence, iterate_batched
 from torchtrack.geometry import T_inv, se3_exp
 from torchtrack.image import lk_op
-from torchtrack.pipeline.dense_map import DenseMap, grid
+from torchtrack.pipeline.dense_map import DenseMap
+from torchtrack.pipeline.depth_grid import grid
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 pytestmark = pytest.mark.skipif(not lk_op.available(), reason="the compiled operators do not build here")
