@@ -29,6 +29,7 @@ from torch import Tensor
 
 from torchtrack.filter.models import Linearization, MotionModel, _linearization, constant_velocity
 from torchtrack.geometry import hat, make_T, so3_exp, so3_left_jacobian
+from torchtrack.geometry.rotation import so3_exp_and_left_jacobian
 
 
 def transition(dt: Tensor, omega: Tensor, sigma_ang_acc: float, sigma_lin_acc: float) -> MotionModel:
@@ -40,7 +41,8 @@ def transition(dt: Tensor, omega: Tensor, sigma_ang_acc: float, sigma_lin_acc: f
     """
     F, Q = constant_velocity(dt, sigma_ang_acc, sigma_lin_acc)
     phi = omega * dt[:, None]  # B,3
-    rot = torch.cat([so3_exp(phi), F[:, :3, 3:6], so3_left_jacobian(phi) * dt[:, None, None], F[:, :3, 9:]], -1)
+    turn, J = so3_exp_and_left_jacobian(phi)
+    rot = torch.cat([turn, F[:, :3, 3:6], J * dt[:, None, None], F[:, :3, 9:]], -1)
     return MotionModel(torch.cat([rot, F[:, 3:]], -2), Q)
 
 

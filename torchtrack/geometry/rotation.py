@@ -22,11 +22,14 @@ _EPS = {torch.float32: 1e-4, torch.float64: 1e-8}
 _WXYZ, _XYZW = [3, 0, 1, 2], [1, 2, 3, 0]  # kornia's quaternions are w, x, y, z; torchtrack's (TUM's) x, y, z, w
 
 
+_HAT = torch.tensor([0, 6, 2, 3, 0, 4, 5, 1, 0])  # hat's entries in (0, x, y, z, -x, -y, -z)
+
+
 def hat(v: Tensor) -> Tensor:
     """Skew-symmetric matrix: (..., 3) -> (..., 3, 3) with ``hat(a) @ b == cross(a, b)``."""
-    x, y, z = v.unbind(-1)
-    o = torch.zeros_like(x)
-    return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).reshape(*v.shape[:-1], 3, 3)
+    padded = torch.cat([torch.zeros_like(v[..., :1]), v, -v], -1)
+    index = _HAT if v.device.type == "cpu" else _HAT.to(v.device)
+    return padded.index_select(-1, index).reshape(*v.shape[:-1], 3, 3)
 
 
 def vee(m: Tensor) -> Tensor:
@@ -34,14 +37,27 @@ def vee(m: Tensor) -> Tensor:
     return torch.stack([m[..., 2, 1], m[..., 0, 2], m[..., 1, 0]], dim=-1)
 
 
-def _sinc_terms(theta2: Tensor) -> tuple[Tensor, Tensor]:
-    """``a = sin(t)/t`` and ``b = (1 - cos(t))/t^2`` with Taylor series near 0."""
+def _so3(omega: Tensor, exp: bool, jacobian: bool) -> tuple[Tensor | None, Tensor | None]:
+    """Rodrigues' rotation ``I + a W + b W^2`` (``exp``) and the left Jacobian ``I + b W + c W^2`` (``jacobian``) at
+    axis-angle ``omega`` (..., 3), ``W = hat(omega)``, t = |omega|, ``a = sin(t)/t``, ``b = (1 - cos t)/t^2``,
+    ``c = (t - sin t)/t^3``, with Taylor series near 0; the terms both need are computed once."""
+    theta2 = (omega * omega).sum(-1)[..., None, None]
     small = theta2 < _EPS.get(theta2.dtype, 1e-4)
     t2 = torch.where(small, torch.ones_like(theta2), theta2)
     t = t2.sqrt()
-    a = torch.where(small, 1 - theta2 / 6 + theta2**2 / 120, torch.sin(t) / t)
+    sin = torch.sin(t)
     b = torch.where(small, 0.5 - theta2 / 24 + theta2**2 / 720, (1 - torch.cos(t)) / t2)
-    return a, b
+    W = hat(omega)
+    WW = W @ W
+    eye = torch.eye(3, dtype=omega.dtype, device=omega.device).expand_as(W)
+    R = J = None
+    if exp:
+        a = torch.where(small, 1 - theta2 / 6 + theta2**2 / 120, sin / t)
+        R = eye + a * W + b * WW
+    if jacobian:
+        c = torch.where(small, 1 / 6 - theta2 / 120, (t - sin) / (t2 * t))
+        J = eye + b * W + c * WW
+    return R, J
 
 
 # Hand-written, not kornia.geometry.conversions.axis_angle_to_rotation_matrix (same values to 1e-16 in float64,
@@ -49,26 +65,19 @@ def _sinc_terms(theta2: Tensor) -> tuple[Tensor, Tensor]:
 # prediction, injection and (jacobian=forward) linearisation.
 def so3_exp(omega: Tensor) -> Tensor:
     """Rodrigues' formula: axis-angle (..., 3) -> rotation (..., 3, 3)."""
-    theta2 = (omega * omega).sum(-1)[..., None, None]
-    a, b = _sinc_terms(theta2)
-    W = hat(omega)
-    eye = torch.eye(3, dtype=omega.dtype, device=omega.device).expand_as(W)
-    return eye + a * W + b * (W @ W)
+    return _so3(omega, True, False)[0]
 
 
 def so3_left_jacobian(omega: Tensor) -> Tensor:
     """Left Jacobian of SO(3), (..., 3) -> (..., 3, 3): ``Exp(omega + d) = Exp(J_l(omega) d) Exp(omega)`` to first
     order in d; ``J_l = I + (1 - cos t)/t^2 W + (t - sin t)/t^3 W^2`` with ``W = hat(omega)``, t = |omega| (Taylor
     near 0). It is also the V matrix of SE(3)'s exponential (Barfoot, "State Estimation for Robotics", eq. 7.77)."""
-    theta2 = (omega * omega).sum(-1)[..., None, None]
-    _, b = _sinc_terms(theta2)
-    small = theta2 < 1e-4 if omega.dtype == torch.float32 else theta2 < 1e-8
-    t2 = torch.where(small, torch.ones_like(theta2), theta2)
-    t = t2.sqrt()
-    c = torch.where(small, 1 / 6 - theta2 / 120, (t - torch.sin(t)) / (t2 * t))
-    W = hat(omega)
-    eye = torch.eye(3, dtype=omega.dtype, device=omega.device).expand_as(W)
-    return eye + b * W + c * (W @ W)
+    return _so3(omega, False, True)[1]
+
+
+def so3_exp_and_left_jacobian(omega: Tensor) -> tuple[Tensor, Tensor]:
+    """``(so3_exp(omega), so3_left_jacobian(omega))``, sharing their terms."""
+    return _so3(omega, True, True)
 
 
 # Hand-written, not kornia's rotation_matrix_to_axis_angle (or liegroup.So3.log): those go through a quaternion and

@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchtrack.geometry.rotation import hat, so3_exp, so3_left_jacobian, so3_log
+from torchtrack.geometry.rotation import hat, so3_exp_and_left_jacobian, so3_left_jacobian, so3_log
 
 
 def make_T(R: Tensor, t: Tensor) -> Tensor:
@@ -61,7 +61,8 @@ _V_matrix = so3_left_jacobian  # SE(3)'s V is SO(3)'s left Jacobian
 def se3_exp(xi: Tensor) -> Tensor:
     """Twist (..., 6) = (v, omega) -> transform (..., 4, 4)."""
     v, omega = xi[..., :3], xi[..., 3:]
-    return make_T(so3_exp(omega), (_V_matrix(omega) @ v[..., None])[..., 0])
+    R, V = so3_exp_and_left_jacobian(omega)
+    return make_T(R, (V @ v[..., None])[..., 0])
 
 
 def se3_log(T: Tensor) -> Tensor:
