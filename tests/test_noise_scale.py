@@ -17,8 +17,9 @@ from hydra.utils import instantiate
 from torchtrack.config import CONF_DIR, FilterConfig
 from torchtrack.filter import FusionEKF, Variances
 from torchtrack.filter.backend import EKFBackend
+from torchtrack.filter.ekf import chi2_quantile
 from torchtrack.filter.frame import ekf_frame
-from torchtrack.filter.noise_scale import PIX, XYZ, NoiseScale
+from torchtrack.filter.noise_scale import PIX, XYZ, NoiseScale, winsorised_chi2_mean, winsorised_scale
 from torchtrack.learn.oracle import oracle_windows
 from torchtrack.learn.rollout import PER_WINDOW, pose_errors
 
@@ -111,6 +112,38 @@ def test_gross_outliers_barely_move_the_scale():
     assert adapt[0] <= 1.1 * truth[0] and adapt[1] <= 1.1 * truth[1]
     _, plain_mean = track(oracle, (4.0, 0.25), noise_scale=True, noise_clip=None)
     assert bool((plain_mean[-1] > 5.0 * torch.tensor([4.0, 0.25], dtype=F64)).all())
+
+
+def bisected_scale(q, w, c: float, expected: float) -> float:
+    """The positive root of ``s E - sum w min(q, c s) / sum w`` by bisection (convex in s, negative just above 0)."""
+    h = lambda s: s * expected - float((w * torch.minimum(q, torch.tensor(c * s, dtype=F64))).sum() / w.sum())  # noqa: E731
+    lo, hi = 1e-300, 1.0
+    while h(hi) <= 0:
+        hi *= 2.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if h(mid) <= 0 else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+@pytest.mark.parametrize("dof", [2, 3])
+def test_the_winsorised_scale_is_the_root_of_its_equation(dof):
+    """The closed form against bisection on heavy-tailed, unevenly weighted rows (some without a measurement), and the
+    case it can be read off: equal q unclipped give q / E. Rows of no weight give 1e-12."""
+    c = chi2_quantile(0.9, dof)
+    E = winsorised_chi2_mean(dof, c)
+    g = torch.Generator().manual_seed(dof)
+    q = torch.randn(6, 150, dof, generator=g, dtype=F64).square().sum(-1)  # chi-square(dof)
+    heavy = torch.where(torch.rand(6, 150, generator=g) < 0.2, 40.0, 1.0).to(F64)
+    q = q * heavy * torch.tensor([0.1, 1, 3, 10, 1, 1], dtype=F64)[:, None]
+    w = torch.rand(6, 150, generator=g, dtype=F64) * (torch.rand(6, 150, generator=g) < 0.8)
+    w[4] = 0.0  # no measurement
+    q[5], w[5] = 2.5, 1.0
+    s = winsorised_scale(q, w, c, E)
+    for b in (0, 1, 2, 3):
+        assert abs(float(s[b]) - bisected_scale(q[b], w[b], c, E)) <= 1e-12 * float(s[b])
+    assert float(s[4]) == 1e-12
+    assert abs(float(s[5]) - 2.5 / E) <= 1e-15 * 2.5 / E
 
 
 def test_batched_equals_looped():

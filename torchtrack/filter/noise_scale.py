@@ -42,7 +42,8 @@ most ``c / E[min(.)]`` inliers, and a small fraction e of gross outliers biases 
 0.9 (on the oracle, 5 % outliers: +12 %, +15 %; the median would give ~1.6 e, at about half the Gaussian
 efficiency; clip 0.95 gives 2.0 e, 2.6 e). Since the cap is relative to the scale itself, the frame's estimate is
 the fixed point ``s = k / k' = mean(min(q_f / s, c)) / E[min(chi2(dof), c)]`` (Huber's proposal 2 for a scale),
-found by iterating from the median estimate; so one frame finds a k however far off the one it was run with.
+solved in closed form (the right side is piecewise linear in s: :func:`winsorised_scale`); so one frame finds a k
+however far off the one it was run with.
 
 Why residuals, not innovations. Innovation covariance matching (Mehra 1970; Sage-Husa) uses
 ``E[v v^T] = H P- H^T + R``, i.e. ``k_b = sum (v_i^2 - (H P- H^T)_ii) / sum R0_i``. That is unbiased only if the
@@ -123,12 +124,11 @@ def residual_statistics(
     return ScaleStats(torch.where(weight > 0, k * scale.to(k.dtype), scale.to(k.dtype)), weight)
 
 
-def _block(d: Tensor, rho: Tensor, valid: Tensor, clip: float | None, iterations: int = 30) -> tuple[Tensor, Tensor]:
+def _block(d: Tensor, rho: Tensor, valid: Tensor, clip: float | None) -> tuple[Tensor, Tensor]:
     """One block's (B,) ratio ``s = k / k'`` of the true to the used scale and its (B,) weight (the sum of the
     features' redundancies), from the (B, N, dof) normalised squared residuals ``d = r^2 / R``, redundancies ``rho``
     and ``valid`` of its components: the redundancy-weighted mean of the q_f (module docstring), winsorised at c
-    relative to s itself, ``s = mean(min(q_f / s, c)) / E[min(chi2(dof), c)]``, solved by fixed-point iteration from
-    the median estimate ``median(q_f) / median(chi2(dof))``."""
+    relative to s itself, ``s = mean(min(q_f / s, c)) / E[min(chi2(dof), c)]``."""
     dof = d.shape[-1]
     d_f, rho_f = d.sum(-1), rho.sum(-1)  # B,N per feature
     ok = valid.all(-1) & (rho_f > 1e-9)
@@ -137,12 +137,29 @@ def _block(d: Tensor, rho: Tensor, valid: Tensor, clip: float | None, iterations
     q = torch.where(ok, d_f * dof / rho_f.clamp_min(1e-9), torch.zeros_like(d_f))  # ~ (k / k') chi2(dof)
     if clip is None:
         return (w * q).sum(-1) / weight.clamp_min(1e-12) / dof, weight
-    c, expected = chi2_quantile(clip, dof), winsorised_chi2_mean(dof, chi2_quantile(clip, dof))
-    s = torch.nanquantile(torch.where(ok, q, torch.full_like(q, float("nan"))), 0.5, dim=-1) / chi2_quantile(0.5, dof)
-    s = torch.nan_to_num(s, nan=1.0).clamp_min(1e-12)
-    for _ in range(iterations):
-        s = ((w * torch.minimum(q, c * s[:, None])).sum(-1) / weight.clamp_min(1e-12) / expected).clamp_min(1e-12)
-    return s, weight
+    c = chi2_quantile(clip, dof)
+    return winsorised_scale(q, w, c, winsorised_chi2_mean(dof, c)), weight
+
+
+def winsorised_scale(q: Tensor, w: Tensor, c: float, expected: float) -> Tensor:
+    """The positive root s (B,) of ``s E = sum_i w_i min(q_i, c s) / sum_i w_i`` over the (B, N) values ``q >= 0``
+    with weights ``w >= 0`` (Huber's proposal 2 for a scale, ``expected`` = E < c), in closed form: with the q in
+    ascending order, the right side is linear in s between two of them, ``(A_j + c s B_j) / W`` with A_j the weighted
+    sum of the j + 1 smallest and B_j the weight of the others, so the root is ``s_j = A_j / (W E - c B_j)`` for the
+    one j with ``q_(j) <= c s_j <= q_(j+1)``. (Iterating the right side, a contraction, converges to it.) 1e-12 where
+    a row has no weight."""
+    qs, order = torch.where(w > 0, q, torch.full_like(q, float("inf"))).sort(-1)
+    ws = w.gather(-1, order)
+    W = ws.sum(-1, keepdim=True)
+    A = (ws * torch.where(ws > 0, qs, torch.zeros_like(qs))).cumsum(-1)
+    above = (W - ws.cumsum(-1)).clamp_min(0.0)
+    den = W * expected - c * above
+    s = A / torch.where(den > 0, den, torch.ones_like(den))
+    nxt = torch.cat([qs[..., 1:], torch.full_like(qs[..., :1], float("inf"))], -1)
+    root = (den > 0) & (ws > 0) & (qs <= c * s) & (c * s <= nxt)
+    pick = root.to(torch.uint8).argmax(-1, keepdim=True)  # the first: equal q give equal roots
+    s = s.gather(-1, pick)[..., 0]
+    return torch.where(root.any(-1), s, torch.zeros_like(s)).clamp_min(1e-12)
 
 
 @functools.lru_cache(maxsize=16)
