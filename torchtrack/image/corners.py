@@ -114,6 +114,7 @@ def harris(
     window: str = "binomial",
     sigma: float = 1.0,
     block_size: int = 3,
+    backend: str = "auto",
 ) -> Tensor:
     """Cornerness of every pixel of every channel.
 
@@ -124,6 +125,11 @@ def harris(
         window: "binomial", "gaussian" or "box" (module docstring).
         sigma: std (pixels) of the binomial / Gaussian window.
         block_size: side of the box window.
+        backend: "cpp" runs the Harris response with the binomial window of a float32 CPU image (without gradient)
+            as the compiled operator ``torch.ops.torchtrack.harris_binomial`` (csrc/corners.cpp: the same terms in
+            one pass per stage, equal within float32 rounding), "torch" the functions above (the reference), "auto"
+            the operator where it builds; where it does not apply (another window or method, float64, a gradient,
+            another device) the reference runs.
 
     Returns:
         (B, C, H, W) cornerness, same dtype as ``image``.
@@ -132,6 +138,12 @@ def harris(
         raise ValueError(f"harris: image must be (B, C, H, W), got {tuple(image.shape)}")
     if method not in _METHODS:
         raise ValueError(f"harris: method must be one of {_METHODS}, got {method!r}")
+    from torchtrack.image.lk import use_cpp  # the operators' one switch (import here: lk imports this package)
+
+    applies = method == "harris" and window == "binomial" and image.dtype == torch.float32
+    applies &= image.device.type == "cpu" and min(image.shape[-2:]) >= 5 and not image.requires_grad
+    if use_cpp(backend) and applies:
+        return torch.ops.torchtrack.harris_binomial(image.contiguous(), k, max(1, round(2.0 * sigma * sigma)))
     m = structure_tensor(image, window=window, sigma=sigma, block_size=block_size)
     a, b, c = m.unbind(1)
     if method == "harris":

@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 SOURCE = Path(__file__).with_name("csrc") / "lk.cpp"
-SOURCES = [SOURCE, SOURCE.with_name("sim.cpp"), SOURCE.with_name("dense.cpp"), SOURCE.with_name("voxel.cpp")]
+SOURCES = [SOURCE, *(SOURCE.with_name(f"{name}.cpp") for name in ("sim", "dense", "voxel", "corners"))]
 # -fopenmp compiles at::parallel_for's OpenMP region; it is not linked: the symbols resolve to torch's own OpenMP
 # runtime (linking the system libgomp would load a second one).
 CFLAGS = ["-O3", "-fopenmp", "-fno-math-errno"]
@@ -147,6 +147,10 @@ def _register_fake() -> None:
     @torch.library.register_fake("torchtrack::shape_index_map")
     def _(depth, K, *args) -> tuple[Tensor, Tensor, Tensor]:
         return torch.empty_like(depth), torch.empty_like(depth, dtype=torch.bool), torch.empty_like(depth)
+
+    @torch.library.register_fake("torchtrack::harris_binomial")
+    def _(image, k, passes) -> Tensor:
+        return torch.empty_like(image)
 
     @torch.library.register_fake("torchtrack::dense_fit")
     def _(world, depth, K, T_cw, *args) -> tuple[Tensor, Tensor, Tensor, Tensor]:
