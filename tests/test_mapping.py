@@ -39,6 +39,7 @@ from torchtrack.mapping import (
     voxel_grid,
     voxel_keys,
 )
+from torchtrack.mapping.voxel_grid import spatial_hash
 from torchtrack.run import run_tracker
 
 VOXEL = 0.02
@@ -276,6 +277,49 @@ def test_clear_releases_one_map_and_keeps_the_others():
         torch.testing.assert_close(m.points(s).xyz, after.points(s).xyz)
         torch.testing.assert_close(m.points(s).count, after.points(s).count)
     torch.testing.assert_close(m.points(2).rgb, before[2].rgb)
+
+
+@pytest.mark.parametrize("backend", ["cpp", "torch"])
+def test_prune_keeps_the_best_supported_voxels_of_one_map(backend):
+    """Oracle: the voxels a prune keeps are the `keep` with the largest counts, equal counts ordered by spatial hash
+    (numpy on the map's own points); their means are unchanged, the other sequences are untouched, and the compacted
+    map fuses later points into the voxels it kept as a map built from the kept voxels' points would."""
+    if backend == "cpp" and not lk_op.available():
+        pytest.skip(f"compiled operator unavailable: {lk_op.error()}")
+    gen = torch.Generator().manual_seed(4)
+    p = torch.rand(6000, 3, generator=gen, dtype=torch.float64) ** 3  # denser near the origin: counts 1 to ~60
+    c, b = torch.rand(6000, 3, generator=gen), torch.randint(0, 2, (6000,), generator=gen)
+    m = VoxelPointMap(voxel_size=0.05, batch_size=2, backend=backend)
+    m.add(p, c, b)
+    before = [m.points(s) for s in range(2)]
+    keys0 = m.voxels(0)[0]
+    count = before[0].count.numpy()
+    assert count.min() == 1 and count.max() > 20
+    order = np.lexsort((spatial_hash(keys0).numpy(), -count))  # count descending, then hash ascending
+    keep = len(keys0) // 3
+    expected = np.sort(keys0.numpy()[order[:keep]])
+    assert m.prune(0, keep) == len(keys0) - keep and m.prune(0, keep) == 0
+    assert m.size(0) == keep and len(m) == keep + m.size(1)
+    assert np.array_equal(m.voxels(0)[0].numpy(), expected)
+    at = np.searchsorted(keys0.numpy(), expected)
+    torch.testing.assert_close(m.points(0).xyz, before[0].xyz[at], rtol=0, atol=0)
+    torch.testing.assert_close(m.points(0).count, before[0].count[at])
+    for field in range(3):
+        assert torch.equal(m.points(1)[field], before[1][field])
+    more = torch.rand(500, 3, generator=gen, dtype=torch.float64) ** 3
+    m.add(more, torch.rand(500, 3, generator=gen), torch.zeros(500, dtype=torch.long))
+    mine = b == 0
+    kept_key = torch.isin(voxel_keys(p, b, 0.05)[0], torch.from_numpy(expected)) & mine
+    fresh = VoxelPointMap(voxel_size=0.05, batch_size=2, backend=backend)
+    fresh.add(
+        torch.cat([p[kept_key], more]),
+        torch.cat([c[kept_key], c[:500]]),
+        torch.zeros(int(kept_key.sum()) + 500, dtype=torch.long),
+    )
+    torch.testing.assert_close(m.points(0).xyz, fresh.points(0).xyz)
+    torch.testing.assert_close(m.points(0).count, fresh.points(0).count)
+    with pytest.raises(ValueError, match="keep"):
+        m.prune(0, -1)
 
 
 def test_points_out_of_range_are_dropped_and_counted():

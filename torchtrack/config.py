@@ -287,6 +287,7 @@ class DenseMapConfig:
     enabled: bool = True  # improvement (false = paper): the model placed on a dense map, not only chained
     voxel_size: float = 0.01  # m, the map's voxel edge (one point per occupied voxel)
     every: int = 1  # the camera aligned to the map every this many frames (and at every re-selection); 1: every frame
+    max_voxels: int = 1_000_000  # a sequence's map beyond this is pruned (to 3/4), the least-supported voxels first
 
 
 @dataclass

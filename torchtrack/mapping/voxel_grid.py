@@ -1,7 +1,8 @@
 """A streaming voxel-grid point map, batched over B sequences: one coloured point per occupied voxel.
 
 Every voxel keeps the sums of the positions and colours of the points that fell in it and their count; the map's
-point is the mean (position and colour). Memory is bounded by the occupied volume, not by the number of frames.
+point is the mean (position and colour). Memory is bounded by the occupied volume, not by the number of frames, and
+where that is too large by :meth:`VoxelPointMap.prune`, which keeps the voxels with the most support.
 
 Voxels are keyed by one int64 per (sequence, voxel): ``b << 54 | (ix + 2^17) << 36 | (iy + 2^17) << 18 | (iz + 2^17)``
 with ``i = floor(p / voxel_size)`` per axis, so one index serves all B maps and points outside +-2^17 voxels of the
@@ -276,6 +277,28 @@ class VoxelPointMap:
     def size(self, b: int) -> int:
         """Occupied voxels of sequence b."""
         return self._sizes[b]
+
+    def prune(self, b: int, keep: int) -> int:
+        """Keep sequence b's ``keep`` best-supported voxels and forget the others: those that averaged the fewest
+        points go first (a voxel seen once, a transient surface or a depth outlier, before one seen from many
+        frames), whatever their age; among equal counts the larger :func:`spatial_hash` goes first (no pattern in
+        space, the same choice however the map grew). The means of the kept voxels are unchanged; the buffers are
+        compacted (their rows renumbered, in their order). Returns the number of voxels forgotten."""
+        if keep < 0:
+            raise ValueError(f"VoxelPointMap.prune: keep must be >= 0, got {keep}")
+        if self._sizes[b] <= keep:
+            return 0
+        keys = self._keys[: self._n]
+        rows = ((keys >> (3 * AXIS_BITS)) == b).nonzero().squeeze(1)
+        order = torch.argsort(spatial_hash(keys[rows]), stable=True)
+        order = order[torch.argsort(self._sums[rows[order], 6], descending=True, stable=True)]
+        kept = torch.ones(self._n, dtype=torch.bool, device=self.device)
+        kept[rows[order[keep:]]] = False
+        dropped = self._sizes[b] - keep
+        self._sums, self._keys = self._sums[: self._n][kept], keys[kept]
+        self._n, self._sizes[b] = len(self._keys), keep
+        self._rehash(len(self._table))
+        return dropped
 
     def clear(self, b: int) -> None:
         """Forget sequence b's map and compact the buffers (a finished sequence's memory is released)."""

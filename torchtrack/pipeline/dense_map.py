@@ -83,6 +83,10 @@ class DenseMap:
             ~0.4x each: what remains is a few hundredths of a millimetre).
         weak: a direction of the pose in which the depth's information is below this many times the prior's is left
             as the tracker had it (the correction projected off it).
+        max_voxels: the most voxels a sequence's map holds: beyond it the map is pruned to three quarters of it, the
+            voxels that averaged the fewest points first (:meth:`~torchtrack.mapping.voxel_grid.VoxelPointMap.prune`;
+            by three quarters, so that a full map is pruned every few keyframes, not at each): memory is bounded
+            however far the camera goes.
         backend: "cpp" the compiled ``torch.ops.torchtrack.dense_fit``, ``depth_points`` (csrc/dense.cpp) and
             ``pool_update`` (csrc/voxel.cpp), "torch" their references (:meth:`_fit_torch`, :meth:`_points_torch`,
             :meth:`_updated`), "auto" the operators
@@ -109,16 +113,18 @@ class DenseMap:
         converged: float = 3e-3,
         tolerance: float = 1e-4,
         weak: float = 3.0,
+        max_voxels: int = 1_000_000,
         backend: str = "auto",
     ) -> None:
-        if voxel_size <= 0 or every < 1 or stride < 1 or iterations < 1 or max_points < 1:
-            raise ValueError(f"DenseMap: need voxel_size > 0 and every, stride, iterations, max_points >= 1; got "
-                             f"{voxel_size}, {every}, {stride}, {iterations}, {max_points}")  # fmt: skip
+        if voxel_size <= 0 or min(every, stride, iterations, max_points, max_voxels) < 1:
+            raise ValueError(f"DenseMap: need voxel_size > 0 and every, stride, iterations, max_points, max_voxels >= 1; "
+                             f"got {voxel_size}, {every}, {stride}, {iterations}, {max_points}, {max_voxels}")  # fmt: skip
         self.voxel_size, self.every, self.stride, self.max_points = voxel_size, every, stride, max_points
         self.iterations, self.max_distance_m, self.huber_m, self.sigma_m = iterations, max_distance_m, huber_m, sigma_m
         self.prior_m, self.prior_deg, self.min_pairs = prior_m, prior_deg, min_pairs
         self.max_correction_m, self.max_correction_deg, self.max_depth = max_correction_m, max_correction_deg, max_depth
         self.converged, self.tolerance, self.weak, self.backend = converged, tolerance, weak, backend
+        self.max_voxels = max_voxels
         if backend not in ("auto", "cpp", "torch"):  # here, not at the first alignment (the operator builds then)
             raise ValueError(f"DenseMap: backend must be 'auto', 'cpp' or 'torch', got {backend!r}")
         self.map: VoxelPointMap | None = None
@@ -158,6 +164,10 @@ class DenseMap:
         added = self.map.add(world, torch.zeros_like(world), b)
         for i in mask.nonzero().squeeze(1).tolist():
             self._pools[i] = self._updated(i, added)
+        for i in mask.nonzero().squeeze(1).tolist():  # after the pools: a prune renumbers the rows ``added`` names
+            if self.map.size(i) > self.max_voxels:
+                self.map.prune(i, 3 * self.max_voxels // 4)
+                self._pools[i] = None  # picked anew (the others hold keys and points, not rows)
 
     def _points_torch(self, depth: Tensor, K: Tensor, T_world_cam: Tensor, mask: Tensor,
                       region: Tensor | None) -> tuple[Tensor, Tensor]:  # fmt: skip
