@@ -50,6 +50,8 @@ class EKFBackend:
             self.scale_state = None if self.ekf.noise is None else self.ekf.noise.initial(B, device=T_cam_obj.device)
             return
         self.state = init.select(mask, self.state)
+        if self.scale_state is not None and self.scale_state.last_ok is not None:
+            self.scale_state = self.scale_state._replace(last_ok=self.scale_state.last_ok & ~mask[:, None, None])
 
     def set_pose(self, T_cam_obj: Tensor, mask: Tensor) -> None:
         """Move the pose to ``T_cam_obj`` (B, 4, 4) where ``mask`` (B,) is True, keeping velocity and covariance (a
@@ -81,4 +83,10 @@ def _kept(new: ScaleState, old: ScaleState | None, active: Tensor | None) -> Sca
     """A running scale after a frame: ``new`` where ``active`` (B,) is True (default: all), ``old`` elsewhere."""
     if active is None or old is None:
         return new
-    return ScaleState(*(torch.where(active[:, None], n, o) for n, o in zip(new, old, strict=True)))
+    out = []
+    for n, o in zip(new, old, strict=True):
+        if n is None or o is None or n.shape != o.shape:
+            out.append(n)
+        else:
+            out.append(torch.where(active.view(-1, *[1] * (n.dim() - 1)), n, o))
+    return ScaleState(*out)

@@ -138,7 +138,9 @@ def ekf_frame(
     if noise_scale is not None:
         if scale_state is None:
             scale_state = noise_scale.initial(obs.valid.shape[0], device=obs.valid.device)
-        var = scaled(var, scale_state.scale)  # R = k R0 for every step of this frame
+        from torchtrack.filter.noise_scale import used_scale
+
+        var = scaled(var, used_scale(scale_state.scale))  # R = k R0 for every step of this frame
     prior = ekf.predicted(state, obs.dt)  # eqs. (3)-(4)
     dt = prior.mean.dtype
     points_obj, K, T_cd = obs.points_obj.to(dt), obs.K.to(dt), obs.T_color_depth.to(dt)
@@ -190,7 +192,22 @@ def ekf_frame(
                 "bnms,bs->bnm", H, post.mean - prior.mean
             )  # linearised at x-
             post_hph = torch.einsum("bnms,bst,bnmt->bnm", H, post.cov, H)
-            stats = residual_statistics(residual, post_hph, var5, valid5, used, scale_state.scale, noise_scale.clip)
+            from torchtrack.filter import noise_scale as ns
+
+            k_used = ns.used_scale(scale_state.scale)
+            stats = residual_statistics(residual, post_hph, var5, valid5, used, k_used, noise_scale.clip)
+            if ns.WHITE:
+                white, last_r, last_rv, last_ok = ns.white_statistics(
+                    residual, post_hph, var5, valid5, used, k_used, scale_state, noise_scale.clip
+                )
+                cols = ns.white_columns(residual.device)
+                if white is None:
+                    stats = ns.ScaleStats(torch.where(cols, scale_state.scale, stats.scale),
+                                          torch.where(cols, torch.zeros_like(stats.weight), stats.weight))
+                else:
+                    stats = ns.ScaleStats(torch.where(cols, white.scale, stats.scale),
+                                          torch.where(cols, white.weight, stats.weight))
+                scale_state = scale_state._replace(last_r=last_r, last_rv=last_rv, last_ok=last_ok)
         noise = noise_scale.updated(scale_state, stats)
     updated = used.any(-1).any(-1)
     return FrameUpdate(posterior, prior, xyz, pix, innovation, innovation_var, nll, updated, noise)

@@ -81,6 +81,9 @@ class ScaleState(NamedTuple):
 
     scale: Tensor
     dof: Tensor
+    last_r: Tensor | None = None
+    last_rv: Tensor | None = None
+    last_ok: Tensor | None = None
 
 
 class ScaleStats(NamedTuple):
@@ -207,4 +210,40 @@ class NoiseScale:
             dof = past + stats.weight
             k = (past * state.scale + stats.weight * stats.scale) / dof.clamp_min(1e-12)
             k = torch.where(dof > 0, k, state.scale).clamp(self.min_scale, self.max_scale)
-        return ScaleState(k, dof)
+        return ScaleState(k, dof, state.last_r, state.last_rv, state.last_ok)
+
+
+import os  # noqa: E402
+
+WHITE = os.environ.get("TT_WHITE", "")  # "", "both", "xyz"
+FLOOR = os.environ.get("TT_WHITE_FLOOR", "") == "1"
+
+
+def white_columns(device=None) -> Tensor:
+    """(2,) bool: the blocks [pix, xyz] estimated from frame-to-frame residual differences."""
+    return torch.tensor([WHITE == "both", WHITE in ("both", "xyz")], device=device)
+
+
+def used_scale(scale: Tensor) -> Tensor:
+    if not (WHITE and FLOOR):
+        return scale
+    return torch.where(white_columns(scale.device), scale.clamp_min(1.0), scale)
+
+
+def white_statistics(residual, post_hph, var5, valid5, used, scale_used, state: ScaleState, clip) -> tuple:
+    """(ScaleStats of the differenced residuals or None, last_r, last_rv, last_ok)."""
+    with torch.no_grad():
+        R = torch.where(valid5, var5, torch.ones_like(var5))
+        rho = torch.where(used, 1.0 - post_hph / R, 1.0 + post_hph / R).clamp_min(0.0)
+        Rrho = torch.where(valid5, R * rho, torch.zeros_like(R))
+        stats = None
+        if state.last_r is not None and state.last_r.shape == residual.shape:
+            both = valid5 & state.last_ok
+            d = torch.where(both, (residual - state.last_r).square() / R, torch.zeros_like(R))
+            rho_eff = torch.where(both, (Rrho + state.last_rv) / R, torch.zeros_like(R))
+            blocks = [_block(d[..., 3:], rho_eff[..., 3:], both[..., 3:], clip),
+                      _block(d[..., :3], rho_eff[..., :3], both[..., :3], clip)]
+            k = torch.stack([b[0] for b in blocks], -1)
+            weight = torch.stack([b[1] for b in blocks], -1)
+            stats = ScaleStats(torch.where(weight > 0, k * scale_used.to(k.dtype), scale_used.to(k.dtype)), weight)
+    return stats, residual.detach(), Rrho, valid5
