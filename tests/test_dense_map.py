@@ -197,23 +197,29 @@ def test_due_counts_frames_and_reselections():
     assert dense.due(~on, torch.tensor([True, False])).tolist() == [True, False]  # an inactive frame does not count
 
 
-def test_a_full_map_is_pruned_and_still_aligns(room):
-    """With room for one voxel less than the keyframe gives, the map is pruned to three quarters of its bound after
-    every add that overflows it, keeping the voxels seen twice over those seen once (VoxelPointMap.prune's order,
-    tests/test_mapping.py), the pool is picked anew from what is left, and the drifted camera is still aligned
-    (measured: 7.3 -> 2.7 mm, 0.26 -> 0.05 degrees with 2,965 pairs; the whole map 0.81 mm with 4,006)."""
+@pytest.mark.parametrize("B", [1, 2])
+def test_a_full_map_is_pruned_and_still_aligns(room, B):
+    """With room for one voxel less than the keyframe gives, every sequence's map is pruned to three quarters of its
+    bound after each add that overflows it (in one add for B = 2), keeping the voxels seen twice over those seen once
+    (VoxelPointMap.prune's order, tests/test_mapping.py); the pool an alignment drew from before is dropped and picked
+    anew from what is left, and the drifted camera is still aligned (measured: 7.3 -> 2.7 mm, 0.26 -> 0.05 degrees
+    with 2,965 pairs; the whole map 0.81 mm with 4,006)."""
     n = keyframe_map(room).map.size(0)
     dense = DenseMap(max_voxels=n - 1)
-    dense.reset(1)
+    dense.reset(B)
+    every = torch.ones(B, dtype=torch.bool)
+    args = (room["K"].expand(B, -1, -1), room["drifted"][None].expand(B, 4, 4), every)
     for _ in range(2):  # the second time the same voxels fill again: those kept the first time have the most points
-        dense.add(room["d_kf"], room["K"], room["T_kf"][None], ONE)
-        assert dense.map.size(0) == 3 * (n - 1) // 4
-    assert int(dense.map.points(0).count.min()) == 2
+        dense.add(room["d_kf"].expand(B, -1, -1, -1), room["K"].expand(B, -1, -1), room["T_kf"].expand(B, 4, 4), every)
+        assert all(dense.map.size(b) == 3 * (n - 1) // 4 for b in range(B))
+        al = dense.align(room["d_cur"].expand(B, -1, -1, -1), *args)  # the pools, picked from this map
+    assert all(int(dense.map.points(b).count.min()) == 2 for b in range(B))
+    assert all(bool(torch.isin(dense._pools[b].keys, dense.map.voxels(b)[0]).all()) for b in range(B))  # no stale pool
     before = pose_error(room["T_cur"], room["drifted"])
-    al = dense.align(room["d_cur"], room["K"], room["drifted"][None], ONE)
-    mm, deg = pose_error(room["T_cur"], al.T_world_cam[0])
-    assert bool(al.applied[0]) and int(al.pairs[0]) > 2500
-    assert mm < before[0] / 2 and deg < before[1] / 2, (mm, deg)
+    for b in range(B):
+        mm, deg = pose_error(room["T_cur"], al.T_world_cam[b])
+        assert bool(al.applied[b]) and int(al.pairs[b]) > 2500
+        assert mm < before[0] / 2 and deg < before[1] / 2, (mm, deg)
 
 
 def test_bad_arguments_raise(room):
@@ -222,7 +228,7 @@ def test_bad_arguments_raise(room):
     with pytest.raises(ValueError, match="every, stride"):
         DenseMap(every=0)
     with pytest.raises(ValueError, match="max_voxels"):
-        DenseMap(max_voxels=0)
+        DenseMap(max_voxels=600)  # three quarters below min_pairs (500)
     with pytest.raises(ValueError, match="reset"):
         DenseMap().align(room["d_cur"], room["K"], room["T_cur"][None], ONE)
     with pytest.raises(ValueError, match="reset"):

@@ -281,9 +281,10 @@ def test_clear_releases_one_map_and_keeps_the_others():
 
 @pytest.mark.parametrize("backend", ["cpp", "torch"])
 def test_prune_keeps_the_best_supported_voxels_of_one_map(backend):
-    """Oracle: the voxels a prune keeps are the `keep` with the largest counts, equal counts ordered by spatial hash
-    (numpy on the map's own points); their means are unchanged, the other sequences are untouched, and the compacted
-    map fuses later points into the voxels it kept as a map built from the kept voxels' points would."""
+    """Oracle: the voxels a prune keeps are the protected ones, then those with the largest counts, equal counts
+    ordered by spatial hash then key (numpy on the map's own points); their means and colours are unchanged, the other
+    sequence is untouched, and the compacted map fuses later points into the voxels it kept as a map built from the
+    kept voxels' points would."""
     if backend == "cpp" and not lk_op.available():
         pytest.skip(f"compiled operator unavailable: {lk_op.error()}")
     gen = torch.Generator().manual_seed(4)
@@ -295,29 +296,25 @@ def test_prune_keeps_the_best_supported_voxels_of_one_map(backend):
     keys0 = m.voxels(0)[0]
     count = before[0].count.numpy()
     assert count.min() == 1 and count.max() > 20
-    order = np.lexsort((spatial_hash(keys0).numpy(), -count))  # count descending, then hash ascending
+    protect = keys0[torch.from_numpy(count == 1).nonzero().squeeze(1)[:5]]  # five of the least supported
+    key = keys0.numpy()
+    order = np.lexsort((key, spatial_hash(keys0).numpy(), -count, ~np.isin(key, protect.numpy())))
     keep = len(keys0) // 3
-    expected = np.sort(keys0.numpy()[order[:keep]])
-    assert m.prune(0, keep) == len(keys0) - keep and m.prune(0, keep) == 0
+    expected = np.sort(key[order[:keep]])
+    assert m.prune(0, keep, protect=protect) == len(keys0) - keep and m.prune(0, keep) == 0
     assert m.size(0) == keep and len(m) == keep + m.size(1)
-    assert np.array_equal(m.voxels(0)[0].numpy(), expected)
-    at = np.searchsorted(keys0.numpy(), expected)
-    torch.testing.assert_close(m.points(0).xyz, before[0].xyz[at], rtol=0, atol=0)
-    torch.testing.assert_close(m.points(0).count, before[0].count[at])
+    assert np.array_equal(m.voxels(0)[0].numpy(), expected) and np.isin(protect.numpy(), expected).all()
+    at = np.searchsorted(key, expected)
     for field in range(3):
+        assert torch.equal(m.points(0)[field], before[0][field][at])
         assert torch.equal(m.points(1)[field], before[1][field])
-    more = torch.rand(500, 3, generator=gen, dtype=torch.float64) ** 3
-    m.add(more, torch.rand(500, 3, generator=gen), torch.zeros(500, dtype=torch.long))
-    mine = b == 0
-    kept_key = torch.isin(voxel_keys(p, b, 0.05)[0], torch.from_numpy(expected)) & mine
+    more, c_more = torch.rand(500, 3, generator=gen, dtype=torch.float64) ** 3, torch.rand(500, 3, generator=gen)
+    m.add(more, c_more, torch.zeros(500, dtype=torch.long))
+    kept = torch.isin(voxel_keys(p, b, 0.05)[0], torch.from_numpy(expected)) & (b == 0)
     fresh = VoxelPointMap(voxel_size=0.05, batch_size=2, backend=backend)
-    fresh.add(
-        torch.cat([p[kept_key], more]),
-        torch.cat([c[kept_key], c[:500]]),
-        torch.zeros(int(kept_key.sum()) + 500, dtype=torch.long),
-    )
-    torch.testing.assert_close(m.points(0).xyz, fresh.points(0).xyz)
-    torch.testing.assert_close(m.points(0).count, fresh.points(0).count)
+    fresh.add(torch.cat([p[kept], more]), torch.cat([c[kept], c_more]), torch.zeros(int(kept.sum()) + 500).long())
+    for field in range(3):
+        torch.testing.assert_close(m.points(0)[field], fresh.points(0)[field])
     with pytest.raises(ValueError, match="keep"):
         m.prune(0, -1)
 

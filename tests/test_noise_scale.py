@@ -146,6 +146,33 @@ def test_the_winsorised_scale_is_the_root_of_its_equation(dof):
     assert abs(float(s[5]) - 2.5 / E) <= 1e-15 * 2.5 / E
 
 
+def test_a_root_at_a_breakpoint_is_found():
+    """Rows whose root lies within rounding of one q / c (one value moved onto c times the root, a few ulps either
+    side): the segment is chosen by the sign of the equation at the breakpoints, so such a root is not lost (choosing
+    by each segment's own root missed it in ~1 of 1,000 such rows). Also: q = 0 with weight counts as unclipped, a
+    row without a positive root gives 1e-12, a NaN gives NaN, and float32 agrees with float64."""
+    c = chi2_quantile(0.9, 3)
+    E = winsorised_chi2_mean(3, c)
+    g = torch.Generator().manual_seed(11)
+    for trial in range(60):
+        q = torch.cat([torch.rand(40, generator=g, dtype=F64) * 2, 5 + torch.rand(10, generator=g, dtype=F64)])
+        w = torch.ones(50, dtype=F64)
+        t = bisected_scale(q, w, c, E)
+        for k in (-3, -1, 0, 1, 3):
+            moved = q.clone()
+            moved[40 + trial % 10] = c * t * (1 + k * 2e-16)
+            s = float(winsorised_scale(moved[None], w[None], c, E)[0])
+            assert abs(s - bisected_scale(moved, w, c, E)) <= 1e-12 * s, (trial, k, s)
+    q = torch.tensor([[0.0, 0.0, 1.0, 2.0, 3.0], [0.0] * 5, [1.0, float("nan"), 2.0, 3.0, 4.0]], dtype=F64)
+    s = winsorised_scale(q, torch.ones(3, 5, dtype=F64), c, E)
+    assert abs(float(s[0]) - bisected_scale(q[0], torch.ones(5, dtype=F64), c, E)) <= 1e-12 * float(s[0])
+    assert float(s[1]) == 1e-12 and bool(torch.isnan(s[2]))
+    q32 = torch.rand(4, 100, generator=g) * 3
+    s32 = winsorised_scale(q32, torch.ones(4, 100), c, E)
+    torch.testing.assert_close(s32.double(), winsorised_scale(q32.double(), torch.ones(4, 100, dtype=F64), c, E),
+                               rtol=1e-5, atol=0)  # fmt: skip
+
+
 def test_batched_equals_looped():
     oracle = windows(4.0, 0.25, B=3, T=12)
     poses, scales = track(oracle, (4.0, 0.25), noise_scale=True)

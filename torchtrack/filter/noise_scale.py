@@ -143,23 +143,27 @@ def _block(d: Tensor, rho: Tensor, valid: Tensor, clip: float | None) -> tuple[T
 
 def winsorised_scale(q: Tensor, w: Tensor, c: float, expected: float) -> Tensor:
     """The positive root s (B,) of ``s E = sum_i w_i min(q_i, c s) / sum_i w_i`` over the (B, N) values ``q >= 0``
-    with weights ``w >= 0`` (Huber's proposal 2 for a scale, ``expected`` = E < c), in closed form: with the q in
-    ascending order, the right side is linear in s between two of them, ``(A_j + c s B_j) / W`` with A_j the weighted
-    sum of the j + 1 smallest and B_j the weight of the others, so the root is ``s_j = A_j / (W E - c B_j)`` for the
-    one j with ``q_(j) <= c s_j <= q_(j+1)``. (Iterating the right side, a contraction, converges to it.) 1e-12 where
-    a row has no weight."""
+    with weights ``w >= 0`` (Huber's proposal 2 for a scale, ``expected`` = E < c), in closed form. With the q in
+    ascending order the right side is linear in s between two of them, ``(A_j + c s B_j) / W`` (A_j the weighted sum
+    of the j + 1 smallest, B_j the weight of the others), so the root is ``s = A_j / (W E - c B_j)`` for the last j
+    whose q is not clipped at the root. That j is read off the sign of ``h(s) = s E W - sum w min(q, c s)`` at the
+    breakpoints ``s = q_j / c``: h is convex and negative just above 0, so ``h <= 0`` exactly up to the root and the
+    test is a prefix of the sorted q (a rounding slip at a breakpoint picks the neighbouring segment, whose root is
+    the same within rounding). (Iterating the right side, a contraction, converges to it.) 1e-12 where a row has no
+    positive root (no weight, or too little weight on q > 0); NaN where a weighted q is NaN."""
     qs, order = torch.where(w > 0, q, torch.full_like(q, float("inf"))).sort(-1)
     ws = w.gather(-1, order)
     W = ws.sum(-1, keepdim=True)
-    A = (ws * torch.where(ws > 0, qs, torch.zeros_like(qs))).cumsum(-1)
+    qz = torch.where(ws > 0, qs, torch.zeros_like(qs))
+    A = (ws * qz).cumsum(-1)
     above = (W - ws.cumsum(-1)).clamp_min(0.0)
-    den = W * expected - c * above
-    s = A / torch.where(den > 0, den, torch.ones_like(den))
-    nxt = torch.cat([qs[..., 1:], torch.full_like(qs[..., :1], float("inf"))], -1)
-    root = (den > 0) & (ws > 0) & (qs <= c * s) & (c * s <= nxt)
-    pick = root.to(torch.uint8).argmax(-1, keepdim=True)  # the first: equal q give equal roots
-    s = s.gather(-1, pick)[..., 0]
-    return torch.where(root.any(-1), s, torch.zeros_like(s)).clamp_min(1e-12)
+    unclipped = (ws > 0) & (qz * W * expected <= c * (A + qz * above))  # h(q_j / c) <= 0, times c
+    j = (unclipped.sum(-1, keepdim=True) - 1).clamp_min(0)
+    den = W * expected - c * above.gather(-1, j)
+    s = A.gather(-1, j) / torch.where(den > 0, den, torch.ones_like(den))
+    s = torch.where(unclipped.any(-1, keepdim=True) & (den > 0), s, torch.zeros_like(s))[..., 0].clamp_min(1e-12)
+    nan = (torch.isnan(q) & (w > 0)).any(-1)
+    return torch.where(nan, torch.full_like(s, float("nan")), s)
 
 
 @functools.lru_cache(maxsize=16)

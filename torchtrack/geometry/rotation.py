@@ -22,14 +22,11 @@ _EPS = {torch.float32: 1e-4, torch.float64: 1e-8}
 _WXYZ, _XYZW = [3, 0, 1, 2], [1, 2, 3, 0]  # kornia's quaternions are w, x, y, z; torchtrack's (TUM's) x, y, z, w
 
 
-_HAT = torch.tensor([0, 6, 2, 3, 0, 4, 5, 1, 0])  # hat's entries in (0, x, y, z, -x, -y, -z)
-
-
 def hat(v: Tensor) -> Tensor:
     """Skew-symmetric matrix: (..., 3) -> (..., 3, 3) with ``hat(a) @ b == cross(a, b)``."""
-    padded = torch.cat([torch.zeros_like(v[..., :1]), v, -v], -1)
-    index = _HAT if v.device.type == "cpu" else _HAT.to(v.device)
-    return padded.index_select(-1, index).reshape(*v.shape[:-1], 3, 3)
+    x, y, z = v.unbind(-1)
+    o = torch.zeros_like(x)
+    return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).reshape(*v.shape[:-1], 3, 3)
 
 
 def vee(m: Tensor) -> Tensor:

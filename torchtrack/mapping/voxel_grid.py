@@ -278,20 +278,26 @@ class VoxelPointMap:
         """Occupied voxels of sequence b."""
         return self._sizes[b]
 
-    def prune(self, b: int, keep: int) -> int:
+    def prune(self, b: int, keep: int, protect: Tensor | None = None) -> int:
         """Keep sequence b's ``keep`` best-supported voxels and forget the others: those that averaged the fewest
         points go first (a voxel seen once, a transient surface or a depth outlier, before one seen from many
-        frames), whatever their age; among equal counts the larger :func:`spatial_hash` goes first (no pattern in
-        space, the same choice however the map grew). The means of the kept voxels are unchanged; the buffers are
-        compacted (their rows renumbered, in their order). Returns the number of voxels forgotten."""
+        frames), whatever their age; among equal counts the larger :func:`spatial_hash` (then the larger key) goes
+        first: no pattern in space, the same choice however the map grew. The voxels of ``protect`` (keys, e.g. those
+        the last frame saw: present now, however little support they have yet) go last. The means of the kept voxels
+        are unchanged; the buffers are compacted (their rows renumbered, in their order). Returns the number of voxels
+        forgotten."""
         if keep < 0:
             raise ValueError(f"VoxelPointMap.prune: keep must be >= 0, got {keep}")
         if self._sizes[b] <= keep:
             return 0
         keys = self._keys[: self._n]
         rows = ((keys >> (3 * AXIS_BITS)) == b).nonzero().squeeze(1)
-        order = torch.argsort(spatial_hash(keys[rows]), stable=True)
-        order = order[torch.argsort(self._sums[rows[order], 6], descending=True, stable=True)]
+        mine = keys[rows]
+        order = torch.argsort(mine)
+        for rank in (spatial_hash(mine), -self._sums[rows, 6]):  # stable: the last sort decides first
+            order = order[torch.argsort(rank[order], stable=True)]
+        if protect is not None and len(protect):
+            order = order[torch.argsort((~torch.isin(mine[order], protect)).to(torch.uint8), stable=True)]
         kept = torch.ones(self._n, dtype=torch.bool, device=self.device)
         kept[rows[order[keep:]]] = False
         dropped = self._sizes[b] - keep

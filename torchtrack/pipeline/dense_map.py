@@ -84,9 +84,10 @@ class DenseMap:
         weak: a direction of the pose in which the depth's information is below this many times the prior's is left
             as the tracker had it (the correction projected off it).
         max_voxels: the most voxels a sequence's map holds: beyond it the map is pruned to three quarters of it, the
-            voxels that averaged the fewest points first (:meth:`~torchtrack.mapping.voxel_grid.VoxelPointMap.prune`;
-            by three quarters, so that a full map is pruned every few keyframes, not at each): memory is bounded
-            however far the camera goes.
+            voxels that averaged the fewest points first, those the frame that filled it saw last
+            (:meth:`~torchtrack.mapping.voxel_grid.VoxelPointMap.prune`; to three quarters, so that a full map is
+            pruned every few keyframes, not at each): memory is bounded however far the camera goes. Three quarters
+            of it must be at least ``min_pairs``.
         backend: "cpp" the compiled ``torch.ops.torchtrack.dense_fit``, ``depth_points`` (csrc/dense.cpp) and
             ``pool_update`` (csrc/voxel.cpp), "torch" their references (:meth:`_fit_torch`, :meth:`_points_torch`,
             :meth:`_updated`), "auto" the operators
@@ -116,9 +117,10 @@ class DenseMap:
         max_voxels: int = 1_000_000,
         backend: str = "auto",
     ) -> None:
-        if voxel_size <= 0 or min(every, stride, iterations, max_points, max_voxels) < 1:
-            raise ValueError(f"DenseMap: need voxel_size > 0 and every, stride, iterations, max_points, max_voxels >= 1; "
-                             f"got {voxel_size}, {every}, {stride}, {iterations}, {max_points}, {max_voxels}")  # fmt: skip
+        if voxel_size <= 0 or min(every, stride, iterations, max_points) < 1 or 3 * max_voxels // 4 < min_pairs:
+            raise ValueError(f"DenseMap: need voxel_size > 0, every, stride, iterations, max_points >= 1 and 3/4 of "
+                             f"max_voxels >= min_pairs; got {voxel_size}, {every}, {stride}, {iterations}, {max_points}, "
+                             f"{max_voxels} (min_pairs {min_pairs})")  # fmt: skip
         self.voxel_size, self.every, self.stride, self.max_points = voxel_size, every, stride, max_points
         self.iterations, self.max_distance_m, self.huber_m, self.sigma_m = iterations, max_distance_m, huber_m, sigma_m
         self.prior_m, self.prior_deg, self.min_pairs = prior_m, prior_deg, min_pairs
@@ -165,8 +167,8 @@ class DenseMap:
         for i in mask.nonzero().squeeze(1).tolist():
             self._pools[i] = self._updated(i, added)
         for i in mask.nonzero().squeeze(1).tolist():  # after the pools: a prune renumbers the rows ``added`` names
-            if self.map.size(i) > self.max_voxels:
-                self.map.prune(i, 3 * self.max_voxels // 4)
+            if self.map.size(i) > self.max_voxels:  # what this frame saw is kept (present now, if seen once so far)
+                self.map.prune(i, 3 * self.max_voxels // 4, protect=torch.cat([added.keys, added.known_keys]))
                 self._pools[i] = None  # picked anew (the others hold keys and points, not rows)
 
     def _points_torch(self, depth: Tensor, K: Tensor, T_world_cam: Tensor, mask: Tensor,
