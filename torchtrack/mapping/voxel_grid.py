@@ -290,8 +290,7 @@ class VoxelPointMap:
             return 0
         keys = self._keys[: self._n]
         rows = ((keys >> (3 * AXIS_BITS)) == b).nonzero().squeeze(1)
-        order = torch.argsort(spatial_hash(keys[rows]), stable=True)
-        order = order[torch.argsort(self._sums[rows[order], 6], descending=True, stable=True)]
+        order = torch.arange(len(rows) - 1, -1, -1, device=rows.device)  # AGE VARIANT: the newest kept, oldest dropped
         kept = torch.ones(self._n, dtype=torch.bool, device=self.device)
         kept[rows[order[keep:]]] = False
         dropped = self._sizes[b] - keep
