@@ -28,8 +28,7 @@ import torch
 from torch import Tensor
 
 from torchtrack.filter.models import Linearization, MotionModel, _linearization, constant_velocity
-from torchtrack.geometry import hat, make_T, so3_exp, so3_left_jacobian
-from torchtrack.geometry.rotation import so3_exp_and_left_jacobian
+from torchtrack.geometry import hat, make_T, so3_exp, so3_exp_and_left_jacobian, so3_left_jacobian
 
 
 def transition(dt: Tensor, omega: Tensor, sigma_ang_acc: float, sigma_lin_acc: float) -> MotionModel:

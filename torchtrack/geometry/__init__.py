@@ -19,6 +19,7 @@ from torchtrack.geometry.rotation import (
     quat_xyzw_to_matrix,
     rotation_angle,
     so3_exp,
+    so3_exp_and_left_jacobian,
     so3_left_jacobian,
     so3_log,
     vee,
@@ -38,5 +39,5 @@ __all__ = [
     "T_inv", "backproject", "backproject_depth", "depth_along_rays", "euler_to_matrix", "hat", "intrinsics_matrix",
     "make_T", "matrix_to_euler", "matrix_to_quat_xyzw", "pixel_grid", "point_jacobian", "pose_from_euler", "project",
     "quat_xyzw_to_matrix", "rigid", "rotation_angle", "sample_depth", "sample_depth_bilinear", "se3_exp", "se3_log", "so3_exp",
-    "so3_left_jacobian", "so3_log", "transform_points", "vee", "warp_depth",
+    "so3_exp_and_left_jacobian", "so3_left_jacobian", "so3_log", "transform_points", "vee", "warp_depth",
 ]  # fmt: skip

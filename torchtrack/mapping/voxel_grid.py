@@ -301,16 +301,19 @@ class VoxelPointMap:
         kept = torch.ones(self._n, dtype=torch.bool, device=self.device)
         kept[rows[order[keep:]]] = False
         dropped = self._sizes[b] - keep
-        self._sums, self._keys = self._sums[: self._n][kept], keys[kept]
-        self._n, self._sizes[b] = len(self._keys), keep
-        self._rehash(len(self._table))
+        self._compact(kept)
+        self._sizes[b] = keep
         return dropped
 
     def clear(self, b: int) -> None:
         """Forget sequence b's map and compact the buffers (a finished sequence's memory is released)."""
         if not self._sizes[b]:
             return
-        keep = (self._keys[: self._n] >> (3 * AXIS_BITS)) != b
-        self._sums, self._keys = self._sums[: self._n][keep], self._keys[: self._n][keep]
-        self._n, self._sizes[b] = len(self._keys), 0
+        self._compact((self._keys[: self._n] >> (3 * AXIS_BITS)) != b)
+        self._sizes[b] = 0
+
+    def _compact(self, kept: Tensor) -> None:
+        """Keep the voxels of rows ``kept`` (_n,) bool, in their order (rows renumbered), and index them anew."""
+        self._sums, self._keys = self._sums[: self._n][kept], self._keys[: self._n][kept]
+        self._n = len(self._keys)
         self._rehash(len(self._table))

@@ -83,11 +83,10 @@ class DenseMap:
             ~0.4x each: what remains is a few hundredths of a millimetre).
         weak: a direction of the pose in which the depth's information is below this many times the prior's is left
             as the tracker had it (the correction projected off it).
-        max_voxels: the most voxels a sequence's map holds: beyond it the map is pruned to three quarters of it, the
-            voxels that averaged the fewest points first, those the frame that filled it saw last
-            (:meth:`~torchtrack.mapping.voxel_grid.VoxelPointMap.prune`; to three quarters, so that a full map is
-            pruned every few keyframes, not at each): memory is bounded however far the camera goes. Three quarters
-            of it must be at least ``min_pairs``.
+        max_voxels: the most voxels a sequence's map holds, so that memory is bounded however far the camera goes:
+            beyond it the map is pruned to three quarters of it (so that a full map is pruned every few keyframes,
+            not at each; at least ``min_pairs``), the voxels that averaged the fewest points first, those the frame
+            that filled it saw last (:meth:`~torchtrack.mapping.voxel_grid.VoxelPointMap.prune`).
         backend: "cpp" the compiled ``torch.ops.torchtrack.dense_fit``, ``depth_points`` (csrc/dense.cpp) and
             ``pool_update`` (csrc/voxel.cpp), "torch" their references (:meth:`_fit_torch`, :meth:`_points_torch`,
             :meth:`_updated`), "auto" the operators
