@@ -60,7 +60,7 @@ def test_a_key_of_another_option_is_found_beside_that_options_other_keys(tmp_pat
     [
         ("filter.iterations=0", "FusionEKF: iterations must be >= 1"),
         ("flow.mode=foo", "flow.mode must be one of combined, intensity, sim, got 'foo'"),
-        ("flow.lk_backend=cpp2", "flow.lk_backend must be one of auto, cpp, torch, got 'cpp2'"),
+        ("flow.policy=best", "flow.policy must be one of min_tim, fallback, got 'best'"),
         ("filter.gate=1.5", "FusionEKF: gate is a probability in (0, 1), got 1.5"),
         ("weighting=learned", None),
     ],
@@ -72,8 +72,8 @@ def test_a_stage_value_out_of_range_is_one_line_before_any_data(override, messag
 
 
 def test_no_suggestion_for_a_name_unlike_any():
-    error = check_overrides("config", ["tracker.zzzqqq=1"])
-    assert error == "Could not override 'tracker.zzzqqq': Key 'zzzqqq' not in 'EKFBackendConfig'"
+    error = check_overrides("config", ["estimator.zzzqqq=1"])
+    assert error == "Could not override 'estimator.zzzqqq': Key 'zzzqqq' not in 'EKFBackendConfig'"
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")

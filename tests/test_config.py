@@ -1,5 +1,6 @@
 """Structured configs: every experiment composes with every estimator and weighting; types and ranges are checked
-when composing; the estimator choice changes only the estimator; one set of defaults (schemas vs signatures)."""
+when composing; the estimator choice changes only the estimator; one set of defaults (schemas vs signatures); a key
+is a user's choice (at most 90 of them), every stage builds from its schema, and the old group name still works."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
-from hydra.utils import get_object
+from hydra.utils import get_object, instantiate
 from omegaconf import OmegaConf
 from pointsets import random_cloud
 
@@ -51,7 +52,7 @@ from torchtrack.pipeline.reselect import Reselection
 
 CONF = CONF_DIR
 EXPERIMENTS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
-TRACKERS = sorted(p.stem for p in (CONF / "tracker").glob("*.yaml"))
+TRACKERS = sorted(p.stem for p in (CONF / "estimator").glob("*.yaml"))
 WEIGHTINGS = ("fixed", "paper", "learned")
 
 
@@ -83,7 +84,7 @@ def test_the_groups_are_all_there():
     + [pytest.param(e, marks=pytest.mark.slow) for e in ("[ekf1,ekf2,ekf3]", "[paper,ekf1,ekf2,ekf3]")],
 )
 def test_every_experiment_composes_with_every_estimator_and_weighting(experiment, tracker, weighting, checkpoint):
-    overrides = [f"tracker={tracker}", f"weighting={weighting}"]
+    overrides = [f"estimator={tracker}", f"weighting={weighting}"]
     overrides += [f"+experiment={experiment}"] if experiment else []
     overrides += [f"weighting.checkpoint={checkpoint}"] if weighting == "learned" else []
     cfg = config(*overrides)
@@ -103,8 +104,8 @@ def test_every_experiment_composes_with_every_estimator_and_weighting(experiment
 def test_the_estimator_choice_changes_only_the_estimator(tracker, experiment):
     extra = [f"+experiment={experiment}"] if experiment else []
     base = OmegaConf.to_container(config(*extra))
-    other = OmegaConf.to_container(config(f"tracker={tracker}", *extra))
-    assert base.pop("tracker") != other.pop("tracker")
+    other = OmegaConf.to_container(config(f"estimator={tracker}", *extra))
+    assert base.pop("estimator") != other.pop("estimator")
     assert base == other
 
 
@@ -167,13 +168,19 @@ def test_paper_values_stay_reachable():
     ours, paper = config(), config("+experiment=paper")
     values = OmegaConf.load(CONF / "experiment" / "paper.yaml")
     weighting = OmegaConf.load(CONF / "weighting" / "paper_as_written.yaml")
-    assert list(values.pop("defaults")) == [{"override /weighting": "paper_as_written"}]
+    assert list(values.pop("defaults")) == [
+        {"override /weighting": "paper_as_written"},
+        {"override /landmarks": "none"},
+        {"override /dense": "none"},
+    ]
     weighting.pop("defaults")
     values.weighting = weighting
-    assert len(values) == 10 and paper.filter.state == "euler"  # groups
+    assert len(values) == 8 and paper.filter.state == "euler"  # groups
     for group, node in values.items():
         for key, value in node.items():
             assert paper[group][key] == value and ours[group][key] != value, f"{group}.{key}"
+    for stage in ("landmarks", "dense"):  # the paper has neither stage: its option is the empty node
+        assert paper[stage] == {} and "_target_" in ours[stage], stage
 
 
 @pytest.mark.parametrize(
@@ -197,6 +204,110 @@ def test_ranges_are_checked_by_validate(override, message):
 def test_types_are_checked_when_composing(override):
     with pytest.raises(ConfigCompositionException):
         config("data=tum", override)
+
+
+# ---------------------------------------------------------------------------------- a key is a user's choice
+MAX_SETTINGS = 90
+
+
+def settings(node) -> list[str]:
+    """The dotted names of the leaf settings of ``node`` (a container), other than ``_target_`` and ``_partial_``."""
+    if not isinstance(node, dict):
+        return [""]
+    keys = (k for k in node if k not in ("_target_", "_partial_"))
+    return [f"{k}.{leaf}".rstrip(".") for k in keys for leaf in settings(node[k])]
+
+
+def test_the_default_config_has_at_most_90_settings():
+    names = settings(OmegaConf.to_container(config(), resolve=False))
+    assert 0 < len(names) <= MAX_SETTINGS, names
+    assert "reselect.point_mean" in names and "filter.gate" in names  # the counter sees the paper's switches
+
+
+def _option_configs():
+    """Every option of every group a user picks on the command line, composed (the learned weighting: its default)."""
+    skip = {"data", "dataset", "train", "hydra", "experiment", "tracker"}
+    for group in sorted(d.name for d in CONF.iterdir() if d.is_dir() and d.name not in skip):
+        for option in sorted(p.stem for p in (CONF / group).glob("*.yaml")):
+            yield group, option, config(f"{group}={option}")[group]
+
+
+def test_no_implementation_form_and_no_double_switch_is_a_key():
+    """Backends, the filter's form and Jacobian are arguments, not keys; a stage that can be off is a group option
+    (``landmarks=none``), not an ``enabled`` key beside the group; a boolean is a boolean."""
+    banned = {"enabled", "backend", "lk_backend", "sim_backend", "form", "jacobian"}
+    for group, option, node in _option_configs():
+        names = settings(OmegaConf.to_container(node, resolve=False))
+        assert not {n.rsplit(".", 1)[-1] for n in names} & banned, f"{group}={option}: {names}"
+    for cfg in (config(), config("+experiment=paper")):
+        flat = OmegaConf.to_container(cfg, resolve=True)
+        for name in settings({k: v for k, v in flat.items() if k != "hydra"}):
+            value = OmegaConf.select(cfg, name)
+            assert not (isinstance(value, str) and value.lower() in {"on", "off", "true", "false"}), name
+    assert config("+experiment=paper").reselect.point_mean is False and config().reselect.point_mean is True
+
+
+# What the factory wires into a stage besides its node: the objects other groups build (never a user's value).
+WIRING = {
+    "ReselectConfig": {"region", "select"},
+    "PipelineConfig": {"frontend", "flow", "weighting", "backend", "reselect"},
+    "EKFBackendConfig": {"ekf"},
+    "RegistrationBackendConfig": {"estimator"},
+}
+
+
+def _wired(name: str) -> dict:
+    region, select = ObjectRegion(), select_features
+    reselect = Reselection(region=region, select=select)
+    objects = dict(region=region, select=select, frontend=FrontEnd(), flow=CombinedTracker(),
+                   weighting=PaperWeighting(), backend=EKFBackend(FusionEKF()), reselect=reselect,
+                   ekf=FusionEKF(), estimator=HornEstimator())  # fmt: skip
+    return {k: objects[k] for k in WIRING.get(name, ())}
+
+
+@pytest.mark.parametrize(
+    "schema",
+    [s for group, nodes in SCHEMAS.items() if group != "data" for s in nodes.values()],
+    ids=lambda s: s.__name__,
+)
+def test_every_target_builds_from_its_schema_with_no_hidden_argument(schema, checkpoint):
+    """Each schema's ``_target_`` is built from the schema's defaults alone (plus the stages the factory wires in,
+    :data:`WIRING`), and every argument it requires is a schema key or such a stage: none a user would need to pass."""
+    node = OmegaConf.to_container(OmegaConf.structured(schema), resolve=False)
+    target = get_object(node["_target_"])
+    params = inspect.signature(target).parameters.values()
+    kinds = (
+        (inspect.Parameter.KEYWORD_ONLY,)
+        if node.get("_partial_")
+        else (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+    )  # a partial's positionals: its inputs
+    required = {p.name for p in params if p.default is inspect.Parameter.empty and p.kind in kinds}
+    wiring = WIRING.get(schema.__name__, set())
+    assert required <= (set(node) | wiring), f"{schema.__name__}: {required - set(node) - wiring} not in the schema"
+    kwargs = {k: v for k, v in node.items() if k not in wiring}
+    if schema.__name__ == "LearnedWeightingConfig":
+        kwargs["checkpoint"] = str(checkpoint)  # null is the shipped file: a fresh one keeps the test self-contained
+    built = instantiate(kwargs, **_wired(schema.__name__))
+    if node.get("_partial_"):
+        assert built.func is target
+    elif inspect.isclass(target):
+        assert isinstance(built, target)
+
+
+@pytest.mark.parametrize("name", TRACKERS)
+def test_the_old_group_name_selects_the_same_estimator(name):
+    assert config(f"tracker={name}") == config(f"estimator={name}")
+    assert config(f"tracker={name}", "+experiment=paper") == config(f"estimator={name}", "+experiment=paper")
+
+
+def test_the_old_group_name_in_a_key_or_a_users_folder_is_one_line_naming_the_new(tmp_path):
+    from torchtrack.console import check_overrides
+
+    assert "the tracker= group is now estimator=" in check_overrides("config", ["tracker.weighted=true"])
+    (tmp_path / "tracker").mkdir()
+    (tmp_path / "tracker" / "mine.yaml").write_text("_target_: torchtrack.estimators.horn.HornEstimator\n")
+    error = check_overrides("config", [f"conf_dir={tmp_path}", "tracker=mine"])
+    assert error.startswith("the tracker= group is now estimator=") and "\n" not in error
 
 
 def test_the_front_end_levels_are_the_flow_levels():
@@ -304,7 +415,7 @@ def test_ekf_backend_direct_equals_cli(cli):
 
 @pytest.mark.parametrize("name", ["icp", "cpd", "horn"])
 def test_estimators_direct_equal_cli(name):
-    backend = build_tracker(config(f"tracker={name}")).backend
+    backend = build_tracker(config(f"estimator={name}")).backend
     direct = {"icp": ICPEstimator, "cpd": CPDEstimator, "horn": HornEstimator}[name]()
     assert _state(direct) == _state(backend.estimator) and backend.weighted is RegistrationBackendConfig.weighted
     src = random_cloud(2, 30, seed=5)

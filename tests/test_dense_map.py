@@ -244,7 +244,7 @@ def config(*overrides: str):
 def test_the_default_builds_the_stage_and_the_paper_does_not():
     assert isinstance(build_tracker(config()).dense, DenseMap)
     assert build_tracker(config("+experiment=paper")).dense is None
-    assert build_tracker(config("dense.enabled=false")).dense is None
+    assert build_tracker(config("dense=none")).dense is None
     assert build_tracker(config("dense.voxel_size=0.02")).dense.voxel_size == 0.02
 
 
@@ -273,7 +273,7 @@ def test_a_camera_that_comes_back_is_put_back_on_the_map():
         err = (torch.stack(est)[:, :3, 3] - gt[:, :3, 3]).norm(dim=-1) * 1e3
         return float(err[-1]), float(err.square().mean().sqrt())
 
-    (end_on, rms_on), (end_off, rms_off) = errors(), errors("dense.enabled=false")
+    (end_on, rms_on), (end_off, rms_off) = errors(), errors("dense=none")
     assert end_on < 0.7 * end_off and rms_on < 0.8 * rms_off, (end_on, end_off, rms_on, rms_off)
 
 

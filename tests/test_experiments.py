@@ -114,7 +114,7 @@ def test_hydra_command_sweeps_sequences_and_composes_ablations(tmp_path):
     assert "hydra.launcher.timeout_min=5" not in sweep.job_overrides(sweep.METHODS["ekf3"], "a", tmp_path, extra)
     assert cmd[:3] == ["torchtrack", "-m", "+seq=a,b"]
     assert f"data.root={(tmp_path / 'd').resolve()}/${{seq}}" in cmd
-    assert "+experiment=[ekf1,ekf2,ekf3]" in cmd and "tracker=fusion_ekf" in cmd and "plots=false" in cmd
+    assert "+experiment=[ekf1,ekf2,ekf3]" in cmd and "estimator=fusion_ekf" in cmd and "plots=false" in cmd
     assert "hydra.sweep.subdir=${seq}" in cmd and f"hydra.sweep.dir={tmp_path.resolve() / 'ekf3'}" in cmd
     assert cmd[-2:] == ["hydra/launcher=joblib", "hydra.launcher.n_jobs=3"]
     assert sweep.launcher_overrides("submitit_slurm", 3) == ["hydra/launcher=submitit_slurm"]
@@ -155,7 +155,7 @@ from hydra.core.hydra_config import HydraConfig
 def app(cfg):
     out = Path(HydraConfig.get().runtime.output_dir) / Path(cfg.data.root).name
     out.mkdir(parents=True, exist_ok=True)
-    (out / "metrics.json").write_text(json.dumps({"sequence": out.name, "tracker": cfg.tracker.name}))
+    (out / "metrics.json").write_text(json.dumps({"sequence": out.name, "estimator": cfg.estimator.name}))
 
 app()
 """
@@ -167,18 +167,20 @@ def test_sweep_end_to_end_with_joblib_resumes_only_missing_jobs(tmp_path):
     the only one re-run."""
     pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
     app = tmp_path / "app"
-    for group, files in {"data": {"tum": "root: null\n"}, "tracker": {"horn": "name: horn\n"}}.items():
+    for group, files in {"data": {"tum": "root: null\n"}, "estimator": {"horn": "name: horn\n"}}.items():
         (app / "conf" / group).mkdir(parents=True)
         for name, text in files.items():
             (app / "conf" / group / f"{name}.yaml").write_text(text)
-    (app / "conf" / "config.yaml").write_text("defaults:\n  - data: tum\n  - tracker: horn\n  - _self_\nplots: true\n")
+    (app / "conf" / "config.yaml").write_text(
+        "defaults:\n  - data: tum\n  - estimator: horn\n  - _self_\nplots: true\n"
+    )
     (app / "app.py").write_text(textwrap.dedent(STAND_IN_APP))
     data, out = make_data(tmp_path / "data"), tmp_path / "sweep"
     argv = ["--data", str(data), "--out", str(out), "--methods", "horn", "--program", f"{sys.executable} {app}/app.py"]
     assert sweep.main([*argv, "--", "plots=false"]) == 0
     for s in ("s1", "s2"):
         m = json.loads((sweep.result_dir(out, "horn", s) / "metrics.json").read_text())
-        assert m == {"sequence": s, "tracker": "horn"}
+        assert m == {"sequence": s, "estimator": "horn"}
     kept = sweep.result_dir(out, "horn", "s1") / "metrics.json"
     kept.write_text('{"sequence": "s1", "marker": 1}')  # must survive the resume untouched
     (sweep.result_dir(out, "horn", "s2") / "metrics.json").unlink()

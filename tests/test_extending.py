@@ -5,7 +5,7 @@ torchtrack), on the tiny synthetic set.
 Oracles: the custom weighting defined outside the package trains with torchtrack-train (its weights moved from
 their zero initialisation, and the validation numbers of metrics.csv are a replay of the saved best.pt), loads as its
 own class, and tracks through the CLI; the custom back end tracks through the CLI and reproduces, frame by frame, the
-shipped weighted Horn (``tracker=horn tracker.weighted=true``) that it re-implements."""
+shipped weighted Horn (``estimator=horn estimator.weighted=true``) that it re-implements."""
 
 from __future__ import annotations
 
@@ -88,7 +88,7 @@ def test_every_block_is_a_file_or_a_command():
     found = blocks()
     assert found and all(path or lang == "bash" for lang, path, _ in found), [(lang, path) for lang, path, _ in found]
     assert {path for _, path, _ in found if path} == {
-        "myext/weighting.py", "myext/backend.py", "myconf/tracker/weighted_horn.yaml",
+        "myext/weighting.py", "myext/backend.py", "myconf/estimator/weighted_horn.yaml",
     }  # fmt: skip
 
 
@@ -123,18 +123,18 @@ def test_custom_weighting_trains_saves_loads_and_tracks(guide, monkeypatch):
 
 
 def test_custom_back_end_equals_the_shipped_weighted_horn(guide, monkeypatch):
-    """The guide's WeightedHorn is the shipped weighted Horn (``tracker=horn tracker.weighted=true``) written against
+    """The guide's WeightedHorn is the shipped weighted Horn (``estimator=horn estimator.weighted=true``) written against
     the protocol: frame by frame the same poses (the same operations: to float64 round-off), through reset, set_pose,
     an inactive sequence and a frame with too few points; through the CLI it tracked every frame."""
     work, _ = guide
     (metrics,) = (work / "runs" / "track_horn").glob("*/metrics.json")
     assert json.loads(metrics.read_text())["frames"] == 6
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose("config", overrides=["tracker=weighted_horn", f"hydra.searchpath=[file://{work}/myconf]"])
-    assert cfg.tracker == {"_target_": "myext.backend.WeightedHorn", "var_floor": 1e-12}
+        cfg = compose("config", overrides=["estimator=weighted_horn", f"hydra.searchpath=[file://{work}/myconf]"])
+    assert cfg.estimator == {"_target_": "myext.backend.WeightedHorn", "var_floor": 1e-12}
 
     monkeypatch.syspath_prepend(str(work))
-    ours = instantiate(cfg.tracker)
+    ours = instantiate(cfg.estimator)
     theirs = RegistrationBackend(HornEstimator(), weighted=True)
     g = torch.Generator().manual_seed(0)
     B, N, F = 3, 16, torch.float64

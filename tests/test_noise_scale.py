@@ -14,7 +14,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from torchtrack.config import CONF_DIR, FilterConfig
+from torchtrack.config import CONF_DIR
 from torchtrack.filter import FusionEKF, Variances
 from torchtrack.filter.backend import EKFBackend
 from torchtrack.filter.ekf import chi2_quantile
@@ -266,14 +266,13 @@ def test_bad_parameters_raise(kwargs):
 def test_configuration():
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         default = compose("config")
-        on = compose("config", overrides=["filter.noise_forgetting=0.9"])
         off = compose("config", overrides=["filter.noise_scale=false"])
         paper = compose("config", overrides=["+experiment=paper"])
-    assert default.filter.noise_scale is True and isinstance(instantiate(default.tracker).ekf.noise, NoiseScale)
-    assert instantiate(off.tracker).ekf.noise is None and paper.filter.noise_scale is False
-    assert instantiate(paper.tracker).ekf.noise is None
-    noise = instantiate(on.tracker).ekf.noise
-    assert isinstance(noise, NoiseScale) and noise.forgetting == 0.9 and noise.clip == FilterConfig.noise_clip
+    assert default.filter.noise_scale is True and isinstance(instantiate(default.estimator).ekf.noise, NoiseScale)
+    assert instantiate(off.estimator).ekf.noise is None and paper.filter.noise_scale is False
+    assert instantiate(paper.estimator).ekf.noise is None
+    noise = FusionEKF(noise_forgetting=0.9, noise_clip=None).noise  # its tuning: the filter's arguments, not keys
+    assert isinstance(noise, NoiseScale) and noise.forgetting == 0.9 and noise.clip is None
 
 
 def test_frames_csv_reports_the_back_ends_scale(tmp_path):

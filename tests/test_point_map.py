@@ -20,7 +20,7 @@ F = 525.0  # px, the focal length of the scene
 
 
 def _stage(**kw) -> Reselection:
-    return Reselection(region=lambda d: d > 0, select=None, point_mean="reselect", **kw)
+    return Reselection(region=lambda d: d > 0, select=None, point_mean=True, **kw)
 
 
 def _scene(B: int, N: int, k: int, seed: int = 0):
@@ -126,7 +126,7 @@ def test_survivors_carry_their_estimates_into_the_new_model(synth):  # noqa: F81
     re-selection puts each survivor's estimate into the new model at the same world position with the same world
     information (rigid re-expression), and the new features start at their birth sample with zero information."""
     seq = synth(seed=5, frames=5, noise="kinect")
-    tracker = make_tracker("reselect.point_mean=reselect", "reselect.fraction=0.0", "landmarks.enabled=false")
+    tracker = make_tracker("reselect.point_mean=true", "reselect.fraction=0.0", "landmarks=none")
     frames = list(iterate_batched([seq], prefetch=False))
     for frame in frames:
         tracker.step(frame)
@@ -153,7 +153,7 @@ def test_survivors_carry_their_estimates_into_the_new_model(synth):  # noqa: F81
 def test_tracker_batched_equals_looped(synth):  # noqa: F811
     """Two sequences of different lengths tracked together equal each alone (the estimates are per row)."""
     a, b = synth(seed=1, frames=8, noise="kinect"), synth(seed=2, frames=6, noise="kinect")
-    over = ("reselect.point_mean=reselect", "reselect.fraction=0.6")
+    over = ("reselect.point_mean=true", "reselect.fraction=0.6")
     batched, _ = track(make_tracker(*over), [a, b])
     alone_a, _ = track(make_tracker(*over), [a])
     alone_b, _ = track(make_tracker(*over), [b])
@@ -161,7 +161,7 @@ def test_tracker_batched_equals_looped(synth):  # noqa: F811
     torch.testing.assert_close(batched[1, :6], alone_b[0], atol=TRAJ, rtol=0)
 
 
-@pytest.mark.parametrize("value", ["always", "frame", "on"])
+@pytest.mark.parametrize("value", ["reselect", "off", 1])
 def test_bad_settings_raise(value):
     with pytest.raises(ValueError, match="reselect.point_mean"):
         Reselection(region=None, select=None, point_mean=value)

@@ -379,7 +379,7 @@ def test_resume_skips_an_up_to_date_file_and_re_records_another_config(seq, tmp_
     assert calls == []
     record_sequences(config("weighting.sigma2_pix=2.0"), [seq], tmp_path, progress=False)
     assert calls == [[seq.name]]
-    record_sequences(config("landmarks.enabled=false"), [seq], tmp_path, progress=False)  # the policy changes it too
+    record_sequences(config("landmarks=none"), [seq], tmp_path, progress=False)  # the policy changes it too
     assert calls == [[seq.name]] * 2
     record_sequences(config("relocalise.recover=false"), [seq], tmp_path, progress=False)
     assert calls == [[seq.name]] * 3

@@ -50,9 +50,11 @@ def sequences(tmp_path_factory):
     return full, jump
 
 
-def track(root, out, *overrides):
+def track(root, out, *overrides, min_inliers: int | None = None):
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         tracker = build_tracker(compose("config", overrides=list(overrides)))
+    if min_inliers is not None:  # a threshold of the relocaliser, not a key
+        tracker.relocaliser.min_inliers = min_inliers
     (m,) = run_tracker(tracker, [TumSequence(root)], out, plots=False)
     rows = [ln.split(",") for ln in (out / root.name / "frames.csv").read_text().splitlines()]
     csv = {k: [r[i] for r in rows[1:]] for i, k in enumerate(rows[0])}
@@ -83,7 +85,7 @@ def test_jump_is_detected_and_recovered(sequences, tmp_path):
 
 def test_failed_relocalisation_interrupts_the_trajectory(sequences, tmp_path):
     _, jump = sequences
-    m, csv = track(jump, tmp_path / "out", "relocalise.min_inliers=100000")  # nothing can verify
+    m, csv = track(jump, tmp_path / "out", min_inliers=100000)  # nothing can verify
     n = 30 - (GAP[1] - GAP[0])
     assert csv["interrupted"] == ["False"] * GAP[0] + ["True"] * (n - GAP[0])  # retried every frame, never resumed
     assert m["interrupted_frames"] == n - GAP[0] and m["frames"] == n and m["relocalisations"] == 0

@@ -145,7 +145,7 @@ def test_ray_sweep_killed_mid_way_resumes_only_missing_jobs_and_equals_joblib(
 def _seqs_of(commands: list[str], method: str) -> set[str]:
     """The sequences the multirun of ``method`` swept (its ``+seq=a,b``), empty when it did not run."""
     for c in commands:
-        if f" tracker={method} " in f" {c} ":
+        if f" estimator={method} " in f" {c} ":
             return set(next(a for a in c.split() if a.startswith("+seq=")).removeprefix("+seq=").split(","))
     return set()
 

@@ -116,7 +116,7 @@ def test_reselection_keeps_trajectory_continuous(synth):
 def test_baselines_share_the_front_end(synth, tracker):
     """Same front end, another estimator: each follows the motion (a fifth of a frozen camera's error at most)."""
     seq = synth(seed=4, frames=6)
-    poses, _ = track(make_tracker(f"tracker={tracker}"), [seq])
+    poses, _ = track(make_tracker(f"estimator={tracker}"), [seq])
     trans, rot = pose_errors(poses[0], seq.groundtruth)
     frozen_trans, frozen_rot = frozen_errors(seq)
     assert trans < 0.2 * frozen_trans, f"{tracker}: {trans * 1000:.2f} mm vs frozen {frozen_trans * 1000:.2f} mm"
@@ -126,10 +126,10 @@ def test_baselines_share_the_front_end(synth, tracker):
 def test_keep_survivors_keeps_their_world_points_and_the_pose(synth):
     """A re-selection with keep_survivors re-expresses the tracked features in the new model frame (their world
     points and the camera pose do not move) and adds new features only away from them, up to the model's width. With
-    frozen model points (``point_mean=off``): the default's survivors carry their means instead (their world positions
+    frozen model points (``point_mean=false``): the default's survivors carry their means instead (their world positions
     and information through a re-selection: tests/test_point_map.py)."""
     seq = synth(seed=5, frames=4)
-    tracker = make_tracker("reselect.keep_survivors=true", "reselect.fraction=0.0", "reselect.point_mean=off")
+    tracker = make_tracker("reselect.keep_survivors=true", "reselect.fraction=0.0", "reselect.point_mean=false")
     frames = list(iterate_batched([seq], prefetch=False))
     for frame in frames:
         tracker.step(frame)

@@ -111,7 +111,7 @@ def test_depth_intrinsics_default_to_the_colour_ones(renders):
 @pytest.mark.parametrize(("tracker", "bound_mm"), [("fusion_ekf", 2.8), ("horn", 7.0), ("icp", 7.3), ("cpd", 7.0)])
 def test_baselines_are_bounded_against_ground_truth(renders, tracker, bound_mm):
     seq = TumSequence(renders["kinect"])
-    err = ate(seq, f"tracker={tracker}")
+    err = ate(seq, f"estimator={tracker}")
     gt = np.asarray(seq.groundtruth)
     frozen = trajectory_metrics(np.arange(FRAMES) / 30.0, np.repeat(gt[:1], FRAMES, 0), gt)["ate_rmse_m"]
     assert err < bound_mm * 1e-3, f"{tracker}: ATE {err * 1e3:.2f} mm"

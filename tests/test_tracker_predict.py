@@ -14,10 +14,10 @@ from torchtrack.config import CONF_DIR
 from torchtrack.data import iterate_batched
 from torchtrack.geometry import T_inv, se3_log
 
-# the landmarks' re-tracking from keyframes (landmarks.enabled) calls the flow too: these tests spy on the tracking
+# the landmarks' re-tracking from keyframes (landmarks=default) calls the flow too: these tests spy on the tracking
 # the dense map moves the model in the world (a correction, not motion): off, so that the differences of T_world_depth
 # are the tracked motion the prediction extrapolates
-NO_LANDMARKS = ("landmarks.enabled=false", "dense.enabled=false")
+NO_LANDMARKS = ("landmarks=none", "dense=none")
 
 
 class SpyFlow:

@@ -3,7 +3,7 @@
 torchtrack                                   # synthetic sequence (rendered once, cached)
 torchtrack data=tum data.root=DIR            # a TUM-layout folder
 torchtrack data=tum 'data.root=[DIR1,DIR2]'  # B sequences tracked together
-torchtrack tracker=icp hydra.run.dir=OUT     # another estimator, chosen output folder
+torchtrack estimator=icp hydra.run.dir=OUT   # another estimator, chosen output folder
 torchtrack data=tum data.root=DIR mapping=panorama  # + map.ply, map.png (mapping=tsdf: + mesh.ply)
 torchtrack conf_dir=myconf weighting=mine    # myconf/weighting/mine.yaml
 torchtrack device=cuda                       # track on the GPU

@@ -10,11 +10,17 @@ the same values as literals in their signatures, so that the kernels need no Hyd
 (``+experiment=paper``). The data group's schemas are in :mod:`torchtrack.data.schema`. Derived knobs are resolved in
 one place, :func:`torchtrack.factory.build_tracker`: the front end's pyramid levels are the LK tracker's
 (``flow.levels``). The measurement variances belong to the weighting, not to the filter.
+
+Keys. A key is a user's choice or one of the paper's switches. Internal thresholds (the landmarks', the relocaliser's,
+the map's, the selection's border and suppression, the LK iterations) are the documented defaults of the classes they
+tune; implementation forms (the filter's gain form and autograd Jacobian, LK and SIM references) are arguments that
+the tests reach, not keys. A stage that can be off is a group option (``landmarks=none``, ``dense=none``,
+``mapping=none``: an empty node, and the factory builds no stage), not an ``enabled`` key beside it.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +35,6 @@ from torchtrack.data.schema import SyntheticDataConfig, TumDataConfig
 _PACKAGED_CONF = Path(__file__).resolve().parent / "conf"
 CONF_DIR = _PACKAGED_CONF if _PACKAGED_CONF.is_dir() else Path(__file__).resolve().parents[1] / "conf"
 EKF_BACKEND = "torchtrack.filter.backend.EKFBackend"
-VIEW_SIZE = (480, 640)  # the map views' [H, W] (MappingConfig.view_size; a list there, as OmegaConf needs)
 REGISTRATION_BACKEND = "torchtrack.estimators.backends.RegistrationBackend"
 
 
@@ -59,13 +64,8 @@ class SelectConfig:
     grid: list[int] | None = None  # [rows, cols] instead of patch_size
     spread: bool = True  # false = global top-N by cornerness, no patches (ablation EKF-1)
     max_features: int | None = None
-    border: int = 12  # keep features this far from the image edge (LK window)
-    nms_radius: int = 2  # non-maximum suppression radius when spread is false
-    min_cornerness: float = 0.05
-    require_sim: bool = False  # true: with lam < 1 only pixels with a defined (non-planar) shape index
     roi_fraction: float | None = 0.5  # improvement (null = paper): a region whose box covers less of the image (inside
     # the border) gets patches shrunk so that the box holds as many as this fraction of the image would
-    min_patch: int = 8  # ... patches no smaller than this (px)
 
 
 @dataclass
@@ -77,12 +77,6 @@ class FlowConfig:
     tim_threshold: float = 1.0  # px
     window: int = 21  # px, LK window (odd)
     levels: int = 3  # pyramid levels (the front end builds this many)
-    iters: int = 30  # max iterations per level
-    eps: float = 0.01  # px, convergence
-    min_eig: float = 1.0e-4  # minimum eigenvalue of the 2x2 gradient matrix (normalised, as OpenCV)
-    ic_iters: int = 3  # inverse-compositional iterations before Newton steps
-    backend: str = "torch"  # torch | opencv (cv2.calcOpticalFlowPyrLK, reference)
-    lk_backend: str = "auto"  # auto | cpp | torch: LK as the compiled operator (auto: where it builds) or pure torch
     policy: str = "fallback"  # improvement (paper: min_tim): the SIM tracker only where the intensity tracker failed
 
 
@@ -93,7 +87,6 @@ class FrontendConfig:
     _target_: str = "torchtrack.frontend.FrontEnd"
     use_sim: bool = True  # compute the SIM (SIM-assisted tracking, lambda < 1 selection)
     sim_kwargs: dict[str, Any] | None = None
-    sim_backend: str = "auto"  # auto | cpp | torch: the SIM as the compiled operator (auto: where it builds) or torch
     ahead: bool = True  # prepare the next frame (SIM, pyramids) in a thread while this one is tracked; same results
 
 
@@ -113,16 +106,10 @@ class FilterConfig:
     init_sigma_ang_vel: float = 1.0  # rad/s
     init_sigma_lin_vel: float = 0.5  # m/s
     iterations: int = 1  # 1 = the paper's EKF; > 1 = iterated EKF
-    form: str = "information"  # information (fast) | gain (the paper's eq. 15, slow)
-    jacobian: str = "analytic"  # analytic (closed form, ~10x faster, = autograd to 1e-10) | forward | reverse
     state: str = "se3"  # improvement: an error state on SE(3), regular everywhere | euler (the paper's eq. 2)
     gate: float | None = 0.999  # improvement (null = paper): chi-square gate on each feature's innovations
     refit: float | None = 0.999  # improvement (null = paper): re-update without features failing this quantile
     noise_scale: bool = True  # improvement (false = paper): online R scale per block (pix, 3D), from the residuals
-    noise_forgetting: float = 0.98  # ... its forgetting factor per frame (a window of ~50 frames)
-    noise_scale_min: float = 0.01  # ... bounds of the scale
-    noise_scale_max: float = 100.0
-    noise_clip: float | None = 0.9  # ... chi-square quantile winsorising each feature's residual (null: none)
 
 
 @dataclass
@@ -132,8 +119,6 @@ class PaperWeightingConfig:
     _target_: str = "torchtrack.filter.weighting.PaperWeighting"
     sigma2_pix: float = 1.0  # px^2, mean 2D variance (kept by eq. 11)
     sigma2_xyz: float = 4.0e-6  # m^2, mean 3D variance at depth_ref (kept by eq. 14): (2 mm)^2 (paper: 1e-4)
-    d_tim_floor: float = 0.01  # px; a perfect TIM match would otherwise get zero variance
-    dist_floor: float = 1.0e-3  # m; guards eq. (13) at the centroid
     depth_var_exponent: float = 4.0  # improvement (0 = paper): 3D variance x (z / depth_ref)^4
     depth_ref: float = 1.0
 
@@ -164,7 +149,7 @@ class LearnedWeightingConfig:
 
 @dataclass
 class EKFBackendConfig:
-    """The fusion EKF as the pose estimator (``tracker=fusion_ekf``); the filter and its settings are the ``filter``
+    """The fusion EKF as the pose estimator (``estimator=fusion_ekf``); the filter and its settings are the ``filter``
     node (present whatever the estimator, so that ``+experiment=paper`` sets them in one file)."""
 
     _target_: str = EKF_BACKEND
@@ -196,7 +181,7 @@ class HornConfig:
 
 @dataclass
 class RegistrationBackendConfig:
-    """A registration baseline (``tracker=icp|cpd|horn``) on the tracked 3D-3D correspondences."""
+    """A registration baseline (``estimator=icp|cpd|horn``) on the tracked 3D-3D correspondences."""
 
     _target_: str = REGISTRATION_BACKEND
     weighted: bool = False  # weight points by the weighting's inverse 3D variances
@@ -205,7 +190,7 @@ class RegistrationBackendConfig:
 
 # --- the pipeline and its stages ------------------------------------------------------------------------------
 # The tracker (torchtrack.pipeline.Tracker) is composed of stage objects, each built by the factory from its own group:
-# the per-frame stages above (region, select, flow, weighting, tracker = the back end) and the policy stages below
+# the per-frame stages above (region, select, flow, weighting, estimator = the back end) and the policy stages below
 # (reselect, outliers, keyframes, landmarks, relocalise).
 
 
@@ -228,10 +213,9 @@ class ReselectConfig:
     min_features: int = 12  # ... or fewer than this many
     edge_step: float | None = 0.03  # improvement (null = paper): no features where depth jumps > 3% in 5x5 px
     keep_survivors: bool = True  # improvement (false = paper): a re-selection keeps the features still tracked
-    min_separation_px: float = 8.0  # ... and adds new ones only this far from a survivor (or a re-acquired landmark)
-    # improvement (off = paper: one depth sample): a model point is the information-weighted mean of its feature's
+    # improvement (false = paper: one depth sample): a model point is the information-weighted mean of its feature's
     # depth samples in the model frame; survivors carry it (torchtrack.pipeline.reselect.fuse_points)
-    point_mean: str = "reselect"
+    point_mean: bool = True
 
 
 @dataclass
@@ -256,56 +240,30 @@ class KeyframeConfig:
 @dataclass
 class LandmarkConfig:
     """:class:`torchtrack.pipeline.landmarks.LandmarkMap`: model points that outlive their model, re-acquired from the
-    keyframes that saw them (the tracker's ``landmarks``; none when ``enabled`` is false)."""
+    keyframes that saw them (the tracker's ``landmarks``; ``landmarks=none`` builds none). Its thresholds are the
+    class's documented defaults."""
 
     _target_: str = "torchtrack.pipeline.landmarks.LandmarkMap"
-    enabled: bool = True  # improvement (false = paper): re-selections re-acquire old model points from keyframes
-    per_keyframe: int = 128  # landmarks kept per keyframe
-    max_candidates: int = 256  # at most this many re-tracked per sequence at once (oldest keyframe first)
-    min_separation_px: float = "${reselect.min_separation_px}"  # not re-tracked this close to a tracked feature
-    max_residual: float = 0.1  # largest LK photometric residual (mean absolute grey difference, [0, 1])
-    max_shift_px: float = 30.0  # largest distance between the tracked pixel and the projection
-    max_offset_m: float = 0.1  # largest distance of the measured from the predicted 3D point, x max(1, z^2)
-    occlusion: float = 0.05  # occluded where the depth at the projection is nearer by this fraction
-    correct: bool = True  # re-fit the camera pose to the re-acquired landmarks (and the model's features)
-    inlier_m: float = 0.02  # ... the 3D residual's standard deviation in that fit, x max(1, z^2)
-    min_inliers: int = 8  # ... when at least this many agree
-    max_correction_m: float = 0.1  # ... a larger correction is not applied
-    max_correction_deg: float = 5.0
-    max_angle_deg: float = 15.0  # re-track only landmarks seen from within this angle (rotation, rays)
-    max_scale: float = 1.25  # ... and whose depth changed by at most this ratio
-    converge_px: float = 0.5  # a second LK started probe_px away must end within this of the first
-    probe_px: float = 3.0
 
 
 @dataclass
 class DenseMapConfig:
     """:class:`torchtrack.pipeline.dense_map.DenseMap`: the keyframes' depth as a map, the model's world pose aligned to
-    it (the tracker's ``dense``; none when ``enabled`` is false)."""
+    it (the tracker's ``dense``; ``dense=none`` builds none)."""
 
     _target_: str = "torchtrack.pipeline.dense_map.DenseMap"
-    enabled: bool = True  # improvement (false = paper): the model placed on a dense map, not only chained
     voxel_size: float = 0.01  # m, the map's voxel edge (one point per occupied voxel)
     every: int = 1  # the camera aligned to the map every this many frames (and at every re-selection); 1: every frame
-    max_voxels: int = 1_000_000  # a sequence's map beyond this is pruned (to 3/4), the least-supported voxels first
 
 
 @dataclass
 class RelocaliseConfig:
     """:class:`torchtrack.pipeline.relocalise.Relocaliser`: the loss check after each frame and relocalisation by ORB
-    matches against recent model frames + PnP RANSAC (the tracker's ``relocaliser``)."""
+    matches against recent model frames + PnP RANSAC (the tracker's ``relocaliser``); its thresholds are the class's
+    documented defaults."""
 
     _target_: str = "torchtrack.pipeline.relocalise.Relocaliser"
     recover: bool = True  # improvement (false = paper: lost frames are only marked and warned about): relocalise
-    min_survival: float = 0.25  # lost: fewer than this fraction of the previous frame's features tracked with depth
-    max_rejected: float = 0.95  # ... or the filter rejected more than this fraction of them
-    max_pos_std: float = 0.01  # m, ... or the posterior position std exceeds this
-    orb_features: int = 1000
-    ratio: float = 0.8  # Lowe's ratio test
-    reprojection_px: float = 3.0  # RANSAC inlier threshold
-    min_inliers: int = 30  # a relocalisation is accepted with at least this many inliers
-    agree_m: float = 0.02  # a relocalised pose this close to the tracked one confirms it
-    agree_deg: float = 2.0
 
 
 # --- mapping ----------------------------------------------------------------------------------------------------
@@ -313,33 +271,21 @@ class RelocaliseConfig:
 
 @dataclass
 class MappingConfig:
-    """:class:`torchtrack.mapping.PanoramaMapper` (paper §IV): coloured voxel-grid map per sequence; off unless
-    ``enabled`` (``mapping=panorama`` or ``mapping=tsdf``; read by :func:`torchtrack.factory.build_mapper`)."""
+    """:class:`torchtrack.mapping.PanoramaMapper` (paper §IV): coloured voxel-grid map per sequence (``mapping=panorama``
+    or ``mapping=tsdf``; ``mapping=none``, the default, builds none: :func:`torchtrack.factory.build_mapper`). Its depth
+    range, pixel stride, flying-pixel filter and TSDF truncation are the class's documented defaults."""
 
     _target_: str = "torchtrack.mapping.PanoramaMapper"
-    enabled: bool = False
     voxel_size: float = 0.01  # m, one point per voxel
     every: int | None = None  # also fuse every k-th frame; null: the first and the model (key) frames only
-    pixel_stride: int = 2  # back-project every n-th pixel in x and y
-    min_depth: float = 0.1  # m
-    max_depth: float = 4.0  # m
-    edge_step: float | None = 0.05  # drop pixels at depth steps above this fraction (flying pixels); null: off
     tsdf: bool = False  # also fuse the same frames with Open3D's TSDF (tensor VoxelBlockGrid) -> mesh.ply
-    tsdf_voxel_size: float = 0.01  # m
-    tsdf_trunc: float = 0.04  # m
     views: bool = True  # map.png: perspective view from the first camera and top-down view
-    view_size: list[int] = field(default_factory=lambda: list(VIEW_SIZE))  # [H, W] of each view
 
     def __post_init__(self) -> None:
-        for key in ("voxel_size", "tsdf_voxel_size", "tsdf_trunc", "max_depth"):
-            if getattr(self, key) <= 0:
-                raise DataError(f"mapping.{key} must be > 0, got {getattr(self, key)}")
-        if self.pixel_stride < 1 or (self.every is not None and self.every < 1):
-            raise DataError(f"mapping.pixel_stride and mapping.every must be >= 1, got {self.pixel_stride}, "
-                            f"{self.every}")  # fmt: skip
-        if not 0 <= self.min_depth < self.max_depth or len(self.view_size) != 2 or min(self.view_size) < 16:
-            raise DataError(f"mapping: need 0 <= min_depth < max_depth and view_size [H, W] >= 16, got "
-                            f"{self.min_depth}, {self.max_depth}, {self.view_size}")  # fmt: skip
+        if self.voxel_size <= 0:
+            raise DataError(f"mapping.voxel_size must be > 0, got {self.voxel_size}")
+        if self.every is not None and self.every < 1:
+            raise DataError(f"mapping.every must be >= 1, got {self.every}")
 
 
 SCHEMAS: dict[str, dict[str, type]] = {
@@ -350,8 +296,8 @@ SCHEMAS: dict[str, dict[str, type]] = {
     "frontend": {"frontend": FrontendConfig},
     "filter": {"ekf": FilterConfig},
     "weighting": {"paper": PaperWeightingConfig, "fixed": FixedWeightingConfig, "learned": LearnedWeightingConfig},
-    "tracker": {"ekf": EKFBackendConfig, "registration": RegistrationBackendConfig},
-    "estimator": {"icp": ICPConfig, "cpd": CPDConfig, "horn": HornConfig},
+    "estimator": {"ekf": EKFBackendConfig, "registration": RegistrationBackendConfig},
+    "registration": {"icp": ICPConfig, "cpd": CPDConfig, "horn": HornConfig},
     "pipeline": {"pipeline": PipelineConfig},
     "reselect": {"reselect": ReselectConfig},
     "outliers": {"outliers": OutlierConfig},
@@ -388,11 +334,19 @@ def load_option(group: str, name: str) -> DictConfig:
     return OmegaConf.merge(out, node)
 
 
+# Groups renamed: a config folder of the old name is named in one line (the shipped options of ``tracker=`` still
+# select the estimator: conf/tracker/).
+RENAMED_GROUPS = {"tracker": "estimator"}
+
+
 def validate(cfg: DictConfig) -> None:
     """Range checks that types cannot express: build the data and mapping nodes' dataclasses (``__post_init__``).
 
     Raises :class:`~torchtrack.data.errors.DataError` with a one-line message.
     """
+    for old, new in RENAMED_GROUPS.items():
+        if cfg.get(old):
+            raise DataError(f"the {old}= group is now {new}=: use {new}=NAME (a config of your own: {new}/NAME.yaml)")
     OmegaConf.to_object(cfg.data)
     if "mapping" in cfg:
         OmegaConf.to_object(cfg.mapping)

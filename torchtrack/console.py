@@ -13,7 +13,7 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from torchtrack.config import CONF_DIR
+from torchtrack.config import CONF_DIR, RENAMED_GROUPS
 
 CONF_DIR_KEY = "conf_dir"
 _MISSING = object()
@@ -162,6 +162,9 @@ def _key_hint(full_key: str, config_name: str, overrides: Sequence[str]) -> str 
 
     def bare(o: str) -> str:
         return o.partition("=")[0].lstrip("+~")
+
+    if (old := full_key.split(".")[0]) in RENAMED_GROUPS:
+        return f"the {old}= group is now {RENAMED_GROUPS[old]}= (its keys: {RENAMED_GROUPS[old]}.KEY)"
 
     rest = [o for o in overrides if bare(o) != full_key and not bare(o).startswith(full_key + ".")]
     base = _quiet_compose(config_name, rest)

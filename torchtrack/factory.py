@@ -109,7 +109,7 @@ def build_tracker(cfg: DictConfig, *, record: bool = False) -> Tracker:
         frontend=instantiate(cfg.frontend, levels=cfg.flow.levels, gray=frame_gray),  # the loader's luminance
         flow=instantiate(cfg.flow),
         weighting=instantiate(cfg.weighting),
-        backend=instantiate(cfg.tracker),
+        backend=instantiate(cfg.estimator),
         reselect=instantiate(cfg.reselect, region=instantiate(cfg.region), select=instantiate(cfg.select)),
         outliers=instantiate(cfg.outliers),
         keyframes=instantiate(cfg.keyframes),
@@ -122,23 +122,19 @@ def build_tracker(cfg: DictConfig, *, record: bool = False) -> Tracker:
 
 def build_landmarks(cfg: DictConfig):
     """The tracker's landmark stage (:class:`torchtrack.pipeline.landmarks.LandmarkMap`) from ``cfg.landmarks``, or
-    None when ``landmarks.enabled`` is false."""
-    return _enabled(cfg.get("landmarks"))
+    None with ``landmarks=none``."""
+    return _stage(cfg.get("landmarks"))
 
 
 def build_dense(cfg: DictConfig):
-    """The tracker's dense map (:class:`torchtrack.pipeline.dense_map.DenseMap`) from ``cfg.dense``, or None when
-    ``dense.enabled`` is false."""
-    return _enabled(cfg.get("dense"))
+    """The tracker's dense map (:class:`torchtrack.pipeline.dense_map.DenseMap`) from ``cfg.dense``, or None with
+    ``dense=none``."""
+    return _stage(cfg.get("dense"))
 
 
-def _enabled(node: DictConfig | None):
-    """The stage of ``node`` without its ``enabled`` key, or None when there is no node or it is not enabled."""
-    if node is None or not node.enabled:
-        return None
-    kwargs = OmegaConf.to_container(node, resolve=True)
-    kwargs.pop("enabled")
-    return instantiate(kwargs)
+def _stage(node: DictConfig | None):
+    """The object of ``node``, or None when there is no node or it is an option's empty node (``none``)."""
+    return None if node is None or "_target_" not in node else instantiate(node)
 
 
 def build_relocaliser(cfg: DictConfig):
@@ -148,11 +144,5 @@ def build_relocaliser(cfg: DictConfig):
 
 
 def build_mapper(cfg: DictConfig):
-    """The ``mapping`` node's :class:`torchtrack.mapping.PanoramaMapper`, or None when mapping is off."""
-    node = cfg.get("mapping")
-    if node is None or not node.enabled:
-        return None
-    kwargs = OmegaConf.to_container(node, resolve=True)
-    kwargs.pop("enabled")
-    kwargs["view_size"] = tuple(kwargs["view_size"])
-    return instantiate(kwargs)
+    """The ``mapping`` node's :class:`torchtrack.mapping.PanoramaMapper`, or None with ``mapping=none``."""
+    return _stage(cfg.get("mapping"))

@@ -1,4 +1,4 @@
-"""What the dense map costs per frame: the default tracker with and without it (``dense.enabled=false``) over the same
+"""What the dense map costs per frame: the default tracker with and without it (``dense=none``) over the same
 decoded frames, in one process, the configurations stepping through each frame back to back (in a rotating order, so
 that the shared machine's drifting speed falls on all alike); and the map's own calls (align, add) timed from the
 outside.
@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     seq = TumSequence(args.root, max_frames=args.frames)
     batches = list(iterate_batched([seq], prefetch=False))
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfgs = {"dense map": compose("config"), "without": compose("config", overrides=["dense.enabled=false"])}
+        cfgs = {"dense map": compose("config"), "without": compose("config", overrides=["dense=none"])}
         cfgs |= {o: compose("config", overrides=[o]) for o in args.also}
         if args.reference:
             cfgs["torch alignment"] = cfgs["dense map"]

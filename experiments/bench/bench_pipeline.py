@@ -30,7 +30,7 @@ interleaved in one session.
 
     python experiments/bench/bench_pipeline.py                        # ../shared/data/sun3d_fragment1, 50 frames, 1 thread
     python experiments/bench/bench_pipeline.py --root ../shared/data/visp_rbt_sequence --frames 99 --repeats 5
-    python experiments/bench/bench_pipeline.py --only b1 tracker=icp  # Hydra overrides pass through
+    python experiments/bench/bench_pipeline.py --only b1 estimator=icp  # Hydra overrides pass through
 """
 
 from __future__ import annotations
@@ -87,7 +87,7 @@ STAGES = {
     "weighting": ("weighting (eqs. 11-14)", 0),
     "backend": ("backend: EKF (total)", 0),
     "backend/predict": ("predict (eqs. 3-4)", 1),
-    "backend/linearize": ("linearise h (eqs. 6-7; filter.jacobian)", 1),
+    "backend/linearize": ("linearise h (eqs. 6-7)", 1),
     "landmarks": ("landmarks: re-acquisition at re-selections (its LK call counted in flow too)", 0),
     "region": ("selection: region", 0),
     "select": ("selection: features (eq. 9)", 0),

@@ -39,7 +39,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = compose("config", overrides=args.overrides)
     tracker = build_tracker(cfg)
     if tracker.dense is None:
-        raise SystemExit("dense_corrections: the configuration has no dense map (dense.enabled=false)")
+        raise SystemExit("dense_corrections: the configuration has no dense map (dense=none)")
     frame_no, last, cosines = 0, None, []
     align = tracker.dense.align
 

@@ -14,7 +14,7 @@ the rows above 1.05).
     python experiments/eval/eval_weighting.py --weightings fixed,paper --max-frames 300 --runs 3
     python experiments/eval/eval_weighting.py --checkpoint runs/train/model.pt  # the learned model to evaluate
     python experiments/eval/eval_weighting.py --learned all=ckpt/all.pt --learned loo='ckpt/loo-{sequence}.pt'
-    python experiments/eval/eval_weighting.py --results experiments/RESULTS.md -- flow.backend=opencv
+    python experiments/eval/eval_weighting.py --results experiments/RESULTS.md -- flow.policy=min_tim
     python experiments/eval/eval_weighting.py --weightings paper --method=default=weighting=paper  # the default vs eqs. 11-14
 
 Weightings: ``fixed`` = ``weighting=fixed`` (the paper's EKF-3 ablation: the variances of

@@ -7,7 +7,7 @@ sequence), and the other kinds by name (seed 0). A finished run (its ``metrics.j
 
     python experiments/eval/landmarks_ablation.py --roots /work/shared/data/7scenes_redkitchen \\
         --variants real,jitter1,jitter2,jitter3,skip2,skip3,skip4 --variant-frames 1000 \\
-        --configs off= landmarks=landmarks.enabled=true --out /tmp/abl
+        --configs off= landmarks=landmarks=default --out /tmp/abl
 
 Prints and writes ``OUT/ablation.md``: ATE mm / RPE mm / re-selections per run and configuration, and the median
 over the ``jitter`` seeds.

@@ -63,14 +63,14 @@ class Method:
 METHODS: dict[str, Method] = {
     m.name: m
     for m in (
-        Method("fusion_ekf", "Proposed", ("tracker=fusion_ekf",)),
-        Method("paper", "Proposed, paper as written", ("tracker=fusion_ekf", "+experiment=paper")),
-        Method("icp", "ICP", ("tracker=icp",)),
-        Method("cpd", "CPD", ("tracker=cpd",)),
-        Method("horn", "Quaternion", ("tracker=horn",)),
-        Method("ekf1", "EKF-1", ("tracker=fusion_ekf", "+experiment=ekf1")),
-        Method("ekf2", "EKF-2", ("tracker=fusion_ekf", "+experiment=[ekf1,ekf2]")),
-        Method("ekf3", "EKF-3", ("tracker=fusion_ekf", "+experiment=[ekf1,ekf2,ekf3]")),
+        Method("fusion_ekf", "Proposed", ("estimator=fusion_ekf",)),
+        Method("paper", "Proposed, paper as written", ("estimator=fusion_ekf", "+experiment=paper")),
+        Method("icp", "ICP", ("estimator=icp",)),
+        Method("cpd", "CPD", ("estimator=cpd",)),
+        Method("horn", "Quaternion", ("estimator=horn",)),
+        Method("ekf1", "EKF-1", ("estimator=fusion_ekf", "+experiment=ekf1")),
+        Method("ekf2", "EKF-2", ("estimator=fusion_ekf", "+experiment=[ekf1,ekf2]")),
+        Method("ekf3", "EKF-3", ("estimator=fusion_ekf", "+experiment=[ekf1,ekf2,ekf3]")),
         Method("open3d_odometry", "Open3D odometry", peer=True),
     )
 }

@@ -40,7 +40,7 @@ RECORDED_GROUPS = (
     "flow",
     "filter",
     "weighting",
-    "tracker",
+    "estimator",
     "pipeline",
     "reselect",
     "outliers",

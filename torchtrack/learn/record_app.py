@@ -66,7 +66,7 @@ Usage: torchtrack-record out=DIR [data=tum data.root=...] [key=value ...]   (or:
   hydra.run.dir=DIR  this command's log and resolved config (default OUT/.record/<date>_<time>)
 
 Every torchtrack config group and key applies and sets the pipeline that records: data=tum and data.* (the folders,
-intrinsics, depth scale, ...), region=, select=, flow=, frontend=, filter=, weighting=, tracker=, and their keys
+intrinsics, depth scale, ...), region=, select=, flow=, frontend=, filter=, weighting=, estimator=, and their keys
 (torchtrack --help lists them). A file recorded with other values of the groups it depends on is recorded again:
 {groups}.
 Print the composed configuration: torchtrack-record --cfg job [overrides]. Hydra's own options: --hydra-help.

@@ -38,7 +38,7 @@ from torchtrack.geometry import (
 from torchtrack.image.flow import FlowFrame, TrackResult, prepare_frame, repeat_frame, zero_frame
 from torchtrack.pipeline.keyframes import KeyframeStore
 from torchtrack.pipeline.pose_fit import refine_pose
-from torchtrack.pipeline.reselect import far_from
+from torchtrack.pipeline.reselect import MIN_SEPARATION_PX, far_from
 from torchtrack.pipeline.state import Measure
 
 
@@ -89,7 +89,7 @@ class LandmarkMap:
         *,
         per_keyframe: int = 128,
         max_candidates: int = 256,
-        min_separation_px: float = 8.0,
+        min_separation_px: float = MIN_SEPARATION_PX,
         max_residual: float = 0.1,
         max_shift_px: float = 30.0,
         max_offset_m: float = 0.1,

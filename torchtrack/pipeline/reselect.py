@@ -13,6 +13,10 @@ from torchtrack.frontend import smooth_depth_mask
 from torchtrack.geometry import T_inv, transform_points
 from torchtrack.pipeline.state import valid_first
 
+# px: a new feature (or a re-acquired landmark) closer than this to a tracked one shares most of its 21 px LK window,
+# so it measures nearly the same texture again; one value for the re-selection and the landmarks.
+MIN_SEPARATION_PX = 8.0
+
 
 class Kept(NamedTuple):
     """Features a re-selection keeps, (B, K, ...): colour pixels, points in the current depth camera, valid, age,
@@ -105,9 +109,9 @@ class Reselection:
             not change), and adds new ones only where no kept feature is within ``min_separation_px``, up to the
             selector's count. The surviving points keep anchoring the pose, so a re-selection no longer resets the
             model to one frame's estimate (less drift).
-        min_separation_px: new features closer than this to a kept one are not added.
-        point_mean: improvement (``off`` = paper: a model point is the one depth sample of its selection);
-            ``reselect``: each model point is estimated, the information-weighted mean (:func:`fuse_points`) of its
+        min_separation_px: new features closer than this to a kept one are not added (:data:`MIN_SEPARATION_PX`).
+        point_mean: improvement (False = paper: a model point is the one depth sample of its selection);
+            True: each model point is estimated, the information-weighted mean (:func:`fuse_points`) of its
             feature's depth samples of every frame moved into the model frame by the filter's posterior pose, and
             survivors carry the mean into the new model (the filter's model stays fixed between re-selections).
     """
@@ -121,22 +125,22 @@ class Reselection:
         min_features: int = 12,
         edge_step: float | None = 0.03,
         keep_survivors: bool = True,
-        min_separation_px: float = 8.0,
-        point_mean: str = "reselect",
+        min_separation_px: float = MIN_SEPARATION_PX,
+        point_mean: bool = True,
     ) -> None:
         if not 0.0 <= fraction < 1.0:
             raise ValueError(f"reselect.fraction must be in [0, 1), got {fraction}")
         self.region, self.select = region, select
         self.fraction, self.min_features, self.edge_step = fraction, min_features, edge_step
         self.keep_survivors, self.min_separation_px = keep_survivors, min_separation_px
-        if point_mean not in ("off", "reselect"):
-            raise ValueError(f"reselect.point_mean must be off or reselect, got {point_mean!r}")
+        if not isinstance(point_mean, bool):
+            raise ValueError(f"reselect.point_mean must be true or false, got {point_mean!r}")
         self.point_mean = point_mean
 
     @property
     def estimates_points(self) -> bool:
-        """Whether the model points are estimates (``point_mean`` not ``off``)."""
-        return self.point_mean != "off"
+        """Whether the model points are estimates (``point_mean``)."""
+        return self.point_mean
 
     def fused(self, est: PointEstimate, T_cam_obj: Tensor, points_d: Tensor, var_xyz: Tensor,
               valid: Tensor) -> PointEstimate:  # fmt: skip
