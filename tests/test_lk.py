@@ -1,4 +1,4 @@
-"""Pyramidal LK and template inverse matching (issue 4).
+"""Pyramidal LK and template inverse matching.
 
 Oracles: an analytic texture rendered exactly at shifted / affinely warped positions (no image
 interpolation in the ground truth); OpenCV's calcOpticalFlowPyrLK and pyrDown on the same inputs;
