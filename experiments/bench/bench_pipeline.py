@@ -318,7 +318,7 @@ def reacquire_report(cfg: DictConfig, seq, repeats: int) -> None:
 
 
 def lk_report(threads: int, repeats: int = 40) -> None:
-    """The issue's LK row: one forward LK pass of 300 points with the next frame's pyramid vs OpenCV's
+    """The LK row: one forward LK pass of 300 points with the next frame's pyramid vs OpenCV's
     (``bench_lk.py --one-pass``, the same table)."""
     import argparse as _argparse
 

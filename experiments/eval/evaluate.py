@@ -5,7 +5,7 @@ it (``conf/`` through Hydra, in-process) and the peers of :mod:`peers` (Open3D l
 hybrid and colour terms; Open3D tensor odometry, hybrid and point-to-plane; Open3D tensor frame-to-model
 tracking against a TSDF raycast; OpenCV 5 ``cv2.Odometry``), scores all with
 :func:`torchtrack.metrics.trajectory_metrics` (evo's ATE/RPE) and prints per sequence each peer's ATE/RPE/ms, the
-best peer and ours against it. The issue's target: ours <= 0.7x the best peer's ATE on the real sequences, <= 1.0x
+best peer and ours against it. The target: ours <= 0.7x the best peer's ATE on the real sequences, <= 1.0x
 on the variants.
 
     python experiments/eval/evaluate.py                                       # every folder in ../shared/data
