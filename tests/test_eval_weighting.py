@@ -114,7 +114,10 @@ def test_learned_checkpoint_pattern_per_sequence(tmp_path):
             "# R\n## Learned weighting: the evaluation table\nold\n### s\nold\n## Next\ny\n",
             "# R\n## Learned weighting: the evaluation table\n\nnew\n\n## Next\ny\n",
         ),
-        ("a\n## Learned weighting: the evaluation table\n\nold\n", "a\n## Learned weighting: the evaluation table\n\nnew\n"),
+        (
+            "a\n## Learned weighting: the evaluation table\n\nold\n",
+            "a\n## Learned weighting: the evaluation table\n\nnew\n",
+        ),
     ],
 )
 def test_replace_section(text, expected):
