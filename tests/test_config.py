@@ -316,7 +316,7 @@ def test_the_front_end_levels_are_the_flow_levels():
         config("frontend.levels=2")  # one place only
 
 
-# ------------------------------------------------------------------- direct builds behave as the CLI's (issue 23)
+# ------------------------------------------------------------------- direct builds behave as the CLI's -----------
 # Each stage built by the CLI (build_tracker / build_mapper on the composed config) and built directly with no
 # arguments: equal behaviour on a small input, or equal state where the state is the behaviour. Where a default is an
 # improvement, the paper's value is also run on the same input, to show that the input tells the two apart.

@@ -14,7 +14,7 @@ from torchtrack.data.synthetic import SyntheticConfig, ensure_sequence
 
 pytestmark = pytest.mark.slow  # the weighting evaluation script end to end
 
-OTHER = "# Results\n\nintro\n\n## Issue 5\n\nkeep me\n\n### sub\n\nme too\n"
+OTHER = "# Results\n\nintro\n\n## Other section\n\nkeep me\n\n### sub\n\nme too\n"
 TAIL = "## Generated report\n\nlast\n"
 
 
@@ -108,13 +108,16 @@ def test_learned_checkpoint_pattern_per_sequence(tmp_path):
 @pytest.mark.parametrize(
     "text, expected",
     [
-        ("", "## Learned weighting (issue 11)\n\nnew\n"),
-        ("# R\n\nx\n", "# R\n\nx\n\n## Learned weighting (issue 11)\n\nnew\n"),
+        ("", "## Learned weighting: the evaluation table\n\nnew\n"),
+        ("# R\n\nx\n", "# R\n\nx\n\n## Learned weighting: the evaluation table\n\nnew\n"),
         (
-            "# R\n## Learned weighting (issue 11)\nold\n### s\nold\n## Next\ny\n",
-            "# R\n## Learned weighting (issue 11)\n\nnew\n\n## Next\ny\n",
+            "# R\n## Learned weighting: the evaluation table\nold\n### s\nold\n## Next\ny\n",
+            "# R\n## Learned weighting: the evaluation table\n\nnew\n\n## Next\ny\n",
         ),
-        ("a\n## Learned weighting (issue 11)\n\nold\n", "a\n## Learned weighting (issue 11)\n\nnew\n"),
+        (
+            "a\n## Learned weighting: the evaluation table\n\nold\n",
+            "a\n## Learned weighting: the evaluation table\n\nnew\n",
+        ),
     ],
 )
 def test_replace_section(text, expected):

@@ -1,4 +1,4 @@
-"""No import cycles among torchtrack's modules and the experiment scripts (issue 23).
+"""No import cycles among torchtrack's modules and the experiment scripts.
 
 A static check over ``ast``: every ``import`` and ``from ... import`` in a module (at module level or inside a
 function, where a cycle is only deferred; ``if TYPE_CHECKING:`` blocks excepted) is an edge to the module it names

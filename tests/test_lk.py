@@ -1,4 +1,4 @@
-"""Pyramidal LK and template inverse matching (issue 4).
+"""Pyramidal LK and template inverse matching.
 
 Oracles: an analytic texture rendered exactly at shifted / affinely warped positions (no image
 interpolation in the ground truth); OpenCV's calcOpticalFlowPyrLK and pyrDown on the same inputs;
@@ -280,7 +280,7 @@ def test_chunks_track_as_one_call():
 @pytest.mark.parametrize("seq", ["sun3d_fragment1", "visp_rbt_sequence"])
 def test_matches_opencv_on_real_frames(seq):
     """Median distance to OpenCV's points on the points both accept, frames 10 -> 11, 300 corners: measured
-    0.00008 px on 294 points (sun3d_fragment1) and 0.00006 px on 299 (visp_rbt_sequence); the issue's bound is
+    0.00008 px on 294 points (sun3d_fragment1) and 0.00006 px on 299 (visp_rbt_sequence); the bound is
     0.1 px."""
     if not (DATA / seq).exists():
         pytest.skip(f"{seq} not in ../shared/data")

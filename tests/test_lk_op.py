@@ -1,4 +1,4 @@
-"""The compiled LK operator (torch.ops.torchtrack.lk_track, issue 25) against its pure-torch reference.
+"""The compiled LK operator (torch.ops.torchtrack.lk_track) against its pure-torch reference.
 
 Oracles: exact sub-pixel shifts of an analytic texture (known answer, both implementations); the reference
 (``backend="torch"``) on the same inputs, within tests/tolerances.py's LK_OP_* (sums in another order, a stop decision

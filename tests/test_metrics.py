@@ -39,7 +39,7 @@ evo_metrics = pytest.importorskip("evo.core.metrics")
 from evo.core import filters, sync  # noqa: E402
 from evo.tools import file_interface  # noqa: E402
 
-TOL = 1e-6  # issue 2: ATE and RPE equal evo's to 1e-6
+TOL = 1e-6  # ATE and RPE equal evo's to 1e-6
 F64 = torch.float64
 
 

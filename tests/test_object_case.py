@@ -1,4 +1,4 @@
-"""The object case (issue 12): the small-object synthetic preset, tracking it against its exact ground truth, and
+"""The object case: the small-object synthetic preset, tracking it against its exact ground truth, and
 experiments/eval/object_case.py's table against its run folders."""
 
 from __future__ import annotations

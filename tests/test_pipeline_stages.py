@@ -1,4 +1,4 @@
-"""The tracker's stage interfaces (issue 23): a back end's ``set_pose``, the relocaliser's decision applied by the
+"""The tracker's stage interfaces: a back end's ``set_pose``, the relocaliser's decision applied by the
 tracker, and re-acquired landmarks stated as back-end measurements. Oracles: the pose that was set or decided, and
 exact world positions."""
 

@@ -17,7 +17,7 @@ from tolerances import F32_UNIT
 from torchtrack.image.shape_index import SIM, ShapeIndex, ShapeIndexMap, compute_sim, shape_index, sim_image
 
 H, W, FOCAL, CX, CY = 480, 640, 525.0, 319.5, 239.5
-TOL = 0.05  # the bound on interior pixels
+TOL = 0.05  # the bound on interior pixels
 
 
 def K1(f=FOCAL, cx=CX, cy=CY) -> torch.Tensor:

@@ -1,4 +1,4 @@
-"""The compiled SIM operator (torch.ops.torchtrack.shape_index_map, issue 25) against shape_index.py's reference.
+"""The compiled SIM operator (torch.ops.torchtrack.shape_index_map) against shape_index.py's reference.
 
 Oracles: analytic surfaces of known shape index (sphere, bowl, cylinder, pipe: test_shape_index.py's scenes and bound);
 the reference (``compute_sim(..., backend="torch")``) on real depth frames, within tests/tolerances.py's SIM_OP_*;

@@ -26,7 +26,7 @@ pytestmark = pytest.mark.slow  # whole tracked sequences: a camera that pans awa
 ON = ("landmarks=default",)
 OFF = ("landmarks=none",)
 # the landmarks' own effect: without the dense map, which also pulls a returning camera back (with it on, this render's
-# last two frames: landmarks on 2.7 / 5.7 mm, off 3.2 / 2.3 mm; see RESULTS, "A dense map that remembers")
+# last two frames: landmarks on 2.7 / 5.7 mm, off 3.2 / 2.3 mm; see RESULTS, "The model and map")
 NO_MAP = ("dense=none",)
 SIZE, FRAMES = (320, 240), 40
 

@@ -41,7 +41,7 @@ TIM_PX = 3e-4
 # at ~10 frames. A batch that mixes sequences' frames, features or filter states is off by their difference: mm to cm.
 TRAJ = 1e-5
 
-# The compiled LK operator (torchtrack/image/csrc/lk.cpp) vs the pure-torch reference (issue 25): the same arithmetic
+# The compiled LK operator (torchtrack/image/csrc/lk.cpp) vs the pure-torch reference: the same arithmetic
 # in float32, but the window sums run in another order (8-wide FMA lanes vs torch's bmm), so a step differs by
 # rounding and a track by ~LK_PX. Measured on 49,512 points of 5 real sequences (pairs 2 frames apart, 300 corners and
 # 200 random points each, forward and backward; 39,744 tracked by both): median 0, 99 % within 1.2e-4 px, 99.9 % within
@@ -57,7 +57,7 @@ LK_OP_OUTLIERS = 5e-3
 # d_TIM of the op vs the reference: a forward and a backward track, each within LK_OP_PX per coordinate.
 LK_OP_TIM = 3e-3
 
-# The compiled SIM operator (torchtrack/image/csrc/sim.cpp) vs shape_index.py (issue 25): the same float32 stages; the
+# The compiled SIM operator (torchtrack/image/csrc/sim.cpp) vs shape_index.py: the same float32 stages; the
 # blur is added in the reference's order without FMA, the curvatures are evaluated term by term. Measured on 12 depth
 # frames of 4 real sequences: SI within 1.8e-5 where both are valid (second derivatives of a smoothed surface amplify
 # rounding; an FMA in the blur alone moved SI by 2.6e-3), no valid flip, the 8-bit image one quantum (1/255) apart at

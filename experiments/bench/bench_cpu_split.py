@@ -1,4 +1,4 @@
-"""Where a step's CPU goes by thread (issue 15): the CLI's loop on B copies of a sequence, wall clock, CPU of the whole
+"""Where a step's CPU goes by thread: the CLI's loop on B copies of a sequence, wall clock, CPU of the whole
 process and of the main (tracking) thread; the rest ran in the loader and front-end threads. Median of ``--runs``.
 
 Load-robust where wall clock is not: on a shared machine compare the CPU columns; run two checkouts alternately

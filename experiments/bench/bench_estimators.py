@@ -1,4 +1,4 @@
-"""Benchmark the pose estimators (issue 6, Speed): Horn, ICP, CPD on 300 correspondences, batched B=8.
+"""Benchmark the pose estimators : Horn, ICP, CPD on 300 correspondences, batched B=8.
 
 Runs ours (batched over B) next to Open3D's point-to-point ``registration_icp`` and pycpd's
 ``RigidRegistration`` (both looped over B) in one process on the same inputs, and prints ms per frame

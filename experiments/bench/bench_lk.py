@@ -1,6 +1,6 @@
-"""Benchmark LK (issues 4, 15, 25): one forward pass, then the combined LK + TIM tracker, torch vs OpenCV.
+"""Benchmark LK: one forward pass, then the combined LK + TIM tracker, torch vs OpenCV.
 
-One pass (issue 25): 300 Shi-Tomasi corners of a 640x480 intensity pair, one forward ``lk_track_flat``: the compiled
+One pass: 300 Shi-Tomasi corners of a 640x480 intensity pair, one forward ``lk_track_flat``: the compiled
 operator (``lk_backend=cpp``), the pure-torch reference (``torch``), and ``cv2.calcOpticalFlowPyrLK`` (uint8 images;
 it builds both pyramids and the template's derivative images inside the call). The torch rows run on prepared
 pyramids; "cpp + pyramid" adds ``build_pyramid`` of the next image, the per-frame cost that compares with OpenCV's
@@ -11,14 +11,14 @@ a 640x480 pair. OpenCV does the same four ``cv2.calcOpticalFlowPyrLK`` calls (sa
 criteria, uint8 images). Both run interleaved in one process; the table gives this thread's CPU time and the
 wall clock (median over the repeats) and the ratio. Two torch rows: the tracker on prepared frames, and the
 steady-state cost per frame (``prepare_frame`` of the new frame + tracker), which is what compares with
-OpenCV (it builds its pyramids inside each call). Then the batched throughput for B = 1, 4, 8. Issue 15's
+OpenCV (it builds its pyramids inside each call). Then the batched throughput for B = 1, 4, 8. The speed target's
 target: torch per frame within 1.5x OpenCV at B=1 (printed as met / NOT met).
 
     python experiments/bench/bench_lk.py                     # 1 thread, 300 features, 40 repeats
     python experiments/bench/bench_lk.py --threads 2 --repeats 100
     python experiments/bench/bench_lk.py --one-pass          # the one-pass table only
 
-Results and the machine's load: experiments/RESULTS.md, "Speed (issue 15)".
+Results and the machine's load: experiments/RESULTS.md, "Speed".
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ from torchtrack.image.flow import CombinedTracker, prepare_frame  # noqa: E402
 from torchtrack.image.lk import lk_track_flat  # noqa: E402
 from torchtrack.image.pyramid import build_pyramid  # noqa: E402
 
-TARGET_RATIO = 1.5  # issues 15 and 25
+TARGET_RATIO = 1.5  # the speed target
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 
 

@@ -1,4 +1,4 @@
-"""Long-run benchmark (issue 13): 10,000 frames of small synthetic images through the loader and the tracker.
+"""Long-run benchmark: 10,000 frames of small synthetic images through the loader and the tracker.
 
 Checks what a long recording needs and a short test cannot show: the filter's posterior covariance stays symmetric
 positive definite on every frame, and the process memory stays flat after warm-up (no per-frame growth in the

@@ -1,10 +1,10 @@
-"""Per-frame cost and memory of the panorama point map (issue 14) at B=1, beside Open3D doing the same job.
+"""Per-frame cost and memory of the panorama point map at B=1, beside Open3D doing the same job.
 
 The frames of a real sequence are read in order (decoded in the same thread, not timed) and fed to
 :meth:`torchtrack.mapping.PanoramaMapper.add` with ground-truth poses (the tracker's output in its own world: relative
 to the first frame) and the key frames of a tracker run (``--frames-csv``: its ``reselected`` column, as the CLI's
 mapper fuses them) or every k-th frame (``--key-every``). Timed: every ``add`` call (key frames and the others), so
-the mean is the amortised per-frame cost; target (issue 14) under ~3 ms.
+the mean is the amortised per-frame cost; target under ~3 ms.
 
 The peer does the same with Open3D's legacy point cloud: per key frame ``create_from_rgbd_image`` (the same pixel
 stride, depth range), transform, append to the map and ``voxel_down_sample`` the whole map (mean position and

@@ -1,4 +1,4 @@
-"""Benchmark the whole torchtrack pipeline (issues 5 and 15): fps at B=1 with a per-stage breakdown, batch scaling,
+"""Benchmark the whole torchtrack pipeline: fps at B=1 with a per-stage breakdown, batch scaling,
 start-up.
 
 Everything runs as the CLI runs it: the Hydra config composed in-process, the CLI's process settings
@@ -8,7 +8,7 @@ Everything runs as the CLI runs it: the Hydra config composed in-process, the CL
 into a temporary folder; no plots). So decoding and writing are included. Reported:
 
 - B=1: median fps of ``--repeats`` runs and the stage breakdown of one instrumented run (timing proxies wrap the
-  tracker's components from the outside; nothing in the package is edited). Target (issue 15): >= 30 fps.
+  tracker's components from the outside; nothing in the package is edited). Target: >= 30 fps.
 - B=``--batch`` (default 8) lockstep in one process, with 1 and with 2 torch threads: aggregate frames/s and its
   ratio to B=1 (target >= 3x), and against the same B sequences run as two parallel B=1 processes of B/2
   sequences each (what a user would do with joblib; started together, start-up excluded; target: lockstep at
@@ -16,14 +16,14 @@ into a temporary folder; no plots). So decoding and writing are included. Report
 - start-up: seconds from spawning ``python -m torchtrack.cli`` (the default demo: the synthetic sequence, cached
   after its first render) to the end of its first tracked frame (target <= 2 s); median of 3.
 - Open3D's RGB-D odometry (the accuracy peer) on the same frames, for a ratio (``--no-peer`` skips it).
-- An OpenCV KLT + Horn pipeline on the same frames (issue 25's speed reference, ``opencv_klt_horn``): decode, grey,
+- An OpenCV KLT + Horn pipeline on the same frames (the speed reference, ``opencv_klt_horn``): decode, grey,
   forward and backward ``cv2.calcOpticalFlowPyrLK`` (the CLI's LK parameters, forward-backward error <= 1 px),
   depth at the tracked points, Horn's closed form frame to frame, Shi-Tomasi re-detection when half are lost.
-  Target (issue 25): the CLI's ms per frame <= 1.45x it, and >= 30 fps.
-- Landmark re-acquisition (issue 25, ``--only reacquire``): main-thread CPU per call and per frame of
+  Target: the CLI's ms per frame <= 1.45x it, and >= 30 fps.
+- Landmark re-acquisition (``--only reacquire``): main-thread CPU per call and per frame of
   ``LandmarkMap.reacquire`` with one batched LK call over all keyframe slots vs one call per slot (the reference),
   alternating in this process. Target: <= 2 ms per frame.
-- One LK forward pass of 300 points vs OpenCV's (issue 25, ``--only lk``): ``bench_lk.py --one-pass``'s table.
+- One LK forward pass of 300 points vs OpenCV's (``--only lk``): ``bench_lk.py --one-pass``'s table.
 
 All timings are wall clock on a shared machine: the header prints the load average; ratios come from runs
 interleaved in one session.
@@ -71,9 +71,9 @@ REPO = Path(__file__).resolve().parents[2]
 CONF = CONF_DIR
 DATA = REPO.parent / "shared" / "data"
 DEFAULT_ROOT = DATA / "sun3d_fragment1"
-TARGET_FPS, TARGET_BATCH, TARGET_STARTUP_S = 30.0, 3.0, 2.0  # issue 15
-TARGET_KLT_RATIO, TARGET_BATCH_25 = 1.45, 2.0  # issue 25: per frame vs OpenCV KLT + Horn; B=8 lockstep vs B=1
-TARGET_REACQUIRE_MS = 2.0  # issue 25: landmark re-acquisition, CPU ms per frame
+TARGET_FPS, TARGET_BATCH, TARGET_STARTUP_S = 30.0, 3.0, 2.0  # fps at B=1, B=8 lockstep vs B=1, start-up seconds
+TARGET_KLT_RATIO, TARGET_BATCH_25 = 1.45, 2.0  # per frame vs OpenCV KLT + Horn; B=8 lockstep vs B=1
+TARGET_REACQUIRE_MS = 2.0  # landmark re-acquisition, CPU ms per frame
 
 # (row label, indent) in print order; the keys are the timer names used below.
 STAGES = {
@@ -318,7 +318,7 @@ def reacquire_report(cfg: DictConfig, seq, repeats: int) -> None:
 
 
 def lk_report(threads: int, repeats: int = 40) -> None:
-    """The issue's LK row: one forward LK pass of 300 points with the next frame's pyramid vs OpenCV's
+    """The LK row: one forward LK pass of 300 points with the next frame's pyramid vs OpenCV's
     (``bench_lk.py --one-pass``, the same table)."""
     import argparse as _argparse
 
@@ -614,8 +614,8 @@ def batch_report(args, overrides: list[str], cfg: DictConfig, seq, plain: dict) 
         print(f"| {name} | {r['frames']} | {r['wall_s']:.2f} | **{r['fps']:.1f}** | {r['fps'] / plain['fps']:.2f} | "
               f"{r['fps'] / procs['fps']:.2f} | {r['cpu_ms']:.1f} | {main} |")  # fmt: skip
     best = max(r["fps"] for _, r in rows[:2])
-    print(f"\nlockstep B={b} (best thread count): {best / plain['fps']:.2f}x B=1 (target >= {TARGET_BATCH:.0f}x (issue 15): "
-          f"{'met' if best >= TARGET_BATCH * plain['fps'] else 'NOT met'}; >= {TARGET_BATCH_25:.0f}x (issue 25): "
+    print(f"\nlockstep B={b} (best thread count): {best / plain['fps']:.2f}x B=1 (target >= {TARGET_BATCH:.0f}x: "
+          f"{'met' if best >= TARGET_BATCH * plain['fps'] else 'NOT met'}; >= {TARGET_BATCH_25:.0f}x: "
           f"{'met' if best >= TARGET_BATCH_25 * plain['fps'] else 'NOT met'}), {best / procs['fps']:.2f}x two B=1 "
           f"processes (target >= 1: {'met' if best >= procs['fps'] else 'NOT met'}); B={b} runs: median of 3")  # fmt: skip
     timed = run(cfg, [seq] * b, instrumented=True)

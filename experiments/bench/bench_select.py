@@ -1,4 +1,4 @@
-"""Benchmark of the selection stage (issue 3): SIM + two Harris maps + patch selection on 640x480 frames.
+"""Benchmark of the selection stage: SIM + two Harris maps + patch selection on 640x480 frames.
 
     python experiments/bench/bench_select.py                 # B=1 and B=8 timings, their ratio, a stage breakdown
     python experiments/bench/bench_select.py --accuracy      # also: SIM errors on analytic surfaces, Harris vs cv2

@@ -1,4 +1,4 @@
-"""Self-calibration of the learned weighting on unlabelled sequences, measured leave-one-out (issue 22, deliverable 5).
+"""Self-calibration of the learned weighting on unlabelled sequences, measured leave-one-out.
 
 For each of the sequences under ``--data`` (the five shared ones by default):
 

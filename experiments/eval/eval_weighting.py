@@ -1,5 +1,5 @@
 """Compare the measurement weightings (fixed, the paper's eqs. 11-14, learned) on every sequence and its perturbed
-variants (issue 11).
+variants.
 
 For every sequence folder under ``--data`` and its variants (:mod:`torchtrack.data.perturb`: faster motion,
 reversed playback, photometric change, noisier depth with holes), this runs torchtrack's default tracker exactly as
@@ -32,7 +32,7 @@ the R + 1 ATEs (the unperturbed run included) is reported per weighting; a diffe
 
 Writes ``OUT/weighting.md`` (the table), ``OUT/weighting.json`` and the run folders ``OUT/<weighting>/<name>/``
 (trajectory.txt, metrics.json, frames.csv, config.yaml); variants are cached under ``--cache``. With
-``--results FILE`` the table also replaces the section ``## Learned weighting (issue 11)`` of FILE (appended when
+``--results FILE`` the table also replaces the section ``## Learned weighting: the evaluation table`` of FILE (appended when
 absent; the rest of the file is kept), with this command line and the git commit.
 """
 
@@ -66,7 +66,7 @@ log = logging.getLogger("eval_weighting")
 REPO = Path(__file__).resolve().parents[2]
 CONF = CONF_DIR
 DATA = REPO.parent / "shared" / "data"
-HEADING = "## Learned weighting (issue 11)"
+HEADING = "## Learned weighting: the evaluation table"
 VARIANTS = ("skip3", "reversed", "photometric", "depth_noise")
 BASE = {
     "fixed": ["weighting=fixed", "filter.noise_scale=false"],
@@ -77,7 +77,7 @@ BASE = {
 COLUMNS = (("ate_rmse_m", "ATE mm", 1e3, 2), ("rpe_trans_m", "RPE mm", 1e3, 2), ("rpe_rot_deg", "RPE deg", 1, 3))
 COLUMNS += (("mean_reprojection_px", "reproj px", 1, 3),)
 NOISE_K = 2.0  # |ATE_a - ATE_b| <= NOISE_K sqrt(std_a^2 + std_b^2): within run-to-run noise
-TARGET_MAX = 1.05  # the target's largest ATE ratio per row (issue 22); its geometric mean is to be <= 0.80
+TARGET_MAX = 1.05  # the target's largest ATE ratio per row; its geometric mean is to be <= 0.80
 
 
 # ----------------------------------------------------------------------------------------------- weightings

@@ -1,11 +1,11 @@
-"""Evaluate torchtrack against the strongest peers on every sequence and its perturbed variants (issue 12).
+"""Evaluate torchtrack against the strongest peers on every sequence and its perturbed variants.
 
 For every sequence folder (TUM layout) this runs torchtrack's default tracker exactly as the CLI composes
 it (``conf/`` through Hydra, in-process) and the peers of :mod:`peers` (Open3D legacy RGB-D odometry,
 hybrid and colour terms; Open3D tensor odometry, hybrid and point-to-plane; Open3D tensor frame-to-model
 tracking against a TSDF raycast; OpenCV 5 ``cv2.Odometry``), scores all with
 :func:`torchtrack.metrics.trajectory_metrics` (evo's ATE/RPE) and prints per sequence each peer's ATE/RPE/ms, the
-best peer and ours against it. The issue's target: ours <= 0.7x the best peer's ATE on the real sequences, <= 1.0x
+best peer and ours against it. The target: ours <= 0.7x the best peer's ATE on the real sequences, <= 1.0x
 on the variants.
 
     python experiments/eval/evaluate.py                                       # every folder in ../shared/data
@@ -66,10 +66,10 @@ log = logging.getLogger("evaluate")
 REPO = Path(__file__).resolve().parents[2]
 CONF = CONF_DIR
 DATA = REPO.parent / "shared" / "data"
-TARGET_RATIO = 0.7  # issue 12: ours <= 0.7x the best peer's ATE on the real sequences ...
+TARGET_RATIO = 0.7  # the target: ours <= 0.7x the best peer's ATE on the real sequences ...
 VARIANT_RATIO = 1.0  # ... and <= 1.0x on every perturbed variant
 VARIANTS = ("skip2", "skip3", "skip4", "reversed", "photometric", "depth_noise")
-HEADING = "## Accuracy against the peers (issue 12)"
+HEADING = "## Accuracy against the peers: the evaluation table"
 # Sequences scored on ATE only, and why (shown under the table).
 ATE_ONLY = {"visp_rbt_sequence": "per-frame AprilTag pseudo ground truth (~1 cm) dominates RPE"}
 METRICS = ("ate_rmse_m", "rpe_trans_m", "rpe_rot_deg")

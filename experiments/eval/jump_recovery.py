@@ -1,4 +1,4 @@
-"""Jump recovery (issue 13): each shared sequence with a block of frames removed, tracked with and without the
+"""Jump recovery: each shared sequence with a block of frames removed, tracked with and without the
 relocalisation (``relocalise.recover``), against the full sequence.
 
 A removed block is a jump of several centimetres and degrees between two consecutive frames (as when a recording

@@ -1,4 +1,4 @@
-"""On/off table of the landmark and re-selection switches (issue 12) on sequences and their variants.
+"""On/off table of the landmark and re-selection switches on sequences and their variants.
 
 Each configuration (``NAME=override,override``) runs the CLI (``python -m torchtrack.cli``, one torch thread) on every
 sequence and variant; the variants come from :func:`torchtrack.data.perturb.make_variant`: ``skipK`` every K-th

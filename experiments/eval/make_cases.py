@@ -1,7 +1,7 @@
 """Render the pixel-only bench's synthetic cases and link every case by name under $CASES (default /tmp/cases).
 
 Boxes (the object case's small textured box, 60 frames, 640x480, seeds 0-2): exact depth, Kinect noise, and each
-with its depth from a second camera 10 cm to the side (intrinsics 600/600/320/240: the issue's rig); rendered rooms
+with its depth from a second camera 10 cm to the side (intrinsics 600/600/320/240); rendered rooms
 (320x240, 60 frames, seeds 0-1), exact and Kinect; the five shared sequences, their depth_noise copies (first 300
 frames) and three jittered copies of two of those. Then: bench_cases.sh REPO LABEL "$(ls $CASES)" [overrides]."""
 

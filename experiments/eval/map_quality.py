@@ -1,4 +1,4 @@
-"""Map quality of the panorama (issue 14, the paper's Figs. 8-9): the map from our poses and from the Open3D odometry
+"""Map quality of the panorama (the paper's Figs. 8-9): the map from our poses and from the Open3D odometry
 peer's poses against the map from ground-truth poses, on every sequence.
 
 Per sequence: torchtrack's default tracker runs with ``mapping=panorama`` exactly as the CLI composes it (its run
@@ -20,7 +20,7 @@ voxelisation differences (about half a voxel).
     python experiments/eval/map_quality.py mapping.voxel_size=0.02          # Hydra overrides pass through
 
 Writes ``OUT/map_quality.md`` and ``.json``, the pictures ``experiments/figures/map_<sequence>.png`` (our map.png at
-half size) and the section "## Panoramic maps (issue 14)" of experiments/RESULTS.md (``--results``; atomically).
+half size) and the section "## Panoramic maps: map quality" of experiments/RESULTS.md (``--results``; atomically).
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ log = logging.getLogger("map_quality")
 
 REPO = Path(__file__).resolve().parents[2]
 DATA = REPO.parent / "shared" / "data"
-HEADING = "## Panoramic maps (issue 14)"
+HEADING = "## Panoramic maps: map quality"
 POSES = ("gt", "ours", "peer")
 
 

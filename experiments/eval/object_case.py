@@ -1,4 +1,4 @@
-"""The object case of issue 12: a small textured object on an empty (or far) background, ours against the peers.
+"""The object case: a small textured object on an empty (or far) background, ours against the peers.
 
 Builds deterministic synthetic RGB-D sequences of a small object (``torchtrack.data.synthetic``, ``object="small"``:
 an ~18 cm textured box with a sphere and a cylinder, 0.55 m from a static camera, 6-9 % of the image) with exact
