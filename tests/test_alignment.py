@@ -16,6 +16,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 from kornia.color import rgb_to_grayscale
+from tolerances import F64_UNIT
 
 from torchtrack.data import DataError, TumSequence
 from torchtrack.data.alignment import ShiftEstimate, colour_intrinsics, depth_intrinsics, estimate_depth_shift
@@ -118,6 +119,16 @@ def test_masked_ncc_peaks_at_a_known_shift():
     S = masked_ncc(t, mask, s, 6)[0]
     iy, ix = divmod(int(S.argmax()), 13)
     assert (ix - 6, iy - 6) == (-5, 3) and abs(float(S.max()) - 1) < 1e-5
+
+
+def test_intensity_edges_of_a_plane_are_its_slope():
+    """The blurred central-difference gradient of a plane a u + b v is sqrt(a^2 + b^2) away from the border, 0 on it."""
+    v, u = torch.meshgrid(
+        torch.arange(48.0, dtype=torch.float64), torch.arange(64.0, dtype=torch.float64), indexing="ij"
+    )
+    G = intensity_edges((0.003 * u - 0.004 * v)[None, None], sigma=1.0)[0, 0]
+    torch.testing.assert_close(G[5:-5, 5:-5], torch.full_like(G[5:-5, 5:-5], 0.005), atol=F64_UNIT, rtol=0)
+    assert G[0].abs().max() == G[:, -1].abs().max() == 0
 
 
 def test_depth_edges_mark_steps_not_slopes_and_skip_holes():
