@@ -15,6 +15,8 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from kornia.color import rgb_to_grayscale
+from tolerances import F64_UNIT
 
 from torchtrack.data import DataError, TumSequence
 from torchtrack.data.alignment import ShiftEstimate, colour_intrinsics, depth_intrinsics, estimate_depth_shift
@@ -26,10 +28,6 @@ needs_data = pytest.mark.skipif(not DATA.is_dir(), reason="../shared/data not pr
 
 
 # ----------------------------------------------------------------------------------------------- helpers
-
-
-def gray_of(rgb: torch.Tensor) -> torch.Tensor:
-    return 0.299 * rgb[:, 0:1] + 0.587 * rgb[:, 1:2] + 0.114 * rgb[:, 2:3]
 
 
 def unregister(depth: torch.Tensor, centre, shift, scale: float = 1.0) -> torch.Tensor:
@@ -123,6 +121,16 @@ def test_masked_ncc_peaks_at_a_known_shift():
     assert (ix - 6, iy - 6) == (-5, 3) and abs(float(S.max()) - 1) < 1e-5
 
 
+def test_intensity_edges_of_a_plane_are_its_slope():
+    """The blurred central-difference gradient of a plane a u + b v is sqrt(a^2 + b^2) away from the border, 0 on it."""
+    v, u = torch.meshgrid(
+        torch.arange(48.0, dtype=torch.float64), torch.arange(64.0, dtype=torch.float64), indexing="ij"
+    )
+    G = intensity_edges((0.003 * u - 0.004 * v)[None, None], sigma=1.0)[0, 0]
+    torch.testing.assert_close(G[5:-5, 5:-5], torch.full_like(G[5:-5, 5:-5], 0.005), atol=F64_UNIT, rtol=0)
+    assert G[0].abs().max() == G[:, -1].abs().max() == 0
+
+
 def test_depth_edges_mark_steps_not_slopes_and_skip_holes():
     z = torch.linspace(1.0, 1.2, 64).repeat(48, 1)  # a slope: 0.3 % per pixel
     z[:, 40:] = 2.0  # a step at x = 39.5
@@ -200,13 +208,13 @@ def test_rendered_colour_shift_recovered_and_registered_left_alone(rendered):
     silhouettes by about a pixel); it is not confident, and moves no pixel by 2 px.
     """
     rgb, depth, c = rendered
-    base = estimate_depth_shift(gray_of(rgb), depth, centre=c)
+    base = estimate_depth_shift(rgb_to_grayscale(rgb), depth, centre=c)
     assert not base.confident or base.max_displacement() < 2.0, base
     assert abs(base.dx) < 2 and abs(base.dy) < 2 and base.scale == 1.0
-    est = estimate_depth_shift(gray_of(rgb), unregister(depth, c, (-10, 8)), centre=c)
+    est = estimate_depth_shift(rgb_to_grayscale(rgb), unregister(depth, c, (-10, 8)), centre=c)
     assert est.confident and est.scale == 1.0, est
     assert abs(est.dx - base.dx + 10) < 1 and abs(est.dy - base.dy - 8) < 1, (est, base)
-    shift_only = estimate_depth_shift(gray_of(rgb), unregister(depth, c, (-10, 8)), centre=c, scale_range=None)
+    shift_only = estimate_depth_shift(rgb_to_grayscale(rgb), unregister(depth, c, (-10, 8)), centre=c, scale_range=None)
     assert abs(shift_only.dx - est.dx) < 0.5 and abs(shift_only.dy - est.dy) < 0.5
 
 
@@ -219,15 +227,15 @@ def test_single_object_scene_is_left_alone():
     poses = sequence_poses(cfg)
     idx = [0, 3, 6, 9, 11]
     out = render_frame(default_scene(cfg), poses.T_world_cam[idx], poses.T_world_obj[idx])
-    est = estimate_depth_shift(gray_of(out.rgb), out.depth, centre=(cfg.cx, cfg.cy))
+    est = estimate_depth_shift(rgb_to_grayscale(out.rgb), out.depth, centre=(cfg.cx, cfg.cy))
     assert est.scale == 1.0 and (not est.confident or est.max_displacement() < 2.0), est
 
 
 def test_estimate_is_deterministic_and_list_equals_batch(rendered):
     rgb, depth, c = rendered
     d = unregister(depth, c, (5, -3))
-    a = estimate_depth_shift(gray_of(rgb), d, centre=c)
-    b = estimate_depth_shift(list(gray_of(rgb)), list(d), centre=c)
+    a = estimate_depth_shift(rgb_to_grayscale(rgb), d, centre=c)
+    b = estimate_depth_shift(list(rgb_to_grayscale(rgb)), list(d), centre=c)
     assert a == b
 
 
@@ -238,7 +246,7 @@ def test_real_frames_shift_and_scale_recovered():
     estimate (the data's own offset is (0.3, -1.7) px, below the confidence gain)."""
     seq = TumSequence(DATA / "sun3d_fragment1", depth_alignment="none")
     frames = [seq[i] for i in (0, 24, 49)]
-    gray, depth = gray_of(torch.stack([f.rgb for f in frames])), torch.stack([f.depth for f in frames])
+    gray, depth = rgb_to_grayscale(torch.stack([f.rgb for f in frames])), torch.stack([f.depth for f in frames])
     c = (float(seq.K[0, 2]), float(seq.K[1, 2]))
     base = estimate_depth_shift(gray, depth, centre=c)
     assert not base.confident, base
@@ -320,7 +328,7 @@ def test_7scenes_depth_registered_by_the_estimated_map():
     assert seq.depth_aligned and est.confident and abs(est.scale - 525 / 585) < 0.01, est
     assert est.max_displacement() > 30  # a constant shift cannot register it
     frames = [seq[i] for i in (120, 420, 870)]
-    gray, depth = gray_of(torch.stack([f.rgb for f in frames])), torch.stack([f.depth for f in frames])
+    gray, depth = rgb_to_grayscale(torch.stack([f.rgb for f in frames])), torch.stack([f.depth for f in frames])
     B = len(frames)
     warped = warp_depth(
         depth, seq.K_depth.expand(B, 3, 3), seq.K.expand(B, 3, 3), torch.eye(4).expand(B, 4, 4), (480, 640)

@@ -9,9 +9,9 @@ import kornia
 import numpy as np
 import pytest
 import torch
-from tolerances import F32_UNIT
+from tolerances import F32_UNIT, F64_UNIT
 
-from torchtrack.image.corners import CornerDetector, harris, sobel
+from torchtrack.image.corners import CornerDetector, harris, sobel, structure_tensor
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 SEQUENCES = ["visp_rbt_sequence", "sun3d_fragment1", "7scenes_redkitchen", "visp_castle_simu"]
@@ -101,6 +101,20 @@ def test_sobel_is_kornia_spatial_gradient():
     g = kornia.filters.spatial_gradient(img, "sobel")
     dx, dy = sobel(img)
     assert torch.allclose(dx, g[:, :, 0], atol=1e-6) and torch.allclose(dy, g[:, :, 1], atol=1e-6)
+
+
+@pytest.mark.parametrize("sigma", [0.5, 1.0, 1.25, 1.5])
+def test_binomial_window_is_kornia_pascal_passes(sigma):
+    """The default window (shifted adds, paired passes) is round(2 sigma^2) [1, 2, 1] / 4 passes of kornia's
+    separable correlation with reflect border, on kornia's Sobel products."""
+    img = t(textured(5)).double()
+    g = kornia.filters.spatial_gradient(img, "sobel")
+    dx, dy = g[:, :, 0], g[:, :, 1]
+    ref = torch.stack([dx * dx, dx * dy, dy * dy], 1).flatten(1, 2)
+    k = kornia.filters.kernels.get_pascal_kernel_1d(3, norm=True, dtype=ref.dtype)[None]
+    for _ in range(max(1, round(2 * sigma * sigma))):
+        ref = kornia.filters.filter2d_separable(ref, k, k, border_type="reflect")
+    torch.testing.assert_close(structure_tensor(img, sigma=sigma).flatten(1, 2), ref, atol=F64_UNIT, rtol=0)
 
 
 def test_box_window_is_cv2_corner_harris_synthetic():

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from tolerances import F32_UNIT
 
 from torchtrack.data import (
     DataError,
@@ -79,6 +80,13 @@ def test_loader_luminance_equals_frame_gray(three_sequences, prefetch):
     assert frame_gray(sliced) is not frame_gray(sliced) and torch.equal(frame_gray(sliced), b.gray[1:2])  # computed
     single = list(iterate_batched(three_sequences[1:2], prefetch=prefetch))
     assert all(torch.equal(frame_gray(x), x.gray) and frame_gray(x).shape == (1, 1, 6, 8) for x in single)
+
+
+def test_gray_is_opencv_rgb2gray(three_sequences):
+    """FrameBatch.gray (kornia's rgb_to_grayscale) is OpenCV's float RGB2GRAY (BT.601) on the same pixels."""
+    b = next(iter(iterate_batched(three_sequences)))
+    want = np.stack([cv2.cvtColor(np.ascontiguousarray(x.permute(1, 2, 0).numpy()), cv2.COLOR_RGB2GRAY) for x in b.rgb])
+    np.testing.assert_allclose(b.gray[:, 0].numpy(), want, atol=F32_UNIT, rtol=0)
 
 
 def test_ended_sequence_is_not_reloaded(three_sequences, monkeypatch):

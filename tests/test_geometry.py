@@ -4,6 +4,7 @@ import math
 
 import pytest
 import torch
+from kornia.geometry.liegroup import Se3, So3
 from tolerances import F64_UNIT
 
 from torchtrack.geometry import (
@@ -48,6 +49,17 @@ def test_so3_exp_log_round_trip(dtype):
     eye = torch.eye(3, dtype=dtype).expand_as(R)
     torch.testing.assert_close(R @ R.transpose(-1, -2), eye, atol=TOL[dtype] * 10, rtol=0)
     torch.testing.assert_close(so3_log(R), w, atol=TOL[dtype] * 100, rtol=0)
+
+
+def test_so3_and_se3_are_kornias():
+    """so3_exp/so3_log and se3_exp/se3_log (hand-written for the filter's per-frame speed) equal kornia's So3 and Se3
+    (quaternion based) on random rotations up to near pi and random twists, in float64."""
+    w = random_axis_angle(200, dtype=torch.float64, seed=3)
+    xi = torch.cat([torch.randn(200, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(4)), w], -1)
+    torch.testing.assert_close(so3_exp(w), So3.exp(w).matrix(), atol=F64_UNIT, rtol=0)
+    torch.testing.assert_close(so3_log(so3_exp(w)), So3.exp(w).log(), atol=1e-9, rtol=0)  # a quaternion's log at pi
+    torch.testing.assert_close(se3_exp(xi), Se3.exp(xi).matrix(), atol=F64_UNIT, rtol=0)
+    torch.testing.assert_close(se3_log(se3_exp(xi)), Se3.exp(xi).log(), atol=1e-9, rtol=0)
 
 
 def test_so3_log_near_pi_and_zero():

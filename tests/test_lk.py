@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from tolerances import LK_PX, LK_RESIDUAL
+from tolerances import F32_UNIT, LK_PX, LK_RESIDUAL
 
 from torchtrack.image.lk import LKResult, forward_backward, lk_track_flat, pyramidal_lk
 from torchtrack.image.pyramid import Pyramid, build_pyramid, pyr_down
@@ -109,6 +109,14 @@ def test_pyr_down_equals_opencv(h, w):
     ref = cv2.pyrDown(x)
     assert ours.shape == ref.shape
     np.testing.assert_allclose(ours, ref, atol=1e-6)
+
+
+@pytest.mark.parametrize("h, w, levels", [(37, 50, 3), (9, 7, 4)])
+def test_build_pyramid_levels_are_kornia_pyr_down(h, w, levels):
+    """The packed levels (the blur evaluated at the kept pixels only) equal pyr_down, kornia's Pascal filter."""
+    pyr = build_pyramid(torch.rand(2, 3, h, w), levels, window=11)
+    for level in range(1, levels):
+        torch.testing.assert_close(pyr.images[level], pyr_down(pyr.images[level - 1]), atol=F32_UNIT, rtol=0)
 
 
 def test_build_pyramid_layout():

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from kornia.color import rgb_to_grayscale
 from torch import Tensor
 
 from torchtrack.data.tum import TumSequence
@@ -46,7 +47,7 @@ def load_frames(seq: TumSequence, indices: list[int]) -> tuple[Tensor, Tensor, T
     """Frames as a batch: gray (B, 1, H, W), depth in the colour grid (B, 1, H, W), K (B, 3, 3)."""
     frames = [seq[i] for i in indices]
     rgb = torch.stack([f.rgb for f in frames])
-    gray = 0.299 * rgb[:, 0:1] + 0.587 * rgb[:, 1:2] + 0.114 * rgb[:, 2:3]
+    gray = rgb_to_grayscale(rgb)  # as FrameBatch.gray
     depth = torch.stack([f.depth for f in frames])
     B, (H, W) = len(frames), rgb.shape[-2:]
     K = seq.K.expand(B, 3, 3)

@@ -32,6 +32,7 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
+from kornia.color import rgb_to_grayscale
 from torch import Tensor
 
 from torchtrack.data.edge_match import EdgeLevel, area_pool, parabola_offset, surface_peak
@@ -250,7 +251,7 @@ def estimate_sequence_shift(
     H, W = depth[0].shape[-2:]
     if min(H, W) < 4 * kwargs.get("max_shift", 40):
         return None
-    gray = [0.299 * c[0:1] + 0.587 * c[1:2] + 0.114 * c[2:3] for c in rgb]  # as FrameBatch.gray
+    gray = [rgb_to_grayscale(c) for c in rgb]  # as FrameBatch.gray
     return estimate_depth_shift(gray, list(depth), centre=(float(K[0, 2]), float(K[1, 2])), **kwargs)
 
 

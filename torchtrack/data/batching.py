@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import torch
+from kornia.color import rgb_to_grayscale
 from torch import Tensor
 
 from torchtrack.data.errors import DataError
@@ -38,11 +39,6 @@ class RGBDSequence(Protocol):
 _GRAY: dict[int, tuple[weakref.ref, Tensor]] = {}
 
 
-def _luminance(rgb: Tensor) -> Tensor:
-    """(1, H, W) luminance of one (3, H, W) frame: the arithmetic of :attr:`FrameBatch.gray`, element for element."""
-    return 0.299 * rgb[0:1] + 0.587 * rgb[1:2] + 0.114 * rgb[2:3]
-
-
 def frame_gray(frame: FrameBatch) -> Tensor:
     """``frame.gray`` (B, 1, H, W): the copy the loader threads computed beside decoding (the same numbers; the main
     thread is spared ~1 ms per 640x480 frame), else computed now."""
@@ -53,7 +49,7 @@ def frame_gray(frame: FrameBatch) -> Tensor:
 def _decoded(cursor: FrameCursor) -> tuple[RGBDFrame, Tensor] | None:
     """The cursor's next frame with its luminance (runs in a loader thread), or None."""
     f = cursor.read()
-    return None if f is None else (f, _luminance(f.rgb))
+    return None if f is None else (f, rgb_to_grayscale(f.rgb))
 
 
 def _batch(images: Sequence[Tensor]) -> Tensor:

@@ -15,7 +15,7 @@ import math
 
 import torch
 import torch.nn.functional as F
-from kornia.filters import gaussian_blur2d
+from kornia.filters import gaussian_blur2d, spatial_gradient
 from torch import Tensor
 
 # ----------------------------------------------------------------------------------------------- edge maps
@@ -28,11 +28,10 @@ def _gaussian_blur(x: Tensor, sigma: float) -> Tensor:
 
 
 def _gradient_norm(x: Tensor) -> Tensor:
-    """(B, 1, H, W) -> |grad x| by central differences, 0 on the border."""
+    """(B, 1, H, W) -> |grad x| by central differences (kornia's "diff" gradient), 0 on the border."""
+    gx, gy = spatial_gradient(x, "diff").unbind(2)
     out = torch.zeros_like(x)
-    gx = 0.5 * (x[..., 1:-1, 2:] - x[..., 1:-1, :-2])
-    gy = 0.5 * (x[..., 2:, 1:-1] - x[..., :-2, 1:-1])
-    out[..., 1:-1, 1:-1] = torch.sqrt(gx * gx + gy * gy)
+    out[..., 1:-1, 1:-1] = torch.sqrt(gx * gx + gy * gy)[..., 1:-1, 1:-1]
     return out
 
 

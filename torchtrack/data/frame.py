@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from kornia.color import rgb_to_grayscale
 from torch import Tensor
 
 
@@ -37,6 +38,5 @@ class FrameBatch:
 
     @property
     def gray(self) -> Tensor:
-        """(B, 1, H, W) luminance (ITU-R BT.601 weights, as OpenCV's RGB2GRAY)."""
-        r, g, b = self.rgb[:, 0:1], self.rgb[:, 1:2], self.rgb[:, 2:3]
-        return 0.299 * r + 0.587 * g + 0.114 * b
+        """(B, 1, H, W) luminance (ITU-R BT.601 weights, as OpenCV's RGB2GRAY): kornia's."""
+        return rgb_to_grayscale(self.rgb)

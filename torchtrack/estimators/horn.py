@@ -11,6 +11,7 @@ References:
 from __future__ import annotations
 
 import torch
+from kornia.geometry.conversions import quaternion_to_rotation_matrix
 from torch import Tensor
 
 from torchtrack.estimators.base import (
@@ -23,17 +24,6 @@ from torchtrack.estimators.base import (
     zero_invalid,
 )
 from torchtrack.geometry import make_T
-
-
-def quat_wxyz_to_matrix(q: Tensor) -> Tensor:
-    """Unit quaternion (..., 4) in Horn's (w, x, y, z) order -> rotation (..., 3, 3)."""
-    w, x, y, z = q.unbind(-1)
-    m = [
-        w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z,
-    ]  # fmt: skip
-    return torch.stack(m, -1).reshape(*q.shape[:-1], 3, 3)
 
 
 def horn_N_matrix(S: Tensor) -> Tensor:
@@ -88,7 +78,9 @@ def horn_weighted(src: Tensor, dst: Tensor, w: Tensor, check_collinear: bool = T
     a, b = src - mu_s[:, None], dst - mu_d[:, None]
     S = (w[..., None] * a).transpose(-1, -2) @ b  # B,3,3, S_ij = sum_n w_n a_ni b_nj
     _, V = torch.linalg.eigh(horn_N_matrix(S))  # ascending eigenvalues
-    R = quat_wxyz_to_matrix(V[..., -1])  # eigenvector of the largest eigenvalue maximises sum w d.(q s q*)
+    R = quaternion_to_rotation_matrix(
+        V[..., -1]
+    )  # Horn's quaternion is w, x, y, z, as kornia's; eigenvector of the largest eigenvalue maximises sum w d.(q s q*)
     t = mu_d - (R @ mu_s[..., None])[..., 0]
     ok = (w > 0).sum(-1) >= 3
     if check_collinear:

@@ -47,6 +47,8 @@ from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
+from kornia.filters import filter2d_separable
+from kornia.filters.kernels import get_pascal_kernel_1d
 from torch import Tensor
 
 
@@ -81,21 +83,11 @@ def _check(depth: Tensor, K: Tensor) -> None:
 
 
 def _binomial(x: Tensor, passes: int) -> Tensor:
-    """Blur (..., h, w) by ``passes`` [1, 2, 1] / 4 filters along each axis (variance passes / 2), zero padding.
-
-    Pairs of passes are applied as one [1, 4, 6, 4, 1] / 16 filter (fewer, in-place operations)."""
-    for dim in (-1, -2):
-        n = x.shape[dim]
-        for taps in [5] * (passes // 2) + [3] * (passes % 2):
-            if taps == 5:
-                y = x * 0.375
-                y.narrow(dim, 2, n - 2).add_(x.narrow(dim, 0, n - 2), alpha=0.0625)
-                y.narrow(dim, 0, n - 2).add_(x.narrow(dim, 2, n - 2), alpha=0.0625)
-            else:
-                y = x * 0.5
-            y.narrow(dim, 1, n - 1).add_(x.narrow(dim, 0, n - 1), alpha=0.25)  # 4/16 = 2/4 x 1/2
-            y.narrow(dim, 0, n - 1).add_(x.narrow(dim, 1, n - 1), alpha=0.25)
-            x = y
+    """Blur (B, C, h, w) by ``passes`` [1, 2, 1] / 4 filters along each axis (variance passes / 2), zero padding:
+    pairs of passes as one [1, 4, 6, 4, 1] / 16 filter (Pascal kernels, kornia's separable correlation)."""
+    for taps in [5] * (passes // 2) + [3] * (passes % 2):
+        k = get_pascal_kernel_1d(taps, norm=True, device=x.device, dtype=x.dtype)[None]
+        x = filter2d_separable(x, k, k, border_type="constant")
     return x
 
 

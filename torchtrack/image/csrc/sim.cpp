@@ -25,8 +25,9 @@ namespace {
 #endif
 
 // shape_index.py _binomial along one axis of an (h, w) grid: ``passes`` [1 2 1]/4 filters, pairs as [1 4 6 4 1]/16,
-// zero padding; the terms are added in the reference's order (centre, then -2, +2, -1, +1). Along rows (x) the
-// interior runs without branches; along columns (y) whole rows are combined, so both loops vectorise.
+// zero padding; the terms are added centre, then -2, +2, -1, +1, without FMA (the reference, kornia's convolution,
+// sums in its own order: tests/tolerances.py SIM_OP_*). Along rows (x) the interior runs without branches; along
+// columns (y) whole rows are combined, so both loops vectorise.
 inline float tap5(float c, float m2, float p2, float m1, float p1) {
   return ((((c * 0.375f) + 0.0625f * m2) + 0.0625f * p2) + 0.25f * m1) + 0.25f * p1;
 }
