@@ -16,9 +16,8 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from torchtrack.cli import tracker_help
+from torchtrack.cli import check_overrides, compose_config, tracker_help, with_conf_dir
 from torchtrack.config import CONF_DIR
-from torchtrack.console import check_overrides, compose_config, with_conf_dir
 
 
 def test_unknown_option_keeps_hydras_options_on_one_line():

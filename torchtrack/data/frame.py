@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
+import torch
 from torch import Tensor
 
 
@@ -40,3 +41,9 @@ class FrameBatch:
         """(B, 1, H, W) luminance (ITU-R BT.601 weights, as OpenCV's RGB2GRAY)."""
         r, g, b = self.rgb[:, 0:1], self.rgb[:, 1:2], self.rgb[:, 2:3]
         return 0.299 * r + 0.587 * g + 0.114 * b
+
+    def to(self, device: str | torch.device) -> FrameBatch:
+        """This batch on ``device`` (the same object where it is there already)."""
+        if self.rgb.device == torch.device(device):
+            return self
+        return FrameBatch(**{f.name: getattr(self, f.name).to(device) for f in fields(self)})
