@@ -120,16 +120,16 @@ class Tracker:
         cur = self.frontend(frame)  # prepare: depth in the colour camera, SIM (eq. 8), LK pyramids
         measure = _measure(frame, cur)  # a pixel's 3D point, eq. (6)
         if not s.started:
-            res = self._start(frame, cur, measure)  # the first model: features selected, eq. (9)
+            res = self._start(frame, cur, measure)  # the first model: features selected (§III-B, eq. 9)
         else:
-            track = self._tracked(s, frame, cur)  # LK on intensity and on the SIM, the TIM check, eq. (10)
+            track = self._tracked(s, frame, cur)  # LK on intensity and on the SIM, the TIM check (§III-C, eq. 10)
             obs = self._observed(s, frame, track, measure)  # each feature's 3D point, eq. (6), and pixel, eq. (7)
-            var, cues = self._weighted(s, frame, cur, track, obs)  # eqs. (11)-(14)
-            est = self.backend.step(obs, var, active=frame.active)  # eqs. (2)-(7), (15)
+            var, cues = self._weighted(s, frame, cur, track, obs)  # §III-D, eqs. (11)-(14)
+            est = self.backend.step(obs, var, active=frame.active)  # the EKF (§III-A, eqs. 2-7, 15)
             tracked = self._advanced(s, frame, cur, obs, var, est.T_cam_obj.double())  # outliers, eq. (16)
-            reselect = self.reselect.needed(tracked.valid & obs.valid_xyz, tracked.n_model, frame.active)
+            reselect = self.reselect.needed(tracked.valid & obs.valid_xyz, tracked.n_model, frame.active)  # few left
             tracked, held = self._placed(tracked, frame, reselect, region)  # the model's world pose, on the dense map
-            self.state, model = self._reselected(tracked, frame, cur, measure, reselect, held)  # §III-B
+            self.state, model = self._reselected(tracked, frame, cur, measure, reselect, held)  # a new model, §III-B
             res = _result(tracked, track.winner, track.d_tim, reselect, observation=obs, variances=var, cues=cues,
                           model_T_cam_obj=model, estimate=est)  # fmt: skip
         res, trusted = self._loss_check(frame, cur, measure, res, s)
