@@ -98,7 +98,8 @@ class RGBDTracker:
     Built from the config, it applies the CLI's process settings, as the CLI does: ``torch.set_num_threads(threads)``
     (the config's ``threads``: 1 by default, the fastest for the per-frame tensors; ``overrides=["threads=N"]``;
     ``threads=null`` leaves torch's count) and glibc's allocator kept from returning freed memory to the system
-    (:func:`torchtrack.runtime.configure`). Both are process-wide. With a built ``tracker`` it changes neither.
+    (:func:`torchtrack.runtime.configure`). Both are process-wide. :meth:`from_config` does the same with its config;
+    given a built ``tracker``, the constructor changes neither.
 
     Args:
         K: colour intrinsics, a (3, 3) matrix or (fx, fy, cx, cy); (B, 3, 3) or (B, 4): one per stream. Only
@@ -157,10 +158,12 @@ class RGBDTracker:
 
     @classmethod
     def from_config(cls, cfg: DictConfig, **kwargs) -> RGBDTracker:
-        """The tracker of an already composed config (the CLI's), on its ``device`` unless ``device`` is given."""
+        """The tracker of an already composed config (the CLI's), on its ``device`` unless ``device`` is given, with
+        its ``threads`` applied as the constructor applies them."""
         from torchtrack.factory import build_tracker
 
         kwargs.setdefault("device", cfg.get("device", "cpu"))
+        configure(cfg.get("threads"))
         return cls(tracker=build_tracker(cfg), **kwargs)
 
     def reset(self) -> None:

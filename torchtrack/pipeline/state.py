@@ -67,7 +67,7 @@ class StepResult:
             ``pixels``/``valid`` BEFORE the outlier drop (``outliers.max_residual_px``); a re-selection comes after.
         variances: the weighting's output that went with ``observation`` (None on the first frame).
         cues: (B, N, C) float32 cues (:data:`torchtrack.filter.cues.CUE_NAMES`) of the observation's features,
-            zeros where not valid; only when the weighting needs them or the tracker records (else None).
+            zeros where not valid; only where the weighting or an observer of the step asks for them (else None).
         model_T_cam_obj: (B, 4, 4) float64, where ``reselected``: the pose the back end was reset to when the new
             model was taken at the end of this frame (other rows: the current pose); None when no re-selection.
         estimate: the back end's result for this frame (None on the first frame): the loss check reads it.
