@@ -25,11 +25,10 @@ from torch import Tensor
 from torchtrack.data.frame import FrameBatch
 from torchtrack.estimators.backends import PoseBackend
 from torchtrack.estimators.base import masked_mean
-from torchtrack.filter.cues import stack_cues, window_cues
 from torchtrack.filter.frame import Observation
 from torchtrack.filter.weighting import Variances, WeightingInputs, pixel_only_variances
 from torchtrack.frontend import FrontEnd, PreparedFrame, is_registered
-from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, se3_log, transform_points
+from torchtrack.geometry import T_inv, make_T, project, se3_exp, se3_log, transform_points
 from torchtrack.image.flow import TrackResult
 from torchtrack.pipeline.dense_map import DenseMap
 from torchtrack.pipeline.keyframes import KeyframeStore
@@ -37,7 +36,7 @@ from torchtrack.pipeline.landmarks import LandmarkMap
 from torchtrack.pipeline.outliers import ResidualDrop, feature_residuals
 from torchtrack.pipeline.relocalise import Relocaliser
 from torchtrack.pipeline.reselect import Kept, PointEstimate, Reselection
-from torchtrack.pipeline.state import FEATURE_FIELDS, Measure, StepResult, TrackerState, pad_to, where_rows
+from torchtrack.pipeline.state import FEATURE_FIELDS, Measure, StepResult, TrackerState, frame_cues, pad_to, where_rows
 
 
 class Tracker:
@@ -120,7 +119,7 @@ class Tracker:
         cur = self.frontend(frame)  # prepare: depth in the colour camera, SIM (eq. 8), LK pyramids
         measure = _measure(frame, cur)  # a pixel's 3D point, eq. (6)
         if not s.started:
-            res = self._start(frame, cur, measure)  # the first model: features selected (§III-B, eq. 9)
+            res, held = self._start(frame, cur, measure), None  # the first model: features selected (§III-B, eq. 9)
         else:
             track = self._tracked(s, frame, cur)  # LK on intensity and on the SIM, the TIM check (§III-C, eq. 10)
             obs = self._observed(s, frame, track, measure)  # each feature's 3D point, eq. (6), and pixel, eq. (7)
@@ -132,7 +131,7 @@ class Tracker:
             self.state, model = self._reselected(tracked, frame, cur, measure, reselect, held)  # a new model, §III-B
             res = _result(tracked, track.winner, track.d_tim, reselect, observation=obs, variances=var, cues=cues,
                           model_T_cam_obj=model, estimate=est)  # fmt: skip
-        res, trusted = self._loss_check(frame, cur, measure, res, s)
+        res, trusted = self._loss_check(frame, cur, measure, res, s, held)
         due = self.keyframes.due(res.reselected, frame.active) & trusted
         self._keyframe(frame, cur, measure, due, res.reselected, region)
         for observe in self.observers:
@@ -223,11 +222,12 @@ class Tracker:
         return self.reselect.region(frame.depth)
 
     def _loss_check(self, frame: FrameBatch, cur: PreparedFrame, measure: Measure, res: StepResult,
-                    before: TrackerState) -> tuple[StepResult, Tensor]:  # fmt: skip
+                    before: TrackerState, held: Tensor | None) -> tuple[StepResult, Tensor]:  # fmt: skip
         """The relocaliser's loss check of this frame (``before``: the state the frame was tracked from) and its
         decision applied: the relocalised sequences take the current frame as a new model at the camera pose it found
-        (their features followed the wrong motion, so none carries over, and the motion estimate restarts at zero).
-        Returns ``res`` with their new pose, and which sequences' poses are trusted (B,)."""
+        (their features followed the wrong motion, so none carries over, and the motion estimate restarts at zero;
+        ``held``: where this frame's dense alignment placed the model). Returns ``res`` with their new pose, and which
+        sequences' poses are trusted (B,)."""
         if self.relocaliser is None:
             return res, frame.active
         n_prev = before.valid.sum(1) if before.started else None
@@ -236,7 +236,7 @@ class Tracker:
         if lost.any():
             s = self.state
             s = replace(s, valid=s.valid & ~lost[:, None], velocity=torch.where(lost[:, None], 0.0, s.velocity))
-            self.state, T_model = self._new_model(s, frame, cur, measure, lost, dec.T_world_depth.double())
+            self.state, T_model = self._new_model(s, frame, cur, measure, lost, dec.T_world_depth.double(), held=held)
             m3 = lost[:, None, None]
             model = T_model if res.model_T_cam_obj is None else torch.where(m3, T_model, res.model_T_cam_obj)
             res = replace(res, T_world_depth=torch.where(m3, self.state.T_world_depth, res.T_world_depth),
@@ -384,25 +384,6 @@ def _once(compute: Callable[[], Tensor | None]) -> Callable[[], Tensor | None]:
 def _dt(frame: FrameBatch, s: TrackerState) -> Tensor:
     """(B,) float64 seconds since the previous frame (at least 1 ms: repeated time stamps)."""
     return (frame.timestamp - s.timestamp).double().clamp_min(1e-3)
-
-
-def frame_cues(s: TrackerState, cur: PreparedFrame, track: TrackResult, points_d: Tensor, valid: Tensor) -> Tensor:
-    """(B, N, C) cues of the features ``track`` followed from the state ``s`` into ``cur`` (:data:`torchtrack.filter.cues.CUE_NAMES`), zeros where not valid."""
-    H, W = cur.gray.shape[-2:]
-    centroid = masked_mean(points_d, valid.to(points_d.dtype))
-    sim = sample_depth(cur.sim.si, track.points) if cur.sim is not None else torch.full_like(track.d_tim, 0.5)
-    cues = stack_cues(
-        d_tim_int=track.d_tim_int, d_tim_sim=track.d_tim_sim, sim_won=track.winner == 1,
-        lk_residual=track.residual, depth=points_d[..., 2],
-        centroid_dist=torch.linalg.vector_norm(points_d - centroid[:, None], dim=-1),
-        cornerness_int=s.cornerness[..., 0], cornerness_sim=s.cornerness[..., 1],
-        sim_value=sim,  # nearest pixel of the SI map: masked (planar, no depth) pixels carry its fill value
-        track_age=s.age + 1,
-        prev_reproj=torch.where(s.age > 0, s.residuals, 0.0),  # a new feature has no previous frame
-        u_norm=track.points[..., 0] / W, v_norm=track.points[..., 1] / H, fb_error=track.d_tim,
-        **window_cues(cur.depth, track.points, s.prev.gray, s.pixels),
-    )  # fmt: skip
-    return torch.where(valid[..., None], cues, 0.0)
 
 
 def _result(s: TrackerState, winner: Tensor | None, d_tim: Tensor | None, reselected: Tensor, **extra) -> StepResult:
