@@ -16,9 +16,8 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from torchtrack.cli import tracker_help
+from torchtrack.cli import check_overrides, compose_config, tracker_help, with_conf_dir
 from torchtrack.config import CONF_DIR
-from torchtrack.console import check_overrides, compose_config, with_conf_dir
 
 
 def test_unknown_option_keeps_hydras_options_on_one_line():
@@ -111,7 +110,7 @@ def test_conf_dir_is_hydras_searchpath(myconf, monkeypatch, tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("module", ["torchtrack.cli", "torchtrack.learn.train_app"])
 def test_conf_dir_on_the_console_scripts(myconf, module, tmp_path):
-    """Every console script takes it through console.py's shared entry: Hydra's --cfg job shows the composed value."""
+    """Every console script takes it through cli.py's shared entry: Hydra's --cfg job shows the composed value."""
     env = {**os.environ, "TORCHTRACK_CACHE": str(tmp_path / "cache")}
     args = [sys.executable, "-m", module, f"conf_dir={myconf}", "weighting=mine", "--cfg", "job"]
     done = subprocess.run(args, capture_output=True, text=True, cwd=tmp_path, env=env, timeout=300)

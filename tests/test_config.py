@@ -301,7 +301,7 @@ def test_the_old_group_name_selects_the_same_estimator(name):
 
 
 def test_the_old_group_name_in_a_key_or_a_users_folder_is_one_line_naming_the_new(tmp_path):
-    from torchtrack.console import check_overrides
+    from torchtrack.cli import check_overrides
 
     assert "the tracker= group is now estimator=" in check_overrides("config", ["tracker.weighted=true"])
     (tmp_path / "tracker").mkdir()

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from torchtrack.console import compose_config
+from torchtrack.cli import compose_config
 
 REPO = Path(__file__).resolve().parents[1]
 CONF = REPO / "conf"

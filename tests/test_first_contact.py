@@ -19,10 +19,9 @@ from hydra import compose, initialize_config_dir
 from torchtrack.config import CONF_DIR
 from torchtrack.data import TumSequence
 from torchtrack.data.synthetic import SyntheticConfig, display_name
-from torchtrack.factory import build_sequences, build_tracker
+from torchtrack.factory import build_sequences, build_tracker, warm_up
 from torchtrack.image import lk_op
 from torchtrack.run import run_tracker
-from torchtrack.stream import RGBDTracker
 
 pytestmark = pytest.mark.slow  # the demo and the operators' build announcement, end to end
 
@@ -56,8 +55,10 @@ def test_demo_prints_one_bar_and_one_result_line_into_a_named_folder(tmp_path):
     assert len(re.findall(rf"{name}: frames=6 ", both)) == 1, both
     named = re.findall(r"\] - (\S+): \d+ frames", both)  # the load line: the name the run folder has
     assert named == [name] and not re.search(r"\] - synth-scene-", both), both  # not the cache folder's name
-    assert sum("6/6 [" in line for line in screen(err)) == 1, err  # the bar's final state, once
-    assert len(re.findall(r"fps=", both)) == 1, both
+    (bar,) = [line for line in screen(err) if "6/6 [" in line]  # the bar's final state, once
+    (result,) = re.findall(rf"{name}: frames=6 +fps=(\S+) ", both)
+    metrics = json.loads((tmp_path / "run" / name / "metrics.json").read_text())
+    assert re.findall(r"fps=(\S+)\]", bar) == [result] == [f"{metrics['fps']:.4g}"], (bar, result)  # one number
 
 
 class LoggingTracker:
@@ -109,7 +110,8 @@ def test_a_first_build_is_announced_before_the_bar_and_not_timed(tmp_path, capsy
     cfg = _config(tmp_path)
     sequences = build_sequences(cfg.data)
     capsys.readouterr()
-    tracker = RGBDTracker.from_config(cfg)
+    tracker = build_tracker(cfg)
+    warm_up(cfg, "cpu")  # as the command line does
     (metrics,) = run_tracker(tracker, sequences, tmp_path / "out", plots=False)
     err = capsys.readouterr().err
     line = "torchtrack: building the compiled LK, SIM and alignment operators (first run only)... done in 3 s\n"

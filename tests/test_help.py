@@ -12,8 +12,8 @@ import sys
 import pytest
 from hydra import compose, initialize_config_dir
 
+from torchtrack.cli import check_overrides
 from torchtrack.config import CONF_DIR, TumDataConfig
-from torchtrack.console import check_overrides
 from torchtrack.learn.dataset import synthetic_variants
 
 # Groups that are wiring, not choices a user makes on the command line (learn's dataset/train, the method's

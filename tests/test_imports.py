@@ -109,7 +109,7 @@ def test_the_cycle_finder_finds_a_cycle_and_only_cycles():
 
 def test_the_import_graph_is_read():
     g = graph()
-    assert "torchtrack.config" in g["torchtrack.console"] and "torchtrack.geometry" in g["torchtrack.image.select"]
+    assert "torchtrack.config" in g["torchtrack.cli"] and "torchtrack.geometry" in g["torchtrack.image.select"]
     assert "common" in g["evaluate"] and "common" in g["eval_weighting"]
 
 

@@ -207,7 +207,8 @@ def test_sim_cue_is_the_shape_index_map_at_the_nearest_pixel(seq):
     """sim_value is the frame's SI map (eq. 8) at the tracked pixel's nearest grid point. This sequence's SI map is
     all fill (planes at 160 x 120), so the front end's map is replaced by a known one, unique per pixel (the SI map
     feeds nothing but this cue): the cue must be ramp(round(x)), from the map of the frame being tracked."""
-    tracker = build_tracker(config(), record=True)
+    tracker = build_tracker(config())
+    tracker.observers.append(record.Recording([]))  # an observer that asks for the cues and records nothing
     frontend = tracker.frontend
 
     def ramp_si(frame):
@@ -323,6 +324,32 @@ def test_a_weighting_that_needs_cues_gets_them(seq):
     assert all(torch.equal(a, b) for a, b in zip(poses, plain, strict=True))
     assert len(tracker.weighting.seen) == len(seq) - 1
     assert all(c is not None and c.shape[-1] == len(COL) for c in tracker.weighting.seen)
+
+
+class Seen:
+    """An observer of the step: every result it is shown; it asks for the cues when ``needs_cues``."""
+
+    def __init__(self, needs_cues: bool) -> None:
+        self.needs_cues, self.results = needs_cues, []
+
+    def __call__(self, frame, res):
+        self.results.append((int(frame.index[0]), res))
+
+
+@pytest.mark.parametrize("needs_cues", [False, True])
+def test_an_observer_sees_every_step_and_gets_the_cues_it_asks_for(seq, needs_cues):
+    """An observer is shown each step's own result after the step, frame by frame; the cues are there (and the poses
+    the plain run's, bit for bit) where it asks for them, and absent where nothing asks."""
+    tracker = build_tracker(config())
+    seen = Seen(needs_cues)
+    tracker.observers.append(seen)
+    with torch.inference_mode():
+        results = [tracker.step(f) for f in iterate_batched([seq], prefetch=False)]
+    assert [i for i, _ in seen.results] == list(range(len(seq)))
+    assert all(r is s for r, (_, s) in zip(results, seen.results, strict=True))
+    assert all((r.cues is not None) == needs_cues for r in results[1:]) and results[0].cues is None
+    plain = plain_run(seq)
+    assert all(torch.equal(a.T_cam_obj, b.T_cam_obj) for a, b in zip(results, plain, strict=True))
 
 
 # ---------------------------------------------------------------------------------------------- LK residual

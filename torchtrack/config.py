@@ -201,7 +201,6 @@ class PipelineConfig:
     _target_: str = "torchtrack.pipeline.Tracker"
     predict_init: bool = True  # improvement (false = paper): LK starts at the constant-velocity prediction
     pixel_only: bool = True  # improvement (false = paper): a tracked feature without depth still measures its pixel
-    record: bool = False  # compute every frame's per-feature cues (torchtrack-record)
 
 
 @dataclass

@@ -1,4 +1,5 @@
-"""Builders from a composed config: the sequences of ``data`` and the tracker of the stage nodes.
+"""Builders from a composed config: the sequences of ``data``, the tracker of the stage nodes, its compiled operators
+and the mapper. The command line and the streaming API both build here; no frame passes through.
 
 Every object is built by its node's ``_target_`` (schemas in :mod:`torchtrack.config`); the only knob derived here
 is the front end's pyramid levels, which are the LK tracker's (``flow.levels``).
@@ -12,6 +13,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import NamedTuple
 
+import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
@@ -101,9 +103,8 @@ def load_sequences(data: DictConfig) -> Sequences:
     return Sequences(loaded, failed)
 
 
-def build_tracker(cfg: DictConfig, *, record: bool = False) -> Tracker:
-    """The pipeline (``cfg.pipeline``) composed of its stages, each built from its own node; ``record``: see
-    :class:`Tracker`."""
+def build_tracker(cfg: DictConfig) -> Tracker:
+    """The pipeline (``cfg.pipeline``) composed of its stages, each built from its own node."""
     return instantiate(
         cfg.pipeline,
         frontend=instantiate(cfg.frontend, levels=cfg.flow.levels, gray=frame_gray),  # the loader's luminance
@@ -116,8 +117,21 @@ def build_tracker(cfg: DictConfig, *, record: bool = False) -> Tracker:
         landmarks=build_landmarks(cfg),
         relocaliser=build_relocaliser(cfg),
         dense=build_dense(cfg),
-        record=record or cfg.pipeline.record,
     )
+
+
+def warm_up(cfg: DictConfig | None, device, *, announce: bool = True) -> None:
+    """Build (first run only) and load the compiled CPU operators that the tracker of ``cfg`` (None: a tracker built
+    elsewhere) runs on ``device``, so that a first-run build happens before any frame is timed; ``announce``: say so
+    on one line of stderr."""
+    wants_ops = cfg is None or not cfg.flow.lk_backend == cfg.frontend.sim_backend == "torch"
+    if torch.device(device).type == "cpu" and wants_ops:
+        from torchtrack.image import lk_op
+
+        if announce:
+            lk_op.warm_up()
+        else:
+            lk_op.available()
 
 
 def build_landmarks(cfg: DictConfig):

@@ -31,7 +31,7 @@ class PreparedFrame:
     flow: FlowFrame
 
 
-class FrameBatch(Protocol):
+class FrameLike(Protocol):
     """What the front end reads of a frame batch (:class:`torchtrack.data.frame.FrameBatch` has it): rgb (B, 3, H, W)
     in [0, 1], depth (B, 1, H, W) metres in the depth camera's grid, K and K_depth (B, 3, 3), T_color_depth (B, 4, 4)
     and gray (B, 1, H, W) luminance. A protocol, so that the kernels do not import the data layer."""
@@ -46,16 +46,16 @@ class FrameBatch(Protocol):
     def gray(self) -> Tensor: ...
 
 
-def _gray(frame: FrameBatch) -> Tensor:
+def _gray(frame: FrameLike) -> Tensor:
     return frame.gray
 
 
-def is_registered(frame: FrameBatch) -> bool:
+def is_registered(frame: FrameLike) -> bool:
     eye = torch.eye(4, dtype=frame.T_color_depth.dtype, device=frame.T_color_depth.device)
     return bool(torch.allclose(frame.T_color_depth, eye) and torch.allclose(frame.K_depth, frame.K))
 
 
-def depth_in_colour(frame: FrameBatch) -> Tensor:
+def depth_in_colour(frame: FrameLike) -> Tensor:
     """Depth (B, 1, H, W) seen from the colour camera; the input itself when depth is registered."""
     if is_registered(frame):
         return frame.depth
@@ -90,7 +90,7 @@ class FrontEnd:
         sim_kwargs: dict | None = None,
         sim_backend: str = "auto",
         ahead: bool = True,
-        gray: Callable[[FrameBatch], Tensor] = _gray,
+        gray: Callable[[FrameLike], Tensor] = _gray,
     ) -> None:
         self.levels = levels
         self.use_sim = use_sim
@@ -98,9 +98,9 @@ class FrontEnd:
         self.sim_backend = sim_backend
         self.ahead = ahead
         self.gray = gray
-        self._ready: dict[int, tuple[FrameBatch, PreparedFrame | BaseException]] = {}  # by id(frame)
+        self._ready: dict[int, tuple[FrameLike, PreparedFrame | BaseException]] = {}  # by id(frame)
 
-    def __call__(self, frame: FrameBatch) -> PreparedFrame:
+    def __call__(self, frame: FrameLike) -> PreparedFrame:
         """The frame prepared: by :meth:`prepared_ahead`'s thread when it yielded this frame, else now."""
         ready = self._ready.pop(id(frame), None)
         if ready is None or ready[0] is not frame:
@@ -109,7 +109,7 @@ class FrontEnd:
             raise ready[1]
         return ready[1]
 
-    def prepare(self, frame: FrameBatch) -> PreparedFrame:
+    def prepare(self, frame: FrameLike) -> PreparedFrame:
         """Prepare ``frame`` now, in the calling thread."""
         gray = self.gray(frame)
         depth = depth_in_colour(frame)
@@ -117,7 +117,7 @@ class FrontEnd:
         flow = prepare_frame(gray, sim.image if sim is not None else None, self.levels)
         return PreparedFrame(gray, depth, sim, flow)
 
-    def prepared_ahead(self, frames: Iterable[FrameBatch], depth: int = 1) -> Iterator[FrameBatch]:
+    def prepared_ahead(self, frames: Iterable[FrameLike], depth: int = 1) -> Iterator[FrameLike]:
         """Yield ``frames`` in order while a thread takes them from ``frames`` and prepares them, at most ``depth``
         frames beyond the one being prepared; calling this front end on a yielded frame returns its preparation.
 

@@ -6,10 +6,12 @@ truth; :mod:`torchtrack.geometry.rig` converts the tracker's depth-camera poses)
 6/7 as an image strip). Every file is written atomically (:func:`torchtrack.io.write_atomic`), so a
 sequence that finished is never lost when a later one fails.
 
-Frames become poses through :meth:`torchtrack.stream.RGBDTracker.step`, the path a Python caller's frames take too;
-each frame is moved to the tracker's device before the front end prepares it. ``fps`` in ``metrics.json`` is the
-batch's lockstep rate: steps per second of tracking (loading and tracking the frames; not writing outputs, not a
-first-run build of the compiled operators), one number for every sequence of a batch.
+The runner owns ground truth: each frame is moved to the tracking device and stepped through
+:meth:`torchtrack.pipeline.Tracker.step`, and the tracker's world (its first depth camera) is anchored at the first
+frame's ground-truth colour pose (where there is none, the first colour camera is the world). ``fps`` in
+``metrics.json`` and on the progress bar is the batch's tracking rate: lockstep steps per second of loading and
+tracking the frames (not writing outputs, not a first-run build of the compiled operators), one number for every
+sequence of a batch.
 
 Faults cost only what failed: output folders are checked for writability before tracking; bad frames are dropped
 (:class:`torchtrack.data.batching.FrameCursor`; ``metrics.json`` lists them); a sequence that fails mid-way becomes
@@ -30,11 +32,12 @@ from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from torchtrack.data.batching import DroppedFrame, FrameCursor, iterate_batched
+from torchtrack.data.frame import FrameBatch
 from torchtrack.data.tum import TumSequence
 from torchtrack.data.tum_io import write_tum_trajectory
+from torchtrack.geometry.rig import color_poses, tracker_world
 from torchtrack.io import check_writable, write_json, write_text
 from torchtrack.pipeline import StepResult, Tracker
-from torchtrack.stream import RGBDTracker, TrackedFrame
 from torchtrack.viz.overlay import TRAIL, draw_frame, save_strip, snapshot_indices
 
 log = logging.getLogger(__name__)
@@ -52,19 +55,20 @@ class Recorder:
     tiles: list[np.ndarray] = field(default_factory=list)
     trail: list[torch.Tensor] = field(default_factory=list)  # (N, 2) pixels of the current model's last frames
 
-    def add(self, b: int, frame, tracked: TrackedFrame) -> None:
-        i, res = int(frame.index[b]), tracked.result
-        self.poses.append(tracked.T_world_color[b].numpy())  # the colour camera's, in ground truth's world
+    def add(self, b: int, frame: FrameBatch, T_world_color: torch.Tensor, res: StepResult) -> None:
+        """Row b of a step: its frame, the colour camera's pose (B, 4, 4) in ground truth's world, the result."""
+        i = int(frame.index[b])
+        self.poses.append(T_world_color[b].numpy())
         win = res.winner[b][res.valid[b]]
         self.rows.append(
             {
                 "frame": i,
                 "timestamp": float(frame.timestamp[b]),
-                "features": int(tracked.features[b]),
+                "features": int(res.n_features[b]),
                 "sim_wins": int((win == 1).sum()),
-                "reprojection_px": float(tracked.reprojection_px[b]),
+                "reprojection_px": float(res.reprojection_error[b]),
                 "mean_tim_px": float(res.d_tim[b][res.valid[b]].mean()) if res.valid[b].any() else 0.0,
-                "reselected": bool(tracked.reselected[b]),
+                "reselected": bool(res.reselected[b]),
                 **self._noise_scale(b, res),
                 **self._loss(b, i, res.loss),
             }
@@ -194,6 +198,11 @@ def _prepared_ahead(tracker, frames):
     return ahead(frames) if ahead is not None else frames
 
 
+# The bar shows the tracking rate (``fps=``, as metrics.json and the result line), not tqdm's own rate, which counts
+# the time spent writing each sequence's outputs too.
+BAR_FORMAT = "{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}{postfix}]"
+
+
 class _Clock:
     """The batch's tracking time: wall time since the start less the time spent writing outputs. ``fps`` is read once
     per step, so that the sequences that end at one step report the same rate."""
@@ -208,20 +217,21 @@ class _Clock:
 
 
 def run_tracker(
-    tracker: RGBDTracker | Tracker,
+    tracker: Tracker,
     sequences: list[TumSequence],
     out_dir: Path,
     *,
     plots: bool = True,
     mapper=None,
+    device: str | torch.device = "cpu",
 ) -> list[dict]:
-    """Track B sequences in lockstep; write each one's outputs when it ends. Returns their metrics, one per sequence
-    in order; a failed sequence's say ``"complete": False`` and ``"error"``. Raises OSError (one line) before
-    tracking when an output folder is not writable. ``tracker``: an :class:`~torchtrack.stream.RGBDTracker` (its
-    device), or a built :class:`Tracker` (on the CPU). ``mapper`` (a :class:`torchtrack.mapping.PanoramaMapper` or
+    """Track B sequences in lockstep on ``device``; write each one's outputs when it ends. Returns their metrics, one
+    per sequence in order; a failed sequence's say ``"complete": False`` and ``"error"``. Raises OSError (one line)
+    before tracking when an output folder is not writable. ``tracker``: a :class:`Tracker` (or anything with
+    ``step(FrameBatch) -> StepResult``), started anew. ``mapper`` (a :class:`torchtrack.mapping.PanoramaMapper` or
     None) is fed every frame and writes each sequence's map when it ends."""
-    stream = tracker if isinstance(tracker, RGBDTracker) else RGBDTracker(tracker=tracker)
-    stream.reset()
+    if hasattr(tracker, "reset"):
+        tracker.reset()
     out_dir = Path(out_dir)
     recs = [
         Recorder(s, out_dir / name, snapshot_indices(len(s)) if plots else set())
@@ -248,13 +258,17 @@ def run_tracker(
             results[b] = {"sequence": sequences[b].name, "complete": False, "error": f"{type(e).__name__}: {e}"}
         clock.paused += time.perf_counter() - t0
 
-    frames = (stream.to_device(f) for f in iterate_batched(sequences, cursors=cursors))
+    frames = (f.to(device) for f in iterate_batched(sequences, cursors=cursors))
+    T_world_tracker = None  # the tracker's world (its first depth camera) in ground truth's, from the first frame
     with torch.inference_mode(), logging_redirect_tqdm():  # log lines above the bar, not glued onto it
-        for t, frame in enumerate(
-            tqdm(_prepared_ahead(stream.tracker, frames), total=max(lengths), desc="tracking", unit="frame")
-        ):
+        bar = tqdm(_prepared_ahead(tracker, frames), total=max(lengths), desc="tracking", unit="frame",
+                   bar_format=BAR_FORMAT)  # fmt: skip
+        for t, frame in enumerate(bar):
             try:
-                tracked = stream.step(frame)
+                res = tracker.step(frame)
+                if T_world_tracker is None:
+                    T_world_tracker = tracker_world(frame.T_world_color_gt, frame.gt_valid, frame.T_color_depth)
+                T_world_color = color_poses(T_world_tracker, res.T_world_depth, frame.T_color_depth).cpu()
             except Exception as e:  # the batch's step failed: no sequence can go on, but what was tracked is kept
                 log.exception("tracking failed at step %d", t)
                 for b in range(len(sequences)):
@@ -262,13 +276,14 @@ def run_tracker(
                         finish(b, f"tracking failed at step {t}: {type(e).__name__}: {e}")
                 break
             clock.tick()
+            bar.set_postfix_str(f"fps={clock.fps:.4g}", refresh=False)  # the rate metrics.json and the result line say
             if mapper is not None:
-                mapper.add(frame, tracked.result)
+                mapper.add(frame, res)
             for b in range(len(sequences)):
                 if results[b] is not None:
                     continue
                 if bool(frame.active[b]):
-                    recs[b].add(b, frame, tracked)
+                    recs[b].add(b, frame, T_world_color, res)
                 if not bool(frame.active[b]) or int(frame.index[b]) == lengths[b] - 1:
                     finish(b)
     for b in range(len(sequences)):

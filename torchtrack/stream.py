@@ -6,24 +6,27 @@
     for color, depth in camera:  # (H, W, 3) uint8 RGB, (H, W) uint16 depth
         out = tracker.track(color, depth)  # out.T_world_color: (4, 4) camera-to-world
 
-:class:`RGBDTracker` is the runner's too (:func:`torchtrack.run.run_tracker`): :meth:`RGBDTracker.step` turns a
-:class:`~torchtrack.data.frame.FrameBatch` into poses for both, so a frame from Python and the same frame from a TUM
-folder get the same pose.
+Frames in, poses out, no ground truth: the world is the first frame's colour camera. A TUM-layout folder's frames, paired
+as the CLI pairs them, come from :func:`tum_frames`. The CLI's runner (:func:`torchtrack.run.run_tracker`) steps the
+same :class:`~torchtrack.pipeline.Tracker` on the same frames; it owns ground truth and anchors the world there.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import fields
+import os
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from torchtrack.data.batching import FrameCursor
 from torchtrack.data.frame import FrameBatch
-from torchtrack.geometry.rig import color_poses, tracker_world
-from torchtrack.runtime import resolve_device
+from torchtrack.data.tum import TumSequence
+from torchtrack.geometry.rig import T_world_depth_from_color, color_poses
+from torchtrack.runtime import configure, resolve_device
 
 if TYPE_CHECKING:
     from omegaconf import DictConfig
@@ -92,6 +95,12 @@ class RGBDTracker:
     """The torchtrack pipeline on frames given one at a time as arrays (numpy or torch), for one stream or B streams
     in lockstep (every array with a leading B), built from the CLI's Hydra config.
 
+    Built from the config, it applies the CLI's process settings, as the CLI does: ``torch.set_num_threads(threads)``
+    (the config's ``threads``: 1 by default, the fastest for the per-frame tensors; ``overrides=["threads=N"]``;
+    ``threads=null`` leaves torch's count) and glibc's allocator kept from returning freed memory to the system
+    (:func:`torchtrack.runtime.configure`). Both are process-wide. :meth:`from_config` does the same with its config;
+    given a built ``tracker``, the constructor changes neither.
+
     Args:
         K: colour intrinsics, a (3, 3) matrix or (fx, fy, cx, cy); (B, 3, 3) or (B, 4): one per stream. Only
             :meth:`step` works without (its frames carry their intrinsics).
@@ -123,10 +132,11 @@ class RGBDTracker:
     ) -> None:
         cfg = None
         if tracker is None:
-            from torchtrack.console import build_checked, compose_config
+            from torchtrack.cli import build_checked, compose_config
 
             cfg = compose_config("config", list(overrides))
             tracker = build_checked(cfg)
+            configure(cfg.threads)
         elif overrides:
             raise ValueError("RGBDTracker: give overrides or a built tracker, not both")
         self.tracker = tracker
@@ -141,21 +151,19 @@ class RGBDTracker:
         if depth_scale is not None and not depth_scale > 0:
             raise ValueError(f"depth_scale: depth units per metre must be positive, got {depth_scale}")
         self.depth_scale, self.fps = depth_scale, float(fps)
-        if self.device.type == "cpu":  # built before any frame is timed
-            from torchtrack.image import lk_op
+        from torchtrack.factory import warm_up
 
-            if announce:
-                lk_op.warm_up()
-            else:
-                lk_op.available()
+        warm_up(cfg, self.device, announce=announce)  # built before any frame is timed
         self.reset()
 
     @classmethod
     def from_config(cls, cfg: DictConfig, **kwargs) -> RGBDTracker:
-        """The tracker of an already composed config (the CLI's), on its ``device`` unless ``device`` is given."""
+        """The tracker of an already composed config (the CLI's), on its ``device`` unless ``device`` is given, with
+        its ``threads`` applied as the constructor applies them."""
         from torchtrack.factory import build_tracker
 
         kwargs.setdefault("device", cfg.get("device", "cpu"))
+        configure(cfg.get("threads"))
         return cls(tracker=build_tracker(cfg), **kwargs)
 
     def reset(self) -> None:
@@ -193,25 +201,19 @@ class RGBDTracker:
         return FramePose(*values)
 
     def step(self, frame: FrameBatch) -> TrackedFrame:
-        """Track one :class:`~torchtrack.data.frame.FrameBatch` (moved to the device): the one path from frames to
-        poses, the runner's and :meth:`track`'s. The world is the first frame's ground-truth colour pose where it has
-        one (``gt_valid``), else the first colour camera."""
-        frame = self.to_device(frame)
+        """Track one :class:`~torchtrack.data.frame.FrameBatch` (moved to the device; its ground truth is not read):
+        :meth:`track`'s path from arrays to poses. The world is the first frame's colour camera."""
+        frame = frame.to(self.device)
         res = self.tracker.step(frame)
         if self._T_world_tracker is None:  # the tracker's world is its first depth camera
-            self._T_world_tracker = tracker_world(frame.T_world_color_gt, frame.gt_valid, frame.T_color_depth)
+            eye = torch.eye(4, dtype=torch.float64, device=frame.T_color_depth.device)
+            self._T_world_tracker = T_world_depth_from_color(eye, frame.T_color_depth)
         T_world_color = color_poses(self._T_world_tracker, res.T_world_depth, frame.T_color_depth).cpu()
         loss = getattr(res, "loss", None)
         lost = loss.lost.cpu() if loss is not None else torch.zeros(len(T_world_color), dtype=torch.bool, device="cpu")
         return TrackedFrame(
             T_world_color, res.n_features.cpu().long(), res.reprojection_error.cpu(), res.reselected.cpu(), lost, res
         )
-
-    def to_device(self, frame: FrameBatch) -> FrameBatch:
-        """``frame`` on this tracker's device (the same object where it is there already)."""
-        if frame.rgb.device == self.device:
-            return frame
-        return FrameBatch(**{f.name: getattr(frame, f.name).to(self.device) for f in fields(frame)})
 
     def _frame(self, color, depth, timestamp, batched: bool) -> FrameBatch:
         """The arrays of one frame as a FrameBatch (B, ...) on the CPU, checked."""
@@ -234,7 +236,7 @@ class RGBDTracker:
         self._frames += 1
         dev = rgb.device  # the frame as given; step moves it to the tracker's device
         T_cd = self.T_color_depth if self.T_color_depth is not None else torch.eye(4, device=dev)
-        return FrameBatch(
+        return FrameBatch(  # no ground truth: identity, not valid
             rgb=rgb,
             depth=d,
             K=K,
@@ -246,6 +248,33 @@ class RGBDTracker:
             active=torch.ones(b, dtype=torch.bool, device=dev),
             index=torch.full((b,), self._frames - 1, dtype=torch.int64, device=dev),
         )
+
+
+def tum_frames(sequence: TumSequence | str | os.PathLike, **options) -> Iterator[tuple[Tensor, Tensor, float]]:
+    """The frames of a TUM-layout folder for :meth:`RGBDTracker.track`, read and paired as the CLI reads them.
+
+        seq = TumSequence("DIR")  # the CLI's reader: colour and depth paired by timestamp within max_dt
+        tracker = RGBDTracker(seq.K, K_depth=seq.K_depth, T_color_depth=seq.T_color_depth)
+        for color, depth, timestamp in tum_frames(seq):
+            out = tracker.track(color, depth, timestamp=timestamp)
+
+    Args:
+        sequence: a :class:`~torchtrack.data.tum.TumSequence`, or its folder (then read with ``options``, the
+            reader's keywords: ``max_dt``, ``depth_scale``, ``camera``, ... as the CLI's ``data.*`` keys).
+
+    Yields:
+        (colour (H, W, 3) float32 RGB in [0, 1], depth (H, W) float32 metres in the depth camera (0: none), colour
+        timestamp in seconds) per frame, in order. A frame that fails to load is dropped with a warning, as the CLI
+        drops it (:class:`~torchtrack.data.batching.FrameCursor`); the next frame is decoded in a thread while the
+        caller tracks this one.
+    """
+    seq = sequence if isinstance(sequence, TumSequence) else TumSequence(sequence, **options)
+    cursor = FrameCursor(seq)
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="tum_frames") as pool:
+        ahead = pool.submit(cursor.read)
+        while (frame := ahead.result()) is not None:
+            ahead = pool.submit(cursor.read)
+            yield frame.rgb.permute(1, 2, 0), frame.depth[0], frame.timestamp
 
 
 def _ndim(x) -> int:

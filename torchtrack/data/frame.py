@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
+import torch
 from kornia.color import rgb_to_grayscale
 from torch import Tensor
 
@@ -40,3 +41,9 @@ class FrameBatch:
     def gray(self) -> Tensor:
         """(B, 1, H, W) luminance (ITU-R BT.601 weights, as OpenCV's RGB2GRAY): kornia's."""
         return rgb_to_grayscale(self.rgb)
+
+    def to(self, device: str | torch.device) -> FrameBatch:
+        """This batch on ``device`` (the same object where it is there already)."""
+        if self.rgb.device == torch.device(device):
+            return self
+        return FrameBatch(**{f.name: getattr(self, f.name).to(device) for f in fields(self)})

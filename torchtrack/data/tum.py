@@ -119,7 +119,8 @@ class TumSequence:
             (:class:`torchtrack.data.batching.FrameCursor`): "drop" it (unless more than ``max_bad_fraction`` of
             the frames are bad) or "error".
 
-    Attributes: name, timestamps (F,) float64, groundtruth (F, 4, 4) float64 (identity where absent),
+    Attributes: name, timestamps (F,) float64, unpaired (colour images listed without a depth image within
+    ``max_dt``: left out, before ``stride`` and ``max_frames``), groundtruth (F, 4, 4) float64 (identity where absent),
     gt_valid (F,) bool, K and K_depth (3, 3) float32, T_color_depth (4, 4) float32, depth_scale,
     rgb_paths, depth_paths, depth_shift (the estimated or given ShiftEstimate; None for "none", explicit
     extrinsics or images too small to estimate), depth_aligned (K_depth was set from depth_shift).
@@ -165,9 +166,11 @@ class TumSequence:
         self._hw: tuple[int, int] | None = None
         explicit = T_color_depth is not None or intrinsics_depth is not None
         self._align_depth(depth_alignment, intrinsics_camera, explicit=explicit)
+        n = self.unpaired
+        unpaired = f", {n} colour frame{'s' * (n != 1)} without depth within {max_dt:g} s left out" if n else ""
         log.info(
-            "%s: %d frames, ground truth for %d, intrinsics from %s, depth_scale %g",
-            self.name, len(self), int(self.gt_valid.sum()), source, self.depth_scale,
+            "%s: %d frames, ground truth for %d, intrinsics from %s, depth_scale %g%s",
+            self.name, len(self), int(self.gt_valid.sum()), source, self.depth_scale, unpaired,
         )  # fmt: skip
 
     def _associate_images(self, max_dt: float, stride: int, max_frames: int | None) -> None:
@@ -180,6 +183,7 @@ class TumSequence:
                 f"{rgb_txt} / {depth_txt}: no colour-depth pair within max_dt={max_dt} s "
                 f"(rgb {t_rgb.min():.6f}..{t_rgb.max():.6f} s, depth {t_d.min():.6f}..{t_d.max():.6f} s)"
             )
+        self.unpaired = len(t_rgb) - len(ia)
         ia, ib = ia[::stride][:max_frames], ib[::stride][:max_frames]
         self.timestamps = t_rgb[ia]
         self.depth_timestamps = t_d[ib]

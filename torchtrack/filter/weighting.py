@@ -28,7 +28,8 @@ class WeightingInputs(NamedTuple):
         focal: (B,) depth-camera focal length in pixels (f of eq. (12)).
         cornerness: (B, N) selection score (eq. (9)); unused by the paper's weighting, for learned ones.
         cues: (B, N, C) per-feature cues in :data:`torchtrack.filter.cues.CUE_NAMES` order, for learned
-            weightings; the tracker fills it only when the weighting has ``needs_cues = True``.
+            weightings; the tracker fills it only when the weighting (or an observer of its step) has
+            ``needs_cues = True``.
     """
 
     d_tim: Tensor

@@ -91,7 +91,7 @@ class ObservationLog:
         obs = res.observation
         if obs is not None:
             if res.cues is None:
-                raise ValueError("ObservationLog: the tracker did not compute cues (build it with record=True)")
+                raise ValueError("ObservationLog: no cues in the step's result (register it with needs_cues = True)")
             row |= dict(
                 dt=obs.dt[b].double(), points_obj=obs.points_obj[b], points_d=obs.points_d[b], pixels=obs.pixels[b],
                 valid=obs.valid[b], has_depth=obs.valid_xyz[b], cues=res.cues[b], var_pix=res.variances.var_pix[b],
@@ -185,22 +185,37 @@ def record_sequences(
     return paths
 
 
+class Recording:
+    """The observer of the tracker's step that records it (``tracker.observers.append(Recording(logs))``): each active
+    sequence's row of the step's result into its :class:`ObservationLog`. It asks for the cues (``needs_cues``), so
+    the tracker computes them every frame, whatever its weighting needs."""
+
+    needs_cues = True
+
+    def __init__(self, logs: Sequence[ObservationLog]) -> None:
+        self.logs = list(logs)
+
+    def __call__(self, frame: FrameBatch, res: StepResult) -> None:
+        for b, rec in enumerate(self.logs):
+            if bool(frame.active[b]):
+                rec.add(b, frame, res)
+
+
 def _record_batch(cfg, sequences, names, paths, config: str, progress: bool) -> None:
-    tracker = build_tracker(cfg, record=True)
+    tracker = build_tracker(cfg)
     w = type(tracker.weighting)
     weighting = f"{w.__module__}.{w.__qualname__}"
     logs = [ObservationLog(n, source_of(s), config, weighting) for n, s in zip(names, sequences, strict=True)]
+    tracker.observers.append(Recording(logs))
     cursors = [FrameCursor(s) for s in sequences]  # bad or missing frames are dropped, as in a run; a failure raises
     saved = [False] * len(sequences)
     desc = f"recording {names[0]}" + (f" (+{len(names) - 1})" if len(names) > 1 else "")
     with torch.inference_mode():
         frames = iterate_batched(sequences, cursors=cursors)
         for frame in tqdm(frames, total=max(len(s) for s in sequences), desc=desc, unit="frame", disable=not progress):
-            res = tracker.step(frame)
+            tracker.step(frame)
             for b, rec in enumerate(logs):
-                if bool(frame.active[b]):
-                    rec.add(b, frame, res)
-                elif not saved[b]:  # the sequence has ended: written while the others go on
+                if not bool(frame.active[b]) and not saved[b]:  # the sequence has ended: written while the others go on
                     saved[b] = _save(rec, paths[b])
     for rec, path, done in zip(logs, paths, saved, strict=True):
         if not done:

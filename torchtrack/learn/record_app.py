@@ -12,8 +12,8 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
+from torchtrack.cli import console_main
 from torchtrack.config import CONF_DIR
-from torchtrack.console import console_main
 from torchtrack.data.errors import DataError
 from torchtrack.factory import build_sequences
 from torchtrack.learn.dataset import build_synthetic_set

@@ -23,8 +23,8 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from torchtrack.cli import console_main
 from torchtrack.config import CONF_DIR, load_option
-from torchtrack.console import console_main
 from torchtrack.data.errors import DataError
 from torchtrack.io import write_atomic
 from torchtrack.learn.cache import SequenceObservations, load_observations

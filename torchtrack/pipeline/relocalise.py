@@ -246,5 +246,5 @@ class Relocaliser:
             best = max(best, n)
             if T_color_world is not None and n >= self.min_inliers:
                 T_cam_world = T_depth_color @ torch.from_numpy(T_color_world)
-                return T_inv(T_cam_world).to(frame.T_world_color_gt), n
+                return T_inv(T_cam_world).to(dtype=torch.float64, device=frame.rgb.device), n  # the frame's device
         return None, best

@@ -10,11 +10,21 @@ import torch
 from torch import Tensor
 
 from torchtrack.estimators.backends import BackendResult
+from torchtrack.estimators.base import masked_mean
+from torchtrack.filter.cues import stack_cues, window_cues
 from torchtrack.filter.frame import Observation
 from torchtrack.filter.models import measure_points
 from torchtrack.filter.weighting import Variances
 from torchtrack.frontend import PreparedFrame
-from torchtrack.geometry import T_inv, backproject, depth_along_rays, sample_depth_bilinear, transform_points
+from torchtrack.geometry import (
+    T_inv,
+    backproject,
+    depth_along_rays,
+    sample_depth,
+    sample_depth_bilinear,
+    transform_points,
+)
+from torchtrack.image.flow import TrackResult
 
 
 class Measure(NamedTuple):
@@ -67,7 +77,7 @@ class StepResult:
             ``pixels``/``valid`` BEFORE the outlier drop (``outliers.max_residual_px``); a re-selection comes after.
         variances: the weighting's output that went with ``observation`` (None on the first frame).
         cues: (B, N, C) float32 cues (:data:`torchtrack.filter.cues.CUE_NAMES`) of the observation's features,
-            zeros where not valid; only when the weighting needs them or the tracker records (else None).
+            zeros where not valid; only where the weighting or an observer of the step asks for them (else None).
         model_T_cam_obj: (B, 4, 4) float64, where ``reselected``: the pose the back end was reset to when the new
             model was taken at the end of this frame (other rows: the current pose); None when no re-selection.
         estimate: the back end's result for this frame (None on the first frame): the loss check reads it.
@@ -160,3 +170,22 @@ def where_rows(mask: Tensor, new: Tensor, old: Tensor) -> Tensor:
 def valid_first(valid: Tensor, width: int) -> Tensor:
     """(B, width) indices that put the True entries of ``valid`` (B, N) first, in order (a stable sort)."""
     return torch.sort((~valid).to(torch.uint8), dim=1, stable=True).indices[:, :width]
+
+
+def frame_cues(s: TrackerState, cur: PreparedFrame, track: TrackResult, points_d: Tensor, valid: Tensor) -> Tensor:
+    """(B, N, C) cues of the features ``track`` followed from the state ``s`` into ``cur`` (:data:`torchtrack.filter.cues.CUE_NAMES`), zeros where not valid."""
+    H, W = cur.gray.shape[-2:]
+    centroid = masked_mean(points_d, valid.to(points_d.dtype))
+    sim = sample_depth(cur.sim.si, track.points) if cur.sim is not None else torch.full_like(track.d_tim, 0.5)
+    cues = stack_cues(
+        d_tim_int=track.d_tim_int, d_tim_sim=track.d_tim_sim, sim_won=track.winner == 1,
+        lk_residual=track.residual, depth=points_d[..., 2],
+        centroid_dist=torch.linalg.vector_norm(points_d - centroid[:, None], dim=-1),
+        cornerness_int=s.cornerness[..., 0], cornerness_sim=s.cornerness[..., 1],
+        sim_value=sim,  # nearest pixel of the SI map: masked (planar, no depth) pixels carry its fill value
+        track_age=s.age + 1,
+        prev_reproj=torch.where(s.age > 0, s.residuals, 0.0),  # a new feature has no previous frame
+        u_norm=track.points[..., 0] / W, v_norm=track.points[..., 1] / H, fb_error=track.d_tim,
+        **window_cues(cur.depth, track.points, s.prev.gray, s.pixels),
+    )  # fmt: skip
+    return torch.where(valid[..., None], cues, 0.0)

@@ -25,11 +25,10 @@ from torch import Tensor
 from torchtrack.data.frame import FrameBatch
 from torchtrack.estimators.backends import PoseBackend
 from torchtrack.estimators.base import masked_mean
-from torchtrack.filter.cues import stack_cues, window_cues
 from torchtrack.filter.frame import Observation
 from torchtrack.filter.weighting import Variances, WeightingInputs, pixel_only_variances
 from torchtrack.frontend import FrontEnd, PreparedFrame, is_registered
-from torchtrack.geometry import T_inv, make_T, project, sample_depth, se3_exp, se3_log, transform_points
+from torchtrack.geometry import T_inv, make_T, project, se3_exp, se3_log, transform_points
 from torchtrack.image.flow import TrackResult
 from torchtrack.pipeline.dense_map import DenseMap
 from torchtrack.pipeline.keyframes import KeyframeStore
@@ -37,7 +36,7 @@ from torchtrack.pipeline.landmarks import LandmarkMap
 from torchtrack.pipeline.outliers import ResidualDrop, feature_residuals
 from torchtrack.pipeline.relocalise import Relocaliser
 from torchtrack.pipeline.reselect import Kept, PointEstimate, Reselection
-from torchtrack.pipeline.state import FEATURE_FIELDS, Measure, StepResult, TrackerState, pad_to, where_rows
+from torchtrack.pipeline.state import FEATURE_FIELDS, Measure, StepResult, TrackerState, frame_cues, pad_to, where_rows
 
 
 class Tracker:
@@ -70,9 +69,12 @@ class Tracker:
         pixel_only: improvement (False = paper): a tracked feature without depth at its pixel this frame (a hole, an
             edge, a band a separate depth camera does not see) stays in the model and measures its pixel only (eq. 7);
             a re-selection counts the features measured with depth. The paper drops it (eq. 6 needs the depth).
-        record: compute the per-feature cues (:mod:`torchtrack.filter.cues`) of every frame into
-            ``StepResult.cues`` even when the weighting does not need them (for the observation cache). Poses are
-            the same with and without; a weighting with ``needs_cues = True`` gets them in any case.
+
+    Observers: ``tracker.observers.append(fn)`` registers ``fn(frame, result)``, called after every step with its
+    :class:`StepResult` (the observation cache records it, :mod:`torchtrack.learn.record`). The per-feature cues
+    (:mod:`torchtrack.filter.cues`) are computed where the weighting is called, when the weighting or an observer
+    asks for them with ``needs_cues = True``; they arrive in ``WeightingInputs.cues`` and ``StepResult.cues``. Poses
+    are the same with and without them.
 
     One owner per piece of state: the tracker's model and last estimate live in ``self.state``
     (:class:`TrackerState`), which only :meth:`step` replaces; the back end owns the filter, the landmarks their
@@ -96,16 +98,14 @@ class Tracker:
         dense: DenseMap | None = None,
         predict_init: bool = True,
         pixel_only: bool = True,
-        record: bool = False,
     ) -> None:
         self.frontend, self.flow, self.weighting, self.backend = frontend, flow, weighting, backend
         self.reselect = reselect
         self.outliers = outliers if outliers is not None else ResidualDrop()
         self.keyframes = keyframes if keyframes is not None else KeyframeStore()
         self.landmarks, self.relocaliser, self.dense = landmarks, relocaliser, dense
-        self._region: Tensor | None = None  # the current frame's _map_region
-        self._map_held: Tensor | None = None  # (B,) this frame's dense alignment applied (landmarks not needed there)
-        self.predict_init, self.pixel_only, self.record = predict_init, pixel_only, record
+        self.predict_init, self.pixel_only = predict_init, pixel_only
+        self.observers: list[Callable[[FrameBatch, StepResult], None]] = []
         self.state = TrackerState()
 
     def reset(self) -> None:
@@ -113,52 +113,59 @@ class Tracker:
         starts anew there (the back end's noise scales included)."""
         self.state = TrackerState()
 
-    @property
-    def wants_cues(self) -> bool:
-        """Whether this frame's cues are computed: when recording, or for a weighting with ``needs_cues``."""
-        return self.record or bool(getattr(self.weighting, "needs_cues", False))
-
     def step(self, frame: FrameBatch) -> StepResult:
-        """One frame of every sequence, in the paper's order (§III)."""
-        s = self.state
-        self._region = None  # this frame's model region, for the dense map: computed on first use
-        self._map_held = None
+        """One frame of every sequence, in the paper's order (§III); then each of ``observers`` sees the result."""
+        s, region = self.state, _once(lambda: self._map_region(frame))  # the model's region: computed on first use
         cur = self.frontend(frame)  # prepare: depth in the colour camera, SIM (eq. 8), LK pyramids
-        raw = None if is_registered(frame) else frame.depth  # a separate depth camera: rays meet its surface
-        measure = Measure(cur.depth, frame.K, frame.T_color_depth, raw, frame.K_depth)  # a pixel's 3D point, eq. (6)
+        measure = _measure(frame, cur)  # a pixel's 3D point, eq. (6)
         if not s.started:
-            res = self._start(frame, cur, measure)
+            res, held = self._start(frame, cur, measure), None  # the first model: features selected (§III-B, eq. 9)
         else:
-            track = self._tracked(s, frame, cur)  # LK on intensity and on the SIM, the TIM check, eq. (10)
-            points_d, has_depth = measure(track.points)  # eq. (6)
-            valid_xyz = track.valid & has_depth & frame.active[:, None]
-            valid = (track.valid & frame.active[:, None]) if self.pixel_only else valid_xyz  # a tracked pixel: eq. (7)
-            cues = self._cues(s, cur, track, points_d, valid_xyz) if self.wants_cues else None
-            var = self.weighting(WeightingInputs(track.d_tim, points_d[..., 2], points_d, valid_xyz,
-                                                 frame.K_depth[:, 0, 0], cues=cues))  # eqs. (11)-(14)  # fmt: skip
-            var = pixel_only_variances(var, valid, valid_xyz)
-            obs = Observation(_dt(frame, s).to(points_d.dtype), s.points_obj, points_d, track.points, valid, frame.K,
-                              frame.T_color_depth, has_depth=has_depth)  # fmt: skip
-            est = self.backend.step(obs, var, active=frame.active)  # eqs. (2)-(7), (15)
-            tracked = self._advanced(s, frame, cur, track.points, valid, valid_xyz, est.T_cam_obj.double(), points_d,
-                                     var)  # outliers, eq. (16)  # fmt: skip
-            reselect = self.reselect.needed(tracked.valid & valid_xyz, tracked.n_model, frame.active)  # few with depth
-            tracked = self._placed(tracked, frame, reselect)  # the model's world pose, on the dense map
-            self.state, model = self._reselected(tracked, frame, cur, measure, reselect)  # §III-B
+            track = self._tracked(s, frame, cur)  # LK on intensity and on the SIM, the TIM check (§III-C, eq. 10)
+            obs = self._observed(s, frame, track, measure)  # each feature's 3D point, eq. (6), and pixel, eq. (7)
+            var, cues = self._weighted(s, frame, cur, track, obs)  # §III-D, eqs. (11)-(14)
+            est = self.backend.step(obs, var, active=frame.active)  # the EKF (§III-A, eqs. 2-7, 15)
+            tracked = self._advanced(s, frame, cur, obs, var, est.T_cam_obj.double())  # outliers, eq. (16)
+            reselect = self.reselect.needed(tracked.valid & obs.valid_xyz, tracked.n_model, frame.active)  # few left
+            tracked, held = self._placed(tracked, frame, reselect, region)  # the model's world pose, on the dense map
+            self.state, model = self._reselected(tracked, frame, cur, measure, reselect, held)  # a new model, §III-B
             res = _result(tracked, track.winner, track.d_tim, reselect, observation=obs, variances=var, cues=cues,
                           model_T_cam_obj=model, estimate=est)  # fmt: skip
-        res, trusted = self._loss_check(frame, cur, measure, res, s)
-        self._keyframe(frame, cur, measure, self.keyframes.due(res.reselected, frame.active) & trusted, res.reselected)
+        res, trusted = self._loss_check(frame, cur, measure, res, s, held)
+        due = self.keyframes.due(res.reselected, frame.active) & trusted
+        self._keyframe(frame, cur, measure, due, res.reselected, region)
+        for observe in self.observers:
+            observe(frame, res)
         return res
 
     # ---------------------------------------------------------------------------------------------- per frame
     def _tracked(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame) -> TrackResult:
         """The model's features tracked from the previous frame into ``cur`` (eq. 10), LK started at their previous
-        pixels or (``predict_init``) at the model points' projections under the predicted pose."""
-        args = dict(with_residual=True) if self.wants_cues else {}  # the LK residual is a cue
+        pixels or (``predict_init``) at the model points' projections under the predicted pose; with the LK residual
+        where the cues are asked for (it is one)."""
+        args = dict(with_residual=True) if _cues_asked(self) else {}
         if self.predict_init:
             args["init"] = self._predicted_pixels(s, frame, _dt(frame, s))
         return self.flow(s.prev.flow, cur.flow, s.pixels, s.valid, **args)
+
+    def _observed(self, s: TrackerState, frame: FrameBatch, track: TrackResult, measure: Measure) -> Observation:
+        """What the back end measures of the tracked features: their 3D points where the depth has them (eq. 6) and
+        their pixels (eq. 7): where tracked (``pixel_only``), else only where the depth has them too (the paper)."""
+        points_d, has_depth = measure(track.points)  # eq. (6)
+        valid = track.valid & frame.active[:, None]
+        valid = valid if self.pixel_only else valid & has_depth
+        return Observation(_dt(frame, s).to(points_d.dtype), s.points_obj, points_d, track.points, valid, frame.K,
+                           frame.T_color_depth, has_depth=has_depth)  # fmt: skip
+
+    def _weighted(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, track: TrackResult,
+                  obs: Observation) -> tuple[Variances, Tensor | None]:  # fmt: skip
+        """The features' variances (eqs. 11-14; a pixel-only feature's 3D variance left out), and their cues (B, N, C)
+        where the weighting or an observer of the step asks for them (``needs_cues = True``), else None."""
+        valid_xyz = obs.valid_xyz
+        cues = frame_cues(s, cur, track, obs.points_d, valid_xyz) if _cues_asked(self) else None
+        var = self.weighting(WeightingInputs(track.d_tim, obs.points_d[..., 2], obs.points_d, valid_xyz,
+                                             frame.K_depth[:, 0, 0], cues=cues))  # fmt: skip
+        return pixel_only_variances(var, obs.valid, valid_xyz), cues
 
     @staticmethod
     def _predicted_pixels(s: TrackerState, frame: FrameBatch, dt: Tensor) -> Tensor:
@@ -170,75 +177,57 @@ class Tracker:
         ok = (points_c[..., 2] > 1e-3) & torch.isfinite(pix).all(-1) & s.valid
         return torch.where(ok[..., None], pix.to(s.pixels.dtype), s.pixels)
 
-    @staticmethod
-    def _cues(s: TrackerState, cur: PreparedFrame, track: TrackResult, points_d: Tensor, valid: Tensor) -> Tensor:
-        """(B, N, C) cues of the tracked features (:data:`torchtrack.filter.cues.CUE_NAMES`), zeros where not valid."""
-        H, W = cur.gray.shape[-2:]
-        centroid = masked_mean(points_d, valid.to(points_d.dtype))
-        sim = sample_depth(cur.sim.si, track.points) if cur.sim is not None else torch.full_like(track.d_tim, 0.5)
-        cues = stack_cues(
-            d_tim_int=track.d_tim_int, d_tim_sim=track.d_tim_sim, sim_won=track.winner == 1,
-            lk_residual=track.residual, depth=points_d[..., 2],
-            centroid_dist=torch.linalg.vector_norm(points_d - centroid[:, None], dim=-1),
-            cornerness_int=s.cornerness[..., 0], cornerness_sim=s.cornerness[..., 1],
-            sim_value=sim,  # nearest pixel of the SI map: masked (planar, no depth) pixels carry its fill value
-            track_age=s.age + 1,
-            prev_reproj=torch.where(s.age > 0, s.residuals, 0.0),  # a new feature has no previous frame
-            u_norm=track.points[..., 0] / W, v_norm=track.points[..., 1] / H, fb_error=track.d_tim,
-            **window_cues(cur.depth, track.points, s.prev.gray, s.pixels),
-        )  # fmt: skip
-        return torch.where(valid[..., None], cues, 0.0)
-
-    def _advanced(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, pixels: Tensor, valid: Tensor,
-                  valid_xyz: Tensor, T_cam_obj: Tensor, points_d: Tensor, var: Variances) -> TrackerState:  # fmt: skip
-        """The state after this frame's update: the new pose (ended sequences keep theirs) and tracks, one frame
-        older; features that do not fit the pose dropped (eq. 16, the outlier stage); with ``reselect.point_mean`` the
-        kept features' depth samples ``points_d`` (B, N, 3) (where ``valid_xyz``) fused into their model points'
+    def _advanced(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, obs: Observation, var: Variances,
+                  T_cam_obj: Tensor) -> TrackerState:  # fmt: skip
+        """The state after this frame's update to ``T_cam_obj`` (B, 4, 4): the new pose (ended sequences keep theirs)
+        and the observed tracks, one frame older; features that do not fit the pose dropped (eq. 16, the outlier
+        stage); with ``reselect.point_mean`` the kept features' measured 3D points fused into their model points'
         estimates."""
         T_cam_obj = torch.where(frame.active[:, None, None], T_cam_obj, s.T_cam_obj)
         velocity = se3_log(T_cam_obj @ T_inv(s.T_cam_obj)) / _dt(frame, s)[:, None]  # this frame's motion, per second
         velocity = torch.where(frame.active[:, None], velocity, s.velocity)
-        residuals = feature_residuals(frame.K, frame.T_color_depth, T_cam_obj, s.points_obj, pixels, valid)  # eq. (16)
-        s = replace(s, prev=cur, timestamp=frame.timestamp, pixels=pixels, valid=self.outliers(residuals, valid),
+        residuals = feature_residuals(frame.K, frame.T_color_depth, T_cam_obj, s.points_obj, obs.pixels, obs.valid)
+        s = replace(s, prev=cur, timestamp=frame.timestamp, pixels=obs.pixels, valid=self.outliers(residuals, obs.valid),
                     age=s.age + 1, residuals=residuals, T_cam_obj=T_cam_obj, velocity=velocity)  # fmt: skip
         if not self.reselect.estimates_points:
             return s
         est = PointEstimate(s.points_mean, s.points_info)
-        est = self.reselect.fused(est, T_cam_obj, points_d, var.var_xyz, s.valid & valid_xyz)
+        est = self.reselect.fused(est, T_cam_obj, obs.points_d, var.var_xyz, s.valid & obs.valid_xyz)
         return replace(s, points_mean=est.mean, points_info=est.info)
 
-    def _placed(self, s: TrackerState, frame: FrameBatch, reselect: Tensor) -> TrackerState:
+    def _placed(self, s: TrackerState, frame: FrameBatch, reselect: Tensor,
+                region: Callable[[], Tensor | None]) -> tuple[TrackerState, Tensor | None]:  # fmt: skip
         """``s`` with the model moved in the world (``T_world_obj``) so that the camera is where the dense map puts it
-        (:meth:`DenseMap.align`), in the sequences it is due for (a re-selection anchors the new model there); the
-        model's pose in the camera, hence the features and the filter, unchanged."""
+        (:meth:`DenseMap.align`, in the model's ``region()``), in the sequences it is due for (a re-selection anchors
+        the new model there); the model's pose in the camera, hence the features and the filter, unchanged. Returns
+        (that state, where the alignment applied (B,), None where it did not run)."""
         if self.dense is None:
-            return s
+            return s, None
         due = self.dense.due(reselect, frame.active)
         if not due.any():
-            return s
-        al = self.dense.align(frame.depth, frame.K_depth, s.T_world_depth, due, self._map_region(frame))
-        self._map_held = al.applied
+            return s, None
+        al = self.dense.align(frame.depth, frame.K_depth, s.T_world_depth, due, region())
         # only where applied: elsewhere a round trip through the camera would move the model by round-off
         placed = torch.where(al.applied[:, None, None], al.T_world_cam @ s.T_cam_obj, s.T_world_obj)
-        return replace(s, T_world_obj=placed)
+        return replace(s, T_world_obj=placed), al.applied
 
     def _map_region(self, frame: FrameBatch) -> Tensor | None:
         """(B, 1, H, W) bool the model's region (the object, or the scene) in the depth as the depth camera took it (its
         own grid: a separate depth camera's frames are not warped into the colour camera's, whose resampling errors
-        would enter the map): what the dense map holds (a moving object's background must not pull its pose). Computed
-        once per frame (the alignment and a keyframe's fusion share it); None where it is every pixel with depth."""
+        would enter the map): what the dense map holds (a moving object's background must not pull its pose). The step
+        computes it once per frame, on first use (the alignment and a keyframe's fusion share it); None where it is
+        every pixel with depth."""
         if getattr(self.reselect.region, "all_depth", False):  # a custom region callable: computed
             return None
-        if self._region is None:
-            self._region = self.reselect.region(frame.depth)
-        return self._region
+        return self.reselect.region(frame.depth)
 
     def _loss_check(self, frame: FrameBatch, cur: PreparedFrame, measure: Measure, res: StepResult,
-                    before: TrackerState) -> tuple[StepResult, Tensor]:  # fmt: skip
+                    before: TrackerState, held: Tensor | None) -> tuple[StepResult, Tensor]:  # fmt: skip
         """The relocaliser's loss check of this frame (``before``: the state the frame was tracked from) and its
         decision applied: the relocalised sequences take the current frame as a new model at the camera pose it found
-        (their features followed the wrong motion, so none carries over, and the motion estimate restarts at zero).
-        Returns ``res`` with their new pose, and which sequences' poses are trusted (B,)."""
+        (their features followed the wrong motion, so none carries over, and the motion estimate restarts at zero;
+        ``held``: where this frame's dense alignment placed the model). Returns ``res`` with their new pose, and which
+        sequences' poses are trusted (B,)."""
         if self.relocaliser is None:
             return res, frame.active
         n_prev = before.valid.sum(1) if before.started else None
@@ -247,7 +236,7 @@ class Tracker:
         if lost.any():
             s = self.state
             s = replace(s, valid=s.valid & ~lost[:, None], velocity=torch.where(lost[:, None], 0.0, s.velocity))
-            self.state, T_model = self._new_model(s, frame, cur, measure, lost, dec.T_world_depth.double())
+            self.state, T_model = self._new_model(s, frame, cur, measure, lost, dec.T_world_depth.double(), held=held)
             m3 = lost[:, None, None]
             model = T_model if res.model_T_cam_obj is None else torch.where(m3, T_model, res.model_T_cam_obj)
             res = replace(res, T_world_depth=torch.where(m3, self.state.T_world_depth, res.T_world_depth),
@@ -255,11 +244,11 @@ class Tracker:
         return replace(res, loss=dec.loss), frame.active & self.relocaliser.trusted(dec)
 
     # ---------------------------------------------------------------------------------------------- the model
-    def _reselected(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, measure: Measure,
-                    mask: Tensor) -> tuple[TrackerState, Tensor | None]:  # fmt: skip
-        """``s`` after the sequences in ``mask`` (B,) took a new model (:meth:`_new_model`), and the pose the back end
-        was reset to; ``s`` and None where none did."""
-        return self._new_model(s, frame, cur, measure, mask) if mask.any() else (s, None)
+    def _reselected(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, measure: Measure, mask: Tensor,
+                    held: Tensor | None) -> tuple[TrackerState, Tensor | None]:  # fmt: skip
+        """``s`` after the sequences in ``mask`` (B,) took a new model (:meth:`_new_model`; ``held``: where the dense
+        map placed it), and the pose the back end was reset to; ``s`` and None where none did."""
+        return self._new_model(s, frame, cur, measure, mask, held=held) if mask.any() else (s, None)
 
     def _start(self, frame: FrameBatch, cur: PreparedFrame, measure: Measure) -> StepResult:
         """First frame: every sequence takes it as its model; the world is the first camera."""
@@ -281,14 +270,16 @@ class Tracker:
         return _result(self.state, None, None, everyone, model_T_cam_obj=model_T_cam_obj)
 
     def _new_model(self, s: TrackerState, frame: FrameBatch, cur: PreparedFrame, measure: Measure, mask: Tensor,
-                   T_world_depth: Tensor | None = None) -> tuple[TrackerState, Tensor]:  # fmt: skip
+                   T_world_depth: Tensor | None = None, *,
+                   held: Tensor | None = None) -> tuple[TrackerState, Tensor]:  # fmt: skip
         """§III re-selection: the state ``s`` after the sequences in ``mask`` (B,) took the current frame as their
         model, anchored at the camera ``T_world_depth`` (B, 4, 4; default: the state's): the features it keeps
         (survivors, re-acquired landmarks, which may correct that camera), then new features (eq. 9) away from them.
-        The model frame is the camera moved to the features' centroid; the back end starts over there. Returns (the
-        new state, the pose (B, 4, 4) the back end was reset to, meaningful where ``mask``)."""
+        The model frame is the camera moved to the features' centroid; the back end starts over there. ``held`` (B,):
+        where this frame's dense alignment placed the model (no landmarks re-acquired there). Returns (the new state,
+        the pose (B, 4, 4) the back end was reset to, meaningful where ``mask``)."""
         T_world_depth = s.T_world_depth if T_world_depth is None else T_world_depth
-        kept, n_found, T_world_depth = self._anchors(s, cur, measure, mask, T_world_depth)
+        kept, n_found, T_world_depth = self._anchors(s, cur, measure, mask, T_world_depth, held)
         feats = self.reselect.select(cur.gray, cur.depth, frame.K, roi=self.reselect.roi(cur.depth), sim=cur.sim)
         pixels, cornerness = feats.pixels, torch.stack([feats.cornerness_int, feats.cornerness_sim], -1)
         points_d, has_depth = measure(pixels)  # eq. (6)
@@ -322,8 +313,8 @@ class Tracker:
         self.backend.reset(T_cam_obj, mask)
         return replace(s, residuals=residuals), T_cam_obj
 
-    def _anchors(self, s: TrackerState, cur: PreparedFrame, measure: Measure, mask: Tensor,
-                 T_world_depth: Tensor) -> tuple[Kept | None, Tensor | None, Tensor]:  # fmt: skip
+    def _anchors(self, s: TrackerState, cur: PreparedFrame, measure: Measure, mask: Tensor, T_world_depth: Tensor,
+                 held: Tensor | None) -> tuple[Kept | None, Tensor | None, Tensor]:  # fmt: skip
         """What a new model of the sequences in ``mask`` (B,) keeps before it selects new features, in the current
         camera ``T_world_depth`` (B, 4, 4): the survivors (``reselect.keep_survivors``; their model points moved into
         the camera by the current pose, so that the new model frame sees them where the old one did) and then the
@@ -343,8 +334,8 @@ class Tracker:
         if self.landmarks is None:
             return kept, None, T_world_depth
         world = transform_points(s.T_world_obj, s.points_obj.double())  # the kept features' prior in the re-fit
-        if self._map_held is not None:  # where the dense map placed the model, it already holds what was seen
-            mask = mask & ~self._map_held
+        if held is not None:  # where the dense map placed the model, it already holds what was seen
+            mask = mask & ~held
         acq = self.landmarks.reacquire(self.keyframes, self.flow, cur, measure, T_world_depth, s.pixels, keep, mask,
                                        tracked_world=world)  # fmt: skip
         T_world_depth = torch.where(mask[:, None, None], acq.T_world_depth, T_world_depth)
@@ -353,11 +344,11 @@ class Tracker:
         landmarks = Kept(acq.pixels, points, found, torch.zeros_like(found, dtype=torch.long), acq.cornerness)
         return kept.cat(landmarks), found.sum(1), T_world_depth
 
-    def _keyframe(self, frame: FrameBatch, cur: PreparedFrame, measure: Measure, due: Tensor,
-                  reselected: Tensor) -> None:  # fmt: skip
+    def _keyframe(self, frame: FrameBatch, cur: PreparedFrame, measure: Measure, due: Tensor, reselected: Tensor,
+                  region: Callable[[], Tensor | None]) -> None:  # fmt: skip
         """The current frame of the sequences in ``due`` (B,) becomes a keyframe at the camera pose of the state (where
-        ``reselected`` (B,) a model keyframe, with the new model's features); the landmarks (model keyframes) and the
-        relocaliser (every keyframe) attach their content to it."""
+        ``reselected`` (B,) a model keyframe, with the new model's features); the landmarks (model keyframes), the
+        relocaliser (every keyframe) and the dense map (the model's ``region()`` of its depth) attach their content."""
         if not due.any():
             return
         s = self.state
@@ -369,10 +360,27 @@ class Tracker:
         if self.relocaliser is not None:
             self.relocaliser.add(slot, cur, measure, s.T_world_depth)
         if self.dense is not None:
-            self.dense.add(frame.depth, frame.K_depth, s.T_world_depth, due, self._map_region(frame))
+            self.dense.add(frame.depth, frame.K_depth, s.T_world_depth, due, region())
 
 
 # ---------------------------------------------------------------------------------------------- helpers
+def _measure(frame: FrameBatch, cur: PreparedFrame) -> Measure:
+    """The frame's measurement of a pixel's 3D point (eq. 6); with a separate depth camera, along its rays."""
+    raw = None if is_registered(frame) else frame.depth
+    return Measure(cur.depth, frame.K, frame.T_color_depth, raw, frame.K_depth)
+
+
+def _cues_asked(tracker: Tracker) -> bool:
+    """Whether the tracker's weighting or one of its observers asks for the features' cues (``needs_cues``)."""
+    return any(getattr(x, "needs_cues", False) for x in (tracker.weighting, *tracker.observers))
+
+
+def _once(compute: Callable[[], Tensor | None]) -> Callable[[], Tensor | None]:
+    """``compute`` called on the first call only; later calls return its value."""
+    box = []
+    return lambda: box[0] if box else (box.append(compute()) or box[0])
+
+
 def _dt(frame: FrameBatch, s: TrackerState) -> Tensor:
     """(B,) float64 seconds since the previous frame (at least 1 ms: repeated time stamps)."""
     return (frame.timestamp - s.timestamp).double().clamp_min(1e-3)
