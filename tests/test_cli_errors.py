@@ -60,7 +60,7 @@ def test_a_key_of_another_option_is_found_beside_that_options_other_keys(tmp_pat
     [
         ("filter.iterations=0", "FusionEKF: iterations must be >= 1"),
         ("flow.mode=foo", "flow.mode must be one of combined, intensity, sim, got 'foo'"),
-        ("flow.lk_backend=cpp2", "flow.lk_backend must be one of auto, cpp, torch, got 'cpp2'"),
+        ("flow.policy=max_tim", "flow.policy must be one of min_tim, fallback, got 'max_tim'"),
         ("filter.gate=1.5", "FusionEKF: gate is a probability in (0, 1), got 1.5"),
         ("weighting=learned", None),
     ],
@@ -76,7 +76,7 @@ def test_no_suggestion_for_a_name_unlike_any():
     assert error == "Could not override 'tracker.zzzqqq': Key 'zzzqqq' not in 'EKFBackendConfig'"
 
 
-@pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error without CUDA, and this machine has CUDA")
 def test_cuda_without_cuda_is_refused_before_running():
     assert re.fullmatch(
         r"device=cuda: CUDA is not available \(.*\); use device=cpu", check_overrides("config", ["device=cuda"])

@@ -81,8 +81,6 @@ class FlowConfig:
     eps: float = 0.01  # px, convergence
     min_eig: float = 1.0e-4  # minimum eigenvalue of the 2x2 gradient matrix (normalised, as OpenCV)
     ic_iters: int = 3  # inverse-compositional iterations before Newton steps
-    backend: str = "torch"  # torch | opencv (cv2.calcOpticalFlowPyrLK, reference)
-    lk_backend: str = "auto"  # auto | cpp | torch: LK as the compiled operator (auto: where it builds) or pure torch
     policy: str = "fallback"  # improvement (paper: min_tim): the SIM tracker only where the intensity tracker failed
 
 
@@ -93,7 +91,6 @@ class FrontendConfig:
     _target_: str = "torchtrack.frontend.FrontEnd"
     use_sim: bool = True  # compute the SIM (SIM-assisted tracking, lambda < 1 selection)
     sim_kwargs: dict[str, Any] | None = None
-    sim_backend: str = "auto"  # auto | cpp | torch: the SIM as the compiled operator (auto: where it builds) or torch
     ahead: bool = True  # prepare the next frame (SIM, pyramids) in a thread while this one is tracked; same results
 
 
@@ -280,10 +277,10 @@ class LandmarkConfig:
 
 @dataclass
 class DenseMapConfig:
-    """:class:`torchtrack.pipeline.dense_map.DenseMap`: the keyframes' depth as a map, the model's world pose aligned to
+    """:class:`torchtrack.map.dense_map.DenseMap`: the keyframes' depth as a map, the model's world pose aligned to
     it (the tracker's ``dense``; none when ``enabled`` is false)."""
 
-    _target_: str = "torchtrack.pipeline.dense_map.DenseMap"
+    _target_: str = "torchtrack.map.dense_map.DenseMap"
     enabled: bool = True  # improvement (false = paper): the model placed on a dense map, not only chained
     voxel_size: float = 0.01  # m, the map's voxel edge (one point per occupied voxel)
     every: int = 1  # the camera aligned to the map every this many frames (and at every re-selection); 1: every frame
@@ -313,10 +310,10 @@ class RelocaliseConfig:
 
 @dataclass
 class MappingConfig:
-    """:class:`torchtrack.mapping.PanoramaMapper` (paper §IV): coloured voxel-grid map per sequence; off unless
+    """:class:`torchtrack.map.PanoramaMapper` (paper §IV): coloured voxel-grid map per sequence; off unless
     ``enabled`` (``mapping=panorama`` or ``mapping=tsdf``; read by :func:`torchtrack.factory.build_mapper`)."""
 
-    _target_: str = "torchtrack.mapping.PanoramaMapper"
+    _target_: str = "torchtrack.map.PanoramaMapper"
     enabled: bool = False
     voxel_size: float = 0.01  # m, one point per voxel
     every: int | None = None  # also fuse every k-th frame; null: the first and the model (key) frames only

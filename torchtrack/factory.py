@@ -127,7 +127,7 @@ def build_landmarks(cfg: DictConfig):
 
 
 def build_dense(cfg: DictConfig):
-    """The tracker's dense map (:class:`torchtrack.pipeline.dense_map.DenseMap`) from ``cfg.dense``, or None when
+    """The tracker's dense map (:class:`torchtrack.map.dense_map.DenseMap`) from ``cfg.dense``, or None when
     ``dense.enabled`` is false."""
     return _enabled(cfg.get("dense"))
 
@@ -148,7 +148,7 @@ def build_relocaliser(cfg: DictConfig):
 
 
 def build_mapper(cfg: DictConfig):
-    """The ``mapping`` node's :class:`torchtrack.mapping.PanoramaMapper`, or None when mapping is off."""
+    """The ``mapping`` node's :class:`torchtrack.map.PanoramaMapper`, or None when mapping is off."""
     node = cfg.get("mapping")
     if node is None or not node.enabled:
         return None

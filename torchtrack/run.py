@@ -218,7 +218,7 @@ def run_tracker(
     """Track B sequences in lockstep; write each one's outputs when it ends. Returns their metrics, one per sequence
     in order; a failed sequence's say ``"complete": False`` and ``"error"``. Raises OSError (one line) before
     tracking when an output folder is not writable. ``tracker``: an :class:`~torchtrack.stream.RGBDTracker` (its
-    device), or a built :class:`Tracker` (on the CPU). ``mapper`` (a :class:`torchtrack.mapping.PanoramaMapper` or
+    device), or a built :class:`Tracker` (on the CPU). ``mapper`` (a :class:`torchtrack.map.PanoramaMapper` or
     None) is fed every frame and writes each sequence's map when it ends."""
     stream = tracker if isinstance(tracker, RGBDTracker) else RGBDTracker(tracker=tracker)
     stream.reset()

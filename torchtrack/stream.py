@@ -141,14 +141,13 @@ class RGBDTracker:
         if depth_scale is not None and not depth_scale > 0:
             raise ValueError(f"depth_scale: depth units per metre must be positive, got {depth_scale}")
         self.depth_scale, self.fps = depth_scale, float(fps)
-        wants_ops = cfg is None or not cfg.flow.lk_backend == cfg.frontend.sim_backend == "torch"
-        if self.device.type == "cpu" and wants_ops:  # built before any frame is timed
-            from torchtrack.image import lk_op
+        if self.device.type == "cpu":  # built before any frame is timed
+            from torchtrack import ops
 
             if announce:
-                lk_op.warm_up()
+                ops.warm_up()
             else:
-                lk_op.available()
+                ops.available()
         self.reset()
 
     @classmethod
