@@ -270,30 +270,6 @@ def test_a_camera_that_comes_back_is_put_back_on_the_map():
     assert end_on < 0.7 * end_off and rms_on < 0.8 * rms_off, (end_on, end_off, rms_on, rms_off)
 
 
-def test_the_single_twist_exponential_is_the_se3_exponential():
-    """The alignment's one-twist exponential (the 4x4 twist matrix's matrix exponential) against the closed form
-    (:func:`se3_exp`, Rodrigues and the left Jacobian) from a tiny to a large rotation: equal within 1e-13."""
-    from torchtrack.map.dense_map import _exp
-
-    g = torch.Generator().manual_seed(0)
-    for scale in (1e-9, 1e-4, 0.05, 1.0, 3.0):
-        xi = torch.randn(6, generator=g, dtype=torch.float64) * scale
-        torch.testing.assert_close(_exp(xi), se3_exp(xi[None])[0], atol=1e-13, rtol=0)
-
-
-def test_the_numpy_rigid_inverse_is_T_inv():
-    """The alignment's per-sequence bookkeeping in numpy: its rigid inverse against :func:`T_inv` (the same formula:
-    equal within float round-off, 1e-15 at these magnitudes) and against the identity."""
-    from torchtrack.map.dense_map import _inv
-
-    g = torch.Generator().manual_seed(1)
-    for _ in range(5):
-        T = se3_exp((torch.randn(6, generator=g, dtype=torch.float64) * torch.tensor([2.0] * 3 + [1.0] * 3))[None])[0]
-        inv = torch.from_numpy(_inv(T.numpy()))
-        torch.testing.assert_close(inv, T_inv(T), atol=1e-15, rtol=0)
-        torch.testing.assert_close(inv @ T, torch.eye(4, dtype=torch.float64), atol=1e-15, rtol=0)
-
-
 def test_nan_depth_without_a_region_aligns_as_with_one(kernels):
     """The tracker passes no region where it is every pixel with depth (ObjectRegion.all_depth): a NaN in the depth
     must then count as no depth, as the region used to make it (on the torch path 0 x NaN would turn the whole fit into

@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from torchtrack import ops
-from torchtrack.geometry import backproject_depth, hat, transform_points
+from torchtrack.geometry import T_inv, backproject_depth, se3_exp, transform_points
 from torchtrack.map.depth_grid import MAX_STEP, grid, surface
 from torchtrack.map.voxel_grid import AXIS_BITS, Added, VoxelPointMap, spatial_hash
 
@@ -185,33 +185,32 @@ class DenseMap:
         if self.map is None:
             raise ValueError("DenseMap: call reset(B) before align")
         B = len(mask)
-        T_out = T_world_cam.double().cpu().numpy().copy()
+        T_in = T_world_cam.double().cpu()
+        T_cw = T_inv(T_in)
+        delta = torch.eye(4, dtype=torch.float64, device="cpu").repeat(B, 1, 1)  # the corrections, on the host
         applied, pairs = [False] * B, [0] * B
         if bool(mask.any()):
-            # Per sequence a handful of 4x4 and 6x6 products: in numpy, whose per-call cost is a fraction of torch's.
             d, Ks = grid(depth, K, self.stride, region, clean=False)  # the fit finds no surface where depth is not > 0
             for b in mask.nonzero().squeeze(1).tolist():
                 world = self._pool(b)
                 if world is None:
                     continue
-                T_cw = _inv(T_out[b])
-                fit = self.fit(world, d[b], Ks[b], torch.from_numpy(T_cw).to(world.device))
+                fit = self.fit(world, d[b], Ks[b], T_cw[b].to(world.device))
                 pairs[b] = fit.pairs
                 if fit.step == math.inf:  # too few pairs left: no correction
                     continue
-                delta = self._gated(fit)  # the correction, in the camera
-                cos = (np.trace(delta[:3, :3]) - 1.0) / 2.0
+                delta[b] = self._gated(fit)  # the correction, in the camera
+                cos = (float(delta[b, :3, :3].trace()) - 1.0) / 2.0
                 applied[b] = (
                     fit.pairs >= self.min_pairs
                     and fit.step < self.converged  # else a wrong basin, or a partial correction
-                    and float(np.linalg.norm(delta[:3, 3])) <= self.max_correction_m
+                    and float(delta[b, :3, 3].norm()) <= self.max_correction_m
                     and math.acos(max(-1.0, min(1.0, cos))) <= math.radians(self.max_correction_deg)
                 )
-                if applied[b]:
-                    T_out[b] = _inv(delta @ T_cw)
         dev = mask.device
-        return Alignment(torch.from_numpy(T_out).to(dev), torch.tensor(applied, dtype=torch.bool, device=dev),
-                         torch.tensor(pairs, dtype=torch.long, device=dev))  # fmt: skip
+        done = torch.tensor(applied, dtype=torch.bool, device="cpu")
+        T_out = torch.where(done[:, None, None], T_inv(delta @ T_cw), T_in) if any(applied) else T_in
+        return Alignment(T_out.to(dev), done.to(dev), torch.tensor(pairs, dtype=torch.long, device=dev))
 
     def _pool(self, b: int) -> Tensor | None:
         """Sequence b's map points an alignment draws from (M, 3) float64: about 8 ``max_points`` of its voxels, picked
@@ -318,12 +317,12 @@ class DenseMap:
             Jw = J * wgt
             step = -torch.linalg.solve(torch.addmm(prior, Jw, J.T), Jw @ r + prior @ xi)
             xi = xi + step
-            delta = _exp(step) @ delta  # left perturbation
+            delta = se3_exp(step[None])[0] @ delta  # left perturbation
             if float(step.abs().max()) < self.tolerance:
                 break
         return Fit(delta, xi, Jw @ J.T, n_pairs, float(step.abs().max()), k + 1)
 
-    def _gated(self, fit: Fit) -> np.ndarray:
+    def _gated(self, fit: Fit) -> Tensor:
         """The fit's correction (4, 4) float64, projected off every pose direction in which the data's information is
         below ``weak`` times the prior's."""
         # A direction in which the depth holds less than ``weak`` times the prior's information (half a surface, a
@@ -332,15 +331,15 @@ class DenseMap:
         # The 6x6 eigenproblem in numpy: on a matrix this small torch's per-call overhead (eigh, boolean indexing,
         # small tensors) is most of the cost, and this runs every frame.
         if not fit.weak:  # the operator's Cholesky test: the eigenproblem (~0.3 ms, caches cold) would find none
-            return fit.delta.cpu().numpy()
+            return fit.delta.cpu()
         rad = math.radians(self.prior_deg)
         sd = np.array([self.prior_m] * 3 + [rad] * 3)
         ratio, vec = np.linalg.eigh(fit.info.cpu().numpy() * sd[:, None] * sd[None, :])  # whitened: information ratios
         weak = vec[:, ratio < self.weak]
         if not weak.shape[1]:
-            return fit.delta.cpu().numpy()
+            return fit.delta.cpu()
         y = fit.xi.cpu().numpy() / sd
-        return _exp(torch.from_numpy(sd * (y - weak @ (weak.T @ y)))).numpy()
+        return se3_exp(torch.from_numpy(sd * (y - weak @ (weak.T @ y)))[None])[0]
 
 
 class _Pool(NamedTuple):
@@ -357,20 +356,3 @@ def _merge(old: tuple[Tensor, ...], new: tuple[Tensor, ...]) -> tuple[Tensor, ..
     equal length each (the torch reference of ``pool_update``'s merge)."""
     order = torch.argsort(torch.cat([old[0], new[0]]))
     return tuple(torch.cat([a, b])[order] for a, b in zip(old, new, strict=True))
-
-
-def _inv(T: np.ndarray) -> np.ndarray:
-    """The inverse of a rigid transform (4, 4) (:func:`~torchtrack.geometry.T_inv` in numpy)."""
-    out = np.eye(4)
-    out[:3, :3] = T[:3, :3].T
-    out[:3, 3] = -(T[:3, :3].T @ T[:3, 3])
-    return out
-
-
-def _exp(xi: Tensor) -> Tensor:
-    """The SE(3) exponential of one twist (6,) = (v, omega) as the matrix exponential of its 4x4 matrix: one call,
-    where :func:`~torchtrack.geometry.se3_exp` (batched, written for the filter's autograd) costs ~1 ms at B = 1."""
-    twist = torch.zeros(4, 4, dtype=xi.dtype, device=xi.device)
-    twist[:3, :3] = hat(xi[3:])
-    twist[:3, 3] = xi[:3]
-    return torch.linalg.matrix_exp(twist)
