@@ -75,7 +75,7 @@ def test_no_suggestion_for_a_name_unlike_any():
     assert error == "Could not override 'estimator.zzzqqq': Key 'zzzqqq' not in 'EKFBackendConfig'"
 
 
-@pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error without CUDA, and this machine has CUDA")
 def test_cuda_without_cuda_is_refused_before_running():
     assert re.fullmatch(
         r"device=cuda: CUDA is not available \(.*\); use device=cpu", check_overrides("config", ["device=cuda"])

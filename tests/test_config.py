@@ -41,9 +41,9 @@ from torchtrack.image.object_model import ObjectRegion, object_mask
 from torchtrack.image.select import select_features
 from torchtrack.learn.checkpoint import save_checkpoint
 from torchtrack.learn.model import LearnedWeighting
-from torchtrack.mapping import PanoramaMapper
+from torchtrack.map import PanoramaMapper
+from torchtrack.map.dense_map import DenseMap
 from torchtrack.pipeline import Tracker
-from torchtrack.pipeline.dense_map import DenseMap
 from torchtrack.pipeline.keyframes import KeyframeStore
 from torchtrack.pipeline.landmarks import LandmarkMap
 from torchtrack.pipeline.outliers import ResidualDrop

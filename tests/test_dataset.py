@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
+import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from PIL import Image
@@ -15,16 +14,15 @@ from torchtrack.learn.dataset import build_synthetic_set, synthetic_variants
 
 
 def tiny_config(tmp_path, photometric_seeds, *overrides: str):
-    os.environ["TORCHTRACK_CACHE"] = str(tmp_path / "cache")
-    try:
+    """The tiny training set's config, its cache in ``tmp_path`` (the user's TORCHTRACK_CACHE restored after)."""
+    with pytest.MonkeyPatch.context() as env:
+        env.setenv("TORCHTRACK_CACHE", str(tmp_path / "cache"))
         with initialize_config_dir(str(CONF_DIR), version_base="1.3"):
             cfg = compose(
                 "learn",
                 overrides=["dataset=synthetic_tiny", f"+dataset.photometric_seeds={photometric_seeds}", *overrides],
             )
         OmegaConf.resolve(cfg)
-    finally:
-        os.environ.pop("TORCHTRACK_CACHE")
     return cfg
 
 

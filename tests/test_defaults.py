@@ -30,8 +30,8 @@ PARTNERS: dict[type, tuple[tuple[str, dict[str, str]], ...]] = {
         ("torchtrack.image.flow.combined_track", {}),
         ("torchtrack.image.flow.prepare_frame", {}),
         ("torchtrack.image.flow.zero_frame", {}),
-        ("torchtrack.image.lk.pyramidal_lk", {"backend": "lk_backend"}),
-        ("torchtrack.image.lk.lk_track_flat", {"backend": "lk_backend"}),
+        ("torchtrack.image.lk.pyramidal_lk", {}),
+        ("torchtrack.image.lk.lk_track_flat", {}),
         ("torchtrack.frontend.FrontEnd", {}),  # its levels are the tracker's (the factory passes flow.levels)
     ),
     config.RegionConfig: (("torchtrack.image.object_model.object_mask", {}),),
@@ -104,11 +104,10 @@ def test_a_changed_default_is_caught(monkeypatch):
     """The check's own oracle: a schema whose default differs from a signature's is reported by name, through a
     renamed parameter too."""
     fields = [("_target_", str, "torchtrack.image.flow.CombinedTracker"), ("window", int, 15)]
-    changed = dataclasses.make_dataclass("Changed", [*fields, ("lk_backend", str, "torch")])
-    monkeypatch.setitem(PARTNERS, changed, (("torchtrack.image.lk.pyramidal_lk", {"backend": "lk_backend"}),))
+    changed = dataclasses.make_dataclass("Changed", [*fields, ("lk_iters", int, 10)])
+    monkeypatch.setitem(PARTNERS, changed, (("torchtrack.image.lk.pyramidal_lk", {"iters": "lk_iters"}),))
     assert differences(changed) == {
         "torchtrack.image.flow.CombinedTracker.window": (15, 21),
-        "torchtrack.image.flow.CombinedTracker.lk_backend": ("torch", "auto"),
         "torchtrack.image.lk.pyramidal_lk.window": (15, 21),
-        "torchtrack.image.lk.pyramidal_lk.backend": ("torch", "auto"),
+        "torchtrack.image.lk.pyramidal_lk.iters": (10, 30),
     }

@@ -1,4 +1,4 @@
-"""The dense map (torchtrack/pipeline/dense_map.py): the keyframes' depth per voxel and a camera aligned to it.
+"""The dense map (torchtrack/map/dense_map.py): the keyframes' depth per voxel and a camera aligned to it.
 
 Oracles: the normals of a plane (exact); a rendered room seen from a keyframe and from a camera 4 cm / 2 degrees away,
 the second camera given 2.4 cm / 0.9 degrees off its true pose: the alignment must return the true pose (the render's
@@ -24,9 +24,8 @@ from torchtrack.data.synthetic.render import render_frame
 from torchtrack.data.synthetic.scene import default_scene
 from torchtrack.factory import build_tracker
 from torchtrack.geometry import T_inv, rotation_angle, se3_exp
-from torchtrack.image import lk_op
-from torchtrack.pipeline.dense_map import DenseMap
-from torchtrack.pipeline.depth_grid import grid, surface
+from torchtrack.map.dense_map import DenseMap
+from torchtrack.map.depth_grid import grid, surface
 
 ONE = torch.ones(1, dtype=torch.bool)
 
@@ -96,17 +95,14 @@ def test_the_keyframe_from_its_own_pose_changes_nothing(room):
     assert bool(al.applied[0]) and mm < 1e-9 and deg < 1e-9
 
 
-@pytest.mark.parametrize("backend", ["cpp", "torch"])
-def test_the_early_stop_leaves_what_the_remaining_iterations_would_move(room, backend):
+def test_the_early_stop_leaves_what_the_remaining_iterations_would_move(room, kernels):
     """Gauss-Newton stopped at a step below ``tolerance`` (1e-4 m / rad) against all 12 iterations run
     (``tolerance=0``): the two cameras within 0.05 mm / 0.005 degrees (the steps shrink geometrically, so what the
     remaining ones move is a fraction of the last), and the early stop does stop early (fewer Gauss-Newton steps)."""
-    if backend == "cpp" and not lk_op.available():
-        pytest.skip("the compiled operators do not build here")
     steps, cams = {}, {}
     for tol in (1e-4, 0.0):
         dense = keyframe_map(room)
-        dense.tolerance, dense.backend = tol, backend
+        dense.tolerance = tol
         al = dense.align(room["d_cur"], room["K"], room["drifted"][None], ONE)
         assert bool(al.applied[0])
         cams[tol] = al.T_world_cam[0]
@@ -159,19 +155,16 @@ def test_what_the_map_cannot_correct_is_left_alone(room):
     assert after[0] < 300 + 7 and after[1] < 1.0, after
 
 
-@pytest.mark.parametrize("backend", ["cpp", "torch"])
-def test_the_pool_kept_up_to_date_is_the_pool_picked_anew(backend):
+def test_the_pool_kept_up_to_date_is_the_pool_picked_anew(kernels):
     """Keyframes of a rendered room added to two sequences' maps one by one (each its own path), the pool read after
     each: the pool kept up to date by each add (its voxels' means recomputed, the new voxels merged) equals the one
     picked from the whole map, point for point and in the same order, both while the thinning (``every``) stays and
     when it changes (picked anew); by the compiled ``pool_update`` and by its torch reference."""
-    if backend == "cpp" and not lk_op.available():
-        pytest.skip("the compiled operators do not build here")
     cfg = SyntheticConfig(width=160, height=120, mode="scene", noise="none", seed=1)
     scene = default_scene(cfg)
     T0 = look_at(SCENE_EYE, SCENE_TARGET)
     K = scene.K.float()[None].expand(2, -1, -1)
-    dense = DenseMap(max_points=300, min_pairs=50, backend=backend)  # every: 1 (no hash) to 5 over twelve keyframes
+    dense = DenseMap(max_points=300, min_pairs=50)  # every: 1 (no hash) to 5 over twelve keyframes
     dense.reset(2)
     merged, everys = 0, set()
     for k in range(12):
@@ -277,43 +270,16 @@ def test_a_camera_that_comes_back_is_put_back_on_the_map():
     assert end_on < 0.7 * end_off and rms_on < 0.8 * rms_off, (end_on, end_off, rms_on, rms_off)
 
 
-def test_the_single_twist_exponential_is_the_se3_exponential():
-    """The alignment's one-twist exponential (the 4x4 twist matrix's matrix exponential) against the closed form
-    (:func:`se3_exp`, Rodrigues and the left Jacobian) from a tiny to a large rotation: equal within 1e-13."""
-    from torchtrack.pipeline.dense_map import _exp
-
-    g = torch.Generator().manual_seed(0)
-    for scale in (1e-9, 1e-4, 0.05, 1.0, 3.0):
-        xi = torch.randn(6, generator=g, dtype=torch.float64) * scale
-        torch.testing.assert_close(_exp(xi), se3_exp(xi[None])[0], atol=1e-13, rtol=0)
-
-
-def test_the_numpy_rigid_inverse_is_T_inv():
-    """The alignment's per-sequence bookkeeping in numpy: its rigid inverse against :func:`T_inv` (the same formula:
-    equal within float round-off, 1e-15 at these magnitudes) and against the identity."""
-    from torchtrack.pipeline.dense_map import _inv
-
-    g = torch.Generator().manual_seed(1)
-    for _ in range(5):
-        T = se3_exp((torch.randn(6, generator=g, dtype=torch.float64) * torch.tensor([2.0] * 3 + [1.0] * 3))[None])[0]
-        inv = torch.from_numpy(_inv(T.numpy()))
-        torch.testing.assert_close(inv, T_inv(T), atol=1e-15, rtol=0)
-        torch.testing.assert_close(inv @ T, torch.eye(4, dtype=torch.float64), atol=1e-15, rtol=0)
-
-
-@pytest.mark.parametrize("backend", ["cpp", "torch"])
-def test_nan_depth_without_a_region_aligns_as_with_one(backend):
+def test_nan_depth_without_a_region_aligns_as_with_one(kernels):
     """The tracker passes no region where it is every pixel with depth (ObjectRegion.all_depth): a NaN in the depth
     must then count as no depth, as the region used to make it (on the torch path 0 x NaN would turn the whole fit into
     NaN). A smooth surface fused at the identity, a 10 x 10 NaN patch, the camera 5 mm off: the same alignment with
     and without the region, and applied. No sequence to align (B = 0): an empty bool ``applied``."""
-    if backend == "cpp" and not lk_op.available():
-        pytest.skip("the compiled operators do not build here")
     h, w = 60, 80
     K = torch.tensor([[50.0, 0, w / 2], [0, 50.0, h / 2], [0, 0, 1]], dtype=torch.float64)[None]
     yy, xx = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
     depth = (1.0 + 0.2 * torch.sin(xx / 7.0) + 0.1 * torch.cos(yy / 5.0)).float()[None, None]
-    dense = DenseMap(backend=backend, min_pairs=50, max_points=2000, stride=1)
+    dense = DenseMap(min_pairs=50, max_points=2000, stride=1)
     dense.reset(1)
     dense.add(depth, K, torch.eye(4, dtype=torch.float64)[None], torch.tensor([True]))
     holed = depth.clone()

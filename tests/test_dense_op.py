@@ -16,17 +16,18 @@ from pathlib import Path
 
 import pytest
 import torch
+from reference import on_reference, requires_ops
 from test_dense_map import keyframe_map, pose_error, room  # noqa: F401 (room: the fixture)
 from tolerances import DENSE_OP_INFO, DENSE_OP_PAIRS, DENSE_OP_POSE, DEPTH_POINTS
 
+from torchtrack import ops
 from torchtrack.data import TumSequence, iterate_batched
 from torchtrack.geometry import T_inv, se3_exp
-from torchtrack.image import lk_op
-from torchtrack.pipeline.dense_map import DenseMap
-from torchtrack.pipeline.depth_grid import grid
+from torchtrack.map.dense_map import DenseMap
+from torchtrack.map.depth_grid import grid
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-pytestmark = pytest.mark.skipif(not lk_op.available(), reason="the compiled operators do not build here")
+pytestmark = requires_ops
 
 # starts around the room's current camera: its true pose, the drifted one of test_dense_map, 10 cm and 3 degrees off
 STARTS = [[0.0] * 6, None, [0.1, 0, 0, 0, 0, 0], [0, 0, 0.1, 0, 0, 0], [0, 0, 0, 0.05, 0, 0], [0, 0.02, 0, 0, 0, 0.01]]
@@ -35,10 +36,7 @@ STARTS = [[0.0] * 6, None, [0.1, 0, 0, 0, 0, 0], [0, 0, 0.1, 0, 0, 0], [0, 0, 0,
 def assert_agree(dense: DenseMap, world, depth, K, T_cw) -> tuple:
     """The operator's and the reference's fits from T_cw on the depth image (1, 1, H, W) agree; returns both."""
     depth, K = (x[0] for x in grid(depth, K, dense.stride))
-    dense.backend = "cpp"
-    op = dense.fit(world, depth, K, T_cw)
-    dense.backend = "torch"
-    ref = dense.fit(world, depth, K, T_cw)
+    op, ref = dense.fit(world, depth, K, T_cw), dense._fit_torch(world, depth, K, T_cw)
     assert abs(op.pairs - ref.pairs) <= DENSE_OP_PAIRS * ref.pairs and op.steps == ref.steps, (op, ref)
     assert op.step < dense.tolerance or math.isclose(op.step, ref.step, rel_tol=1e-3)
     torch.testing.assert_close(op.delta, ref.delta, atol=DENSE_OP_POSE, rtol=0)
@@ -70,7 +68,7 @@ def test_the_gates_shortcut_agrees_with_the_eigenvalues(room):  # noqa: F811
         fit = dense.fit(world, depth, K, T_cw)
         assert fit.weak == (factor > 1), (factor, lowest)
         gated = dense._gated(fit._replace(weak=True))  # the eigenproblem's answer
-        assert (factor > 1) or torch.equal(torch.from_numpy(gated), fit.delta)
+        assert (factor > 1) or torch.equal(gated, fit.delta)
 
 
 @pytest.mark.parametrize("iterations", [1, 12])
@@ -94,9 +92,8 @@ def test_too_few_pairs_give_no_correction(room):  # noqa: F811
     """A camera turned away from the map (no point in view): both fits report inf and the identity."""
     dense = keyframe_map(room)
     T = room["T_cur"] @ se3_exp(torch.tensor([0, 0, 0, 0, math.pi, 0], dtype=torch.float64))
-    for backend in ("cpp", "torch"):
-        dense.backend = backend
-        fit = dense.fit(dense._pool(0), *(x[0] for x in grid(room["d_cur"], room["K"], dense.stride)), T_inv(T))
+    for fit_with in (dense.fit, dense._fit_torch):
+        fit = fit_with(dense._pool(0), *(x[0] for x in grid(room["d_cur"], room["K"], dense.stride)), T_inv(T))
         assert fit.step == math.inf and fit.pairs < 6 and fit.steps == 0
         assert torch.equal(fit.delta, torch.eye(4, dtype=torch.float64)) and not bool(fit.info.any())
 
@@ -124,20 +121,13 @@ def test_fallback_opcheck_and_bad_inputs(room, monkeypatch):  # noqa: F811
     dense = keyframe_map(room)
     (depth,), (K,) = grid(room["d_cur"], room["K"], dense.stride)
     world, T_cw = dense._pool(0), T_inv(room["drifted"])
-    dense.backend = "torch"
-    ref = dense.fit(world, depth, K, T_cw)
+    ref = dense._fit_torch(world, depth, K, T_cw)
     monkeypatch.setenv("TORCHTRACK_NO_BUILD", "1")
-    monkeypatch.setattr(lk_op, "_state", {})
-    dense.backend = "auto"
+    monkeypatch.setattr(ops, "_state", {})
     with pytest.warns(RuntimeWarning, match="unavailable"):
         out = dense.fit(world, depth, K, T_cw)
     assert torch.equal(out.delta, ref.delta) and out.pairs == ref.pairs
-    dense.backend = "cpp"
-    with pytest.raises(RuntimeError, match="could not be built"):
-        dense.fit(world, depth, K, T_cw)
     monkeypatch.undo()
-    with pytest.raises(ValueError, match="backend"):
-        DenseMap(backend="gpu")
     args = (world[:2000].contiguous(), depth.float().contiguous(), K.double(), T_cw.contiguous(), 500, 3, 4.0,
             0.05, 0.01, 0.005, 0.01, 0.0175, 1e-4, 0.05, 3.0)  # fmt: skip
     torch.library.opcheck(torch.ops.torchtrack.dense_fit.default, args)
@@ -190,17 +180,18 @@ def test_a_keyframes_points_are_the_references(room):  # noqa: F811
             torch.ops.torchtrack.depth_points(*bad)
 
 
-def test_the_map_is_the_same_on_both_backends(room):  # noqa: F811
+def test_the_map_is_the_same_through_the_operators_and_the_references(room):  # noqa: F811
     """DenseMap.add through the operator and through the reference, the depth an expanded (non-contiguous) batch with a
     region on the second sequence: the same voxels, their means within DEPTH_POINTS."""
     depth, K, T = room["d_kf"].expand(2, -1, -1, -1), room["K"].expand(2, -1, -1), room["T_kf"].expand(2, 4, 4)
     region = torch.ones(2, *depth.shape[1:], dtype=torch.bool)
     region[1, :, :, : depth.shape[-1] // 2] = False
     maps = []
-    for backend in ("cpp", "torch"):
-        dense = DenseMap(backend=backend)
+    for reference in (False, True):
+        dense = DenseMap()
         dense.reset(2)
-        dense.add(depth, K, T, torch.tensor([True, True]), region)
+        args = (depth, K, T, torch.tensor([True, True]), region)
+        on_reference(dense.add, *args) if reference else dense.add(*args)
         maps.append([dense.map.points(b) for b in range(2)])
     for cpp, ref in zip(*maps, strict=True):
         assert torch.equal(cpp.count, ref.count) and len(cpp.count) > 1000

@@ -19,8 +19,8 @@ from torchtrack.data.synthetic.motion import look_at
 from torchtrack.data.synthetic.render import render_frame
 from torchtrack.data.synthetic.scene import Primitive, frame_pose, make_scene, pose, random_texture
 from torchtrack.geometry import T_inv, make_T, project, so3_exp, transform_points
-from torchtrack.mapping import PanoramaMapper, VoxelPointMap
-from torchtrack.mapping.panorama import render_views
+from torchtrack.map import PanoramaMapper, VoxelPointMap
+from torchtrack.map.panorama import render_views
 from torchtrack.metrics import ate, reprojection_error, rpe, trajectory_metrics
 
 

@@ -15,12 +15,13 @@ import time
 
 import pytest
 from hydra import compose, initialize_config_dir
+from reference import requires_ops
 
+from torchtrack import ops
 from torchtrack.config import CONF_DIR
 from torchtrack.data import TumSequence
 from torchtrack.data.synthetic import SyntheticConfig, display_name
 from torchtrack.factory import build_sequences, build_tracker, warm_up
-from torchtrack.image import lk_op
 from torchtrack.run import run_tracker
 
 pytestmark = pytest.mark.slow  # the demo and the operators' build announcement, end to end
@@ -100,21 +101,22 @@ def _config(tmp_path):
 BUILD_S = 3.0  # a stand-in first build: long next to the ~1 s the 6 tiny frames take
 
 
-@pytest.mark.skipif(not lk_op.available(), reason="the compiled operators do not build here")
+@requires_ops
 def test_a_first_build_is_announced_before_the_bar_and_not_timed(tmp_path, capsys, monkeypatch):
     """A first build (stood in for by a sleep: the real one is loaded) runs when the tracker is made, says so on one
     line before the progress bar, and is not in fps: 6 frames at the reported fps take less than the build."""
-    monkeypatch.setattr(lk_op, "_state", {"fake": True})  # not loaded yet, as in a fresh process
-    monkeypatch.setattr(lk_op, "_finished", lambda folder, library: False)
-    monkeypatch.setattr(lk_op, "_build", lambda: time.sleep(BUILD_S) or BUILD_S)
+    monkeypatch.setattr(ops, "_state", {})  # not loaded yet, as in a fresh process
+    monkeypatch.setattr(ops, "loaded", lambda: False)
+    monkeypatch.setattr(ops, "_finished", lambda folder, library: False)
+    monkeypatch.setattr(ops, "_load", lambda: time.sleep(BUILD_S) or BUILD_S)
     cfg = _config(tmp_path)
     sequences = build_sequences(cfg.data)
     capsys.readouterr()
     tracker = build_tracker(cfg)
-    warm_up(cfg, "cpu")  # as the command line does
+    warm_up("cpu")  # as the command line does
     (metrics,) = run_tracker(tracker, sequences, tmp_path / "out", plots=False)
     err = capsys.readouterr().err
-    line = "torchtrack: building the compiled LK, SIM and alignment operators (first run only)... done in 3 s\n"
+    line = "torchtrack: building the compiled LK, SIM and dense-map operators (first run only)... done in 3 s\n"
     assert err.startswith(line) and err.count("building") == 1 and "tracking:" in err[len(line) :], err
     assert metrics["frames"] == 6 and metrics["frames"] / metrics["fps"] < BUILD_S
 

@@ -1,7 +1,7 @@
 """The combined intensity + SIM tracker (paper §III-C, eq. (10)).
 
 Oracles: images where one channel is blank (uniform) and the other textured, so that the tracker must
-pick the textured one, with exact ground truth from an analytic texture; the OpenCV backend on real
+pick the textured one, with exact ground truth from an analytic texture; OpenCV's LK (tests/opencv_flow.py) on real
 frames; batched equals looped (within tests/tolerances.py); the class equals the function.
 """
 
@@ -13,12 +13,14 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from opencv_flow import combined_track_opencv
 from test_lk import texture
 from tolerances import LK_PX, TIM_PX
 
 from torchtrack.image.flow import CombinedTracker, FlowFrame, TrackResult, combined_track, prepare_frame
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+TRACKERS = {"torchtrack": combined_track, "opencv": combined_track_opencv}  # the same steps III-IV on either LK
 H, W = 240, 320
 
 
@@ -66,8 +68,8 @@ def test_bad_input_raises():
         combined_track(f0, f1, pts[0])
     with pytest.raises(ValueError, match="valid must be"):
         combined_track(f0, f1, pts, torch.ones(1, 3, dtype=torch.bool))
-    with pytest.raises(ValueError, match="backend"):
-        combined_track(f0, f1, pts, backend="cuda")
+    with pytest.raises(ValueError, match="policy"):
+        combined_track(f0, f1, pts, policy="max_tim")
     with pytest.raises(ValueError, match="window"):
         combined_track(f0, f1, pts, window=41)
     with pytest.raises(ValueError, match="gray must be"):
@@ -77,11 +79,11 @@ def test_bad_input_raises():
 
 
 # ---------------------------------------------------------------------------------------------- steps I-IV
-@pytest.mark.parametrize("backend", ["torch", "opencv"])
-def test_picks_the_tracker_with_smaller_tim(backend):
+@pytest.mark.parametrize("lk", ["torchtrack", "opencv"])
+def test_picks_the_tracker_with_smaller_tim(lk):
     """Left half: intensity textured, SIM blank (degenerate): intensity must win. Right half: the reverse."""
     f0, f1, pts, true = split_scene((1.6, -0.8))
-    res = combined_track(f0, f1, pts, backend=backend)
+    res = TRACKERS[lk](f0, f1, pts)
     assert (res.winner[0, :40] == 0).all() and (res.winner[0, 40:] == 1).all()
     assert res.status_int[0, :40].all() and not res.status_int[0, 40:].any()
     assert res.status_sim[0, 40:].all() and not res.status_sim[0, :40].any()
@@ -108,14 +110,15 @@ def test_winner_is_argmin_where_both_track():
     torch.testing.assert_close(res.points[res.valid], chosen[res.valid])
 
 
-@pytest.mark.parametrize("backend", ["torch", "opencv"])
-def test_fallback_policy_uses_sim_only_where_intensity_fails(backend):
+@pytest.mark.parametrize("lk", ["torchtrack", "opencv"])
+def test_fallback_policy_uses_sim_only_where_intensity_fails(lk):
     """The intensity result wherever it passes the TIM test, the SIM result only where it does not; the SIM
     tracker is not even run on the others (d_TIM_SIM = inf). Left half: intensity textured; right: SIM."""
     f0, f1, pts, _ = split_scene((0.9, 0.3))
-    res = combined_track(f0, f1, pts, policy="fallback", backend=backend)
-    only_int = combined_track(f0, f1, pts, mode="intensity", backend=backend)
-    only_sim = combined_track(f0, f1, pts, mode="sim", backend=backend)
+    track = TRACKERS[lk]
+    res = track(f0, f1, pts, policy="fallback")
+    only_int = track(f0, f1, pts, mode="intensity")
+    only_sim = track(f0, f1, pts, mode="sim")
     int_ok = only_int.valid
     assert int_ok[0, :40].all() and not int_ok[0, 40:].any()
     assert (res.winner[int_ok] == 0).all() and torch.isinf(res.d_tim_sim[int_ok]).all()
@@ -181,7 +184,7 @@ def test_batched_equals_looped_and_class_equals_function():
 
 # ---------------------------------------------------------------------------------------------- real data
 @pytest.mark.skipif(not (DATA / "sun3d_fragment1").exists(), reason="needs ../shared/data/sun3d_fragment1")
-def test_torch_matches_opencv_backend_on_real_frames():
+def test_torch_matches_opencv_on_real_frames():
     """Intensity from colour, SIM from depth (shape_index), 300 Shi-Tomasi corners, frames 0 -> 1."""
     from torchtrack.image.shape_index import compute_sim
 
@@ -199,7 +202,7 @@ def test_torch_matches_opencv_backend_on_real_frames():
         frames.append((g, prepare_frame(torch.from_numpy(g).float()[None, None] / 255.0, sim)))
     pts = torch.from_numpy(cv2.goodFeaturesToTrack(frames[0][0], 300, 0.001, 5).reshape(1, -1, 2))
     ours = combined_track(frames[0][1], frames[1][1], pts)
-    ref = combined_track(frames[0][1], frames[1][1], pts, backend="opencv")
+    ref = combined_track_opencv(frames[0][1], frames[1][1], pts)
     # Intensity: nearly the same accepted set. SIM (low texture, 8-bit steps): ours require convergence and give
     # up on steps that stop shrinking, OpenCV accepts whatever it has after 30 iterations: ours is a subset.
     assert (ours.status_int & ref.status_int).sum() >= 0.95 * ref.status_int.sum()
@@ -210,23 +213,23 @@ def test_torch_matches_opencv_backend_on_real_frames():
     assert (ours.points - ref.points).norm(dim=-1)[both].median() <= 0.1
 
 
-@pytest.mark.parametrize("backend", ["torch", "opencv"])
-def test_init_starts_the_forward_pass_there(backend):
+@pytest.mark.parametrize("lk", ["torchtrack", "opencv"])
+def test_init_starts_the_forward_pass_there(lk):
     """init = points is the default exactly; a shift beyond the pyramid's reach (60 px with 2 levels: ~3x the
     coarsest level's window radius) is tracked only when init starts the forward pass near the answer, and d_TIM
     is still measured against the original points (small when tracked)."""
     t = (60.0, 0.0)
     f0, f1, pts, true = split_scene(t)
-    kw = dict(backend=backend, mode="intensity", levels=2, window=15)
-    torch.testing.assert_close(combined_track(f0, f1, pts, **kw), combined_track(f0, f1, pts, init=pts, **kw))
+    track, kw = TRACKERS[lk], dict(mode="intensity", levels=2, window=15)
+    torch.testing.assert_close(track(f0, f1, pts, **kw), track(f0, f1, pts, init=pts, **kw))
     inside = torch.from_numpy((true[:, 0] < W - 12) & (true[:, 0] > 12))[None] & (pts[..., 0] < W / 2 - 40)
-    lost = combined_track(f0, f1, pts, **kw)
+    lost = track(f0, f1, pts, **kw)
     err0 = np.linalg.norm(lost.points[0].numpy() - true, axis=1)[inside[0].numpy()]
     assert np.median(err0) > 5.0  # without a prior the shift is out of reach
     guess = pts + torch.tensor([t[0] - 2.5, 1.5])
-    res = combined_track(f0, f1, pts, init=guess, **kw)
+    res = track(f0, f1, pts, init=guess, **kw)
     err = np.linalg.norm(res.points[0].numpy() - true, axis=1)[inside[0].numpy()]
     assert res.valid[inside].float().mean() > 0.8 and np.median(err) < 0.05
     assert res.d_tim[res.valid & inside].median() < 0.01
     with pytest.raises(ValueError, match="init must be"):
-        combined_track(f0, f1, pts, init=pts[:, :3])
+        combined_track(f0, f1, pts, init=pts[:, :3], **kw)

@@ -144,7 +144,7 @@ def test_bad_input_raises_one_clear_error(render):
         tracker.track(np.stack([color, color]), np.stack([depth, depth]))
 
 
-@pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is available here")
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error without CUDA, and this machine has CUDA")
 def test_cuda_without_cuda_is_a_clear_error(render):
     K, _ = camera(render)
     with pytest.raises(ValueError, match="device=cuda: CUDA is not available.*use device=cpu"):

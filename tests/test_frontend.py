@@ -106,22 +106,16 @@ def test_prepared_ahead_errors_arrive_at_their_frame():
     assert len(seen) == 3 and not any(t.name == "torchtrack-frontend" for t in threading.enumerate())
 
 
-@pytest.mark.parametrize("backend", ["torch", "cpp"])
-def test_sim_backend_is_the_one_compute_sim_runs(backend):
-    """``frontend.sim_backend`` reaches compute_sim: the front end's SIM is exactly that backend's on the same depth
-    (the same computation run twice), and the two backends differ somewhere (else the switch could not be seen)."""
+def test_the_front_ends_sim_is_compute_sims(kernels):
+    """The front end's SIM is :func:`compute_sim`'s on the same depth with the same arguments (the same computation
+    run twice: exactly), on the compiled operator and on its reference."""
     from test_shape_index import K1, SURFACES, as_depth
 
-    from torchtrack.image import lk_op
     from torchtrack.image.shape_index import compute_sim
 
-    if backend == "cpp" and not lk_op.available():
-        pytest.skip("the compiled operators do not build here")
     (frame,) = _frames(1, 480, 640)
     frame.depth = as_depth(SURFACES["sphere (convex cap)"][0]()).expand(2, 1, 480, 640)
     frame.K = frame.K_depth = K1().expand(2, 3, 3)
-    sim = FrontEnd(levels=2, sim_backend=backend).prepare(frame).sim
-    assert sim.valid.sum() > 10000 and torch.equal(sim.si, compute_sim(frame.depth, frame.K, backend).si)
-    if lk_op.available():
-        other = compute_sim(frame.depth, frame.K, "cpp" if backend == "torch" else "torch")
-        assert not torch.equal(sim.si, other.si)
+    kw = dict(smooth_sigma=3.0)
+    sim = FrontEnd(levels=2, sim_kwargs=kw).prepare(frame).sim
+    assert sim.valid.sum() > 10000 and torch.equal(sim.si, compute_sim(frame.depth, frame.K, **kw).si)

@@ -18,13 +18,13 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
 import torch
 
 import torchtrack
 
 ROOT = Path(torchtrack.__file__).parent
 KERNELS = (
+    "torchtrack.ops",
     "torchtrack.geometry",
     "torchtrack.image",
     "torchtrack.filter",
@@ -33,7 +33,7 @@ KERNELS = (
 )
 APP = ("hydra", "omegaconf", "torchtrack.config", "torchtrack.data")
 # The stages above the kernels (the tracker's pipeline, the map) read the data types but not the app layer either.
-STAGES = ("torchtrack.pipeline", "torchtrack.mapping")
+STAGES = ("torchtrack.pipeline", "torchtrack.map")
 STAGE_APP = ("hydra", "omegaconf", "torchtrack.config")
 
 
@@ -81,7 +81,7 @@ def test_kernels_import_no_application_layer():
 def test_stages_import_no_configs():
     """The pipeline's stages and the map take plain keyword arguments: Hydra and the schemas stay in the app layer."""
     modules = kernel_modules(STAGES)
-    assert "torchtrack.pipeline.tracker" in modules and "torchtrack.mapping.panorama" in modules
+    assert "torchtrack.pipeline.tracker" in modules and "torchtrack.map.panorama" in modules
     assert loaded(modules, STAGE_APP) == {}
 
 
@@ -140,10 +140,9 @@ def _on_cpu(*results) -> None:
             assert not isinstance(x, torch.Tensor) or x.device.type == "cpu", x.device
 
 
-@pytest.mark.parametrize("lk_backend", ["torch", "auto"])
-def test_front_end_makes_no_tensor_off_the_inputs_device(lk_backend):
+def test_front_end_makes_no_tensor_off_the_inputs_device(kernels):
     """Preparation (registered and warped depth, SIM, pyramids), the object region, the selection and the combined
-    tracker with both LK implementations, run with stray factories sent to ``meta`` (module docstring)."""
+    tracker, on the compiled operators and on their references, run with stray factories sent to ``meta`` (module docstring)."""
     from torchtrack.frontend import FrontEnd
     from torchtrack.image.flow import combined_track
     from torchtrack.image.object_model import object_mask
@@ -152,12 +151,11 @@ def test_front_end_makes_no_tensor_off_the_inputs_device(lk_backend):
     f0, f1 = _frame(0), _frame(1)
     f1.T_color_depth = f1.T_color_depth.clone()
     f1.T_color_depth[:, 0, 3] = 0.01  # not registered: the depth is warped into the colour camera
-    front = FrontEnd(levels=2, sim_backend="torch" if lk_backend == "torch" else "auto")
+    front = FrontEnd(levels=2)
     with torch.device("meta"):
         p0, p1 = front.prepare(f0), front.prepare(f1)
         feats = select_features(p0.gray, p0.depth, f0.K, roi=object_mask(p0.depth), sim=p0.sim)
-        track = combined_track(p0.flow, p1.flow, feats.pixels, feats.valid, levels=2, lk_backend=lk_backend,
-                               with_residual=True)  # fmt: skip
+        track = combined_track(p0.flow, p1.flow, feats.pixels, feats.valid, levels=2, with_residual=True)
     _on_cpu(p1.gray, p1.depth, p1.sim, feats, track)
     assert int(track.valid.sum()) > 0
 

@@ -3,9 +3,9 @@
 Oracles: an analytic texture rendered exactly at shifted / affinely warped positions (no image
 interpolation in the ground truth); OpenCV's calcOpticalFlowPyrLK and pyrDown on the same inputs;
 d_TIM = 0 on identical images; batched, chunked and channel-stacked calls equal looped ones within
-tests/tolerances.py. No autograd here (LK is not differentiated), so no gradient check. These run the default
-backend (the compiled operator where it builds); tests pinned to ``backend="torch"`` test the reference's own
-machinery, and tests/test_lk_op.py holds the operator to the reference.
+tests/tolerances.py. No autograd here (LK is not differentiated), so no gradient check. These run what a run
+runs (the compiled operator where it builds); tests on the reference (``lk_track_reference``, tests/reference.py)
+test its own machinery, and tests/test_lk_op.py holds the operator to the reference.
 """
 
 from __future__ import annotations
@@ -17,9 +17,10 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from reference import on_reference
 from tolerances import F32_UNIT, LK_PX, LK_RESIDUAL
 
-from torchtrack.image.lk import LKResult, forward_backward, lk_track_flat, pyramidal_lk
+from torchtrack.image.lk import LKResult, forward_backward, lk_track_flat, lk_track_reference, pyramidal_lk
 from torchtrack.image.pyramid import Pyramid, build_pyramid, pyr_down
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -234,9 +235,9 @@ def test_float64_index_arithmetic_for_large_buffers(monkeypatch):
     import torchtrack.image.lk_window as lk_window
 
     i0, i1, pts, _ = warped_pair(np.eye(2), np.array([0.8, -1.9]), n=40)
-    ref = pyramidal_lk(i0, i1, pts, backend="torch")  # the reference's sampler (the operator indexes in int64)
+    ref = on_reference(pyramidal_lk, i0, i1, pts)  # the reference's sampler (the operator indexes in int64)
     monkeypatch.setattr(lk_window, "_EXACT_F32", 16)
-    out = pyramidal_lk(i0, i1, pts, backend="torch")
+    out = on_reference(pyramidal_lk, i0, i1, pts)
     torch.testing.assert_close(out.points, ref.points, atol=1e-5, rtol=0)
     assert (out.status == ref.status).all()
 
@@ -273,8 +274,8 @@ def test_chunks_track_as_one_call():
     pts = torch.cat([pts[0], torch.tensor([[-3.0, 5.0], [500.0, 2.0]])])  # two points outside the image
     p0, p1 = build_pyramid(i0, 3), build_pyramid(i1, 3)
     img = torch.zeros(len(pts), dtype=torch.long)
-    one = lk_track_flat(p0, p1, pts, img, pts + 0.5, chunk=len(pts), with_residual=True, backend="torch")
-    chunked = lk_track_flat(p0, p1, pts, img, pts + 0.5, chunk=7, with_residual=True, backend="torch")
+    one = lk_track_reference(p0, p1, pts, img, pts + 0.5, chunk=len(pts), with_residual=True)
+    chunked = lk_track_reference(p0, p1, pts, img, pts + 0.5, chunk=7, with_residual=True)
     assert one[1].sum() >= 15 and not one[1][-2:].any() and (one[2][one[1]] > 0).all()
     torch.testing.assert_close(chunked[0], one[0], atol=LK_PX, rtol=0)
     assert torch.equal(chunked[1], one[1])  # status: a flip needs an update within rounding of eps (none here)

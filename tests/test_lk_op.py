@@ -1,7 +1,7 @@
-"""The compiled LK operator (torch.ops.torchtrack.lk_track) against its pure-torch reference.
+"""The compiled LK operator (torch.ops.torchtrack.lk_track) against its pure-torch reference, and the loader.
 
 Oracles: exact sub-pixel shifts of an analytic texture (known answer, both implementations); the reference
-(``backend="torch"``) on the same inputs, within tests/tolerances.py's LK_OP_* (sums in another order, a stop decision
+(tests/reference.py) on the same inputs, within tests/tolerances.py's LK_OP_* (sums in another order, a stop decision
 that can flip on their rounding); the reference's rules on degenerate windows and points outside the image; the
 fallback where the build is disabled; torch.library.opcheck for the schema and the fake kernel.
 """
@@ -15,19 +15,21 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from reference import on_reference, requires_ops
 from test_lk import DATA, errors, gray_pair, to_t, warped_pair
 from tolerances import LK_OP_OUTLIERS, LK_OP_PX, LK_OP_TIM, LK_PX, LK_RESIDUAL
 
-from torchtrack.image import lk_op
+from torchtrack import ops
 from torchtrack.image.flow import combined_track, prepare_frame
-from torchtrack.image.lk import lk_track_flat, pyramidal_lk
+from torchtrack.image.lk import lk_track_flat, lk_track_reference, pyramidal_lk
 from torchtrack.image.pyramid import build_pyramid
 
-pytestmark = pytest.mark.skipif(not lk_op.available(), reason="the LK operator does not build here")
+pytestmark = requires_ops
 
 
 def both(*args, **kwargs):
-    return (pyramidal_lk(*args, **kwargs, backend=b) for b in ("torch", "cpp"))
+    """(reference, operator) of the same pyramidal_lk call."""
+    return on_reference(pyramidal_lk, *args, **kwargs), pyramidal_lk(*args, **kwargs)
 
 
 def assert_agree(ref, op, px=LK_OP_PX, outliers=0.0):
@@ -92,16 +94,15 @@ def test_batched_chunked_and_channels_equal_reference():
         warped_pair(np.eye(2), np.array(t), n=25, seed=s) for s, t in enumerate([(0.4, 1.1), (-2.3, 0.2), (3.1, -1.4)])
     ]
     i0, i1, pts = (torch.cat([p[k] for p in pairs]) for k in range(3))
-    batched = pyramidal_lk(i0, i1, pts, backend="cpp")
+    batched = pyramidal_lk(i0, i1, pts)
     for b in range(3):
-        one = pyramidal_lk(i0[b : b + 1], i1[b : b + 1], pts[b : b + 1], backend="cpp")
+        one = pyramidal_lk(i0[b : b + 1], i1[b : b + 1], pts[b : b + 1])
         assert_agree(tuple(t[b : b + 1] for t in batched), one, px=LK_PX)
     p0, p1 = build_pyramid(i0, 3), build_pyramid(i1, 3)
     flat, img = pts.reshape(-1, 2), torch.arange(3).repeat_interleave(25)
-    assert_agree(lk_track_flat(p0, p1, flat, img, flat, backend="torch", chunk=7),
-                 lk_track_flat(p0, p1, flat, img, flat, backend="cpp"))  # fmt: skip
+    assert_agree(lk_track_reference(p0, p1, flat, img, flat, chunk=7), lk_track_flat(p0, p1, flat, img, flat))
     two = [torch.cat([x, x.flip(-1)], 1) for x in (i0, i1)]
-    assert_agree(pyramidal_lk(*two, pts, backend="torch"), pyramidal_lk(*two, pts, backend="cpp"))
+    assert_agree(*both(*two, pts))
 
 
 # ---------------------------------------------------------------------------------------------- real frames
@@ -124,10 +125,8 @@ def test_real_frames_tracks_and_tim_agree(seq):
         torch.from_numpy(cv2.Laplacian(x, cv2.CV_32F, ksize=3)).abs().clamp(max=255)[None, None] / 255 for x in (a, b)
     )
     f0, f1 = prepare_frame(g0, s0), prepare_frame(g1, s1)
-    res = {
-        be: combined_track(f0, f1, pts, policy="min_tim", with_residual=True, lk_backend=be) for be in ("torch", "cpp")
-    }
-    ref, op = res["torch"], res["cpp"]
+    kw = dict(policy="min_tim", with_residual=True)
+    ref, op = on_reference(combined_track, f0, f1, pts, **kw), combined_track(f0, f1, pts, **kw)
     assert ref.valid.sum() >= 250
     assert_agree((ref.points, ref.valid, ref.residual), (op.points, op.valid, op.residual), outliers=LK_OP_OUTLIERS)
     for name in ("d_tim_int", "d_tim_sim"):
@@ -139,29 +138,51 @@ def test_real_frames_tracks_and_tim_agree(seq):
 
 # ---------------------------------------------------------------------------------------------- build, fallback, fake
 def test_fallback_when_the_build_is_disabled(monkeypatch):
-    """TORCHTRACK_NO_BUILD=1: one warning, once; auto runs the reference (the same computation: exact); cpp raises."""
+    """TORCHTRACK_NO_BUILD=1: one warning, once; the reference runs (the same computation: exact)."""
     i0, i1, pts, _ = warped_pair(np.eye(2), np.array([0.7, -1.3]), n=20)
-    ref = pyramidal_lk(i0, i1, pts, backend="torch")
+    ref = on_reference(pyramidal_lk, i0, i1, pts)
     monkeypatch.setenv("TORCHTRACK_NO_BUILD", "1")
-    monkeypatch.setattr(lk_op, "_state", {})
-    with pytest.warns(RuntimeWarning, match="compiled LK operator unavailable"):
-        out = pyramidal_lk(i0, i1, pts, backend="auto")
+    monkeypatch.setattr(ops, "_state", {})
+    with pytest.warns(RuntimeWarning, match="compiled operators unavailable"):
+        out = pyramidal_lk(i0, i1, pts)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         again = pyramidal_lk(i0, i1, pts)  # no second warning
     for r in (out, again):
         assert torch.equal(r.points, ref.points) and torch.equal(r.status, ref.status)
-    with pytest.raises(RuntimeError, match="could not be built"):
-        pyramidal_lk(i0, i1, pts, backend="cpp")
-    with pytest.raises(ValueError, match="backend"):
-        pyramidal_lk(i0, i1, pts, backend="cuda")
+    assert not ops.compiled(pts) and "TORCHTRACK_NO_BUILD" in ops.error()
 
 
-def test_build_is_cached_by_source_hash():
-    """The library sits in $TORCHTRACK_CACHE/ext/lk_<hash of source, flags, torch>; a second load is quick."""
-    folder = lk_op.cache_dir() / "ext" / f"lk_{lk_op.build_key()}"
-    assert any(folder.glob("*.so")) and not (folder / "lock").exists()
-    assert lk_op._build() < 5.0  # nothing to compile: ninja finds the library up to date
+def test_other_devices_run_the_reference():
+    """The operators have CPU kernels only: a tensor elsewhere (meta, here) takes the reference."""
+    assert ops.compiled(torch.zeros(1)) and not ops.compiled(torch.zeros(1, device="meta"))
+
+
+def test_build_is_cached_by_source_hash(monkeypatch):
+    """The library sits in $TORCHTRACK_CACHE/ext/ops_<hash of sources, flags, torch>: another flag is another build."""
+    folder, library = ops._library()
+    assert folder.name == f"ops_{ops.build_key()}" and library.is_file() and not (folder / "lock").exists()
+    monkeypatch.setattr(ops, "CFLAGS", [*ops.CFLAGS, "-g"])
+    assert ops.build_key() != folder.name[len("ops_") :]
+
+
+def test_a_process_loads_the_library_once(monkeypatch, tmp_path):
+    """Loaded once, the operators are never loaded again, from this cache or another (a second copy registers them
+    twice, and torch aborts the process): with TORCHTRACK_CACHE moved to an empty folder and the decision forgotten,
+    available() builds and loads nothing and the operators still run."""
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a second copy of the operators' library was loaded or built")
+
+    assert ops.loaded()
+    monkeypatch.setenv("TORCHTRACK_CACHE", str(tmp_path))
+    monkeypatch.setattr(ops, "_state", {})
+    monkeypatch.setattr(torch.ops, "load_library", refuse)
+    monkeypatch.setattr("torch.utils.cpp_extension.load", refuse)
+    assert not ops.needs_build() and ops.available() and ops._load() == 0.0
+    assert not any(tmp_path.iterdir())
+    i0, i1, pts, _ = warped_pair(np.eye(2), np.array([0.5, 0.5]), n=5)
+    assert pyramidal_lk(i0, i1, pts).status.all()
 
 
 def _op_args(n=5):
@@ -201,5 +222,11 @@ def test_op_bad_input_raises():
         torch.ops.torchtrack.lk_track(*bad_dtype)
 
 
-def test_source_ships_with_the_package():
-    assert lk_op.SOURCE.exists() and Path(lk_op.__file__).parent / "csrc" == lk_op.SOURCE.parent
+def test_sources_ship_with_the_package():
+    """Every source beside the package it speeds up, and each named in the package data (pyproject.toml)."""
+    root = Path(ops.__file__).parent
+    assert [s.relative_to(root).as_posix() for s in ops.SOURCES] == [
+        "image/csrc/lk.cpp", "image/csrc/sim.cpp", "map/csrc/dense.cpp", "map/csrc/voxel.cpp"]  # fmt: skip
+    assert all(s.exists() for s in ops.SOURCES)
+    data = (root.parent / "pyproject.toml").read_text()
+    assert '"torchtrack.image" = ["csrc/*.cpp"]' in data and '"torchtrack.map" = ["csrc/*.cpp"]' in data

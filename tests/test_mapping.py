@@ -18,8 +18,10 @@ import pytest
 import torch
 from hydra import compose as compose_config
 from hydra import initialize_config_dir
+from reference import on_reference, requires_ops
 from scipy.spatial import cKDTree
 
+from torchtrack import ops
 from torchtrack.config import CONF_DIR
 from torchtrack.data.frame import FrameBatch
 from torchtrack.data.synthetic.config import SyntheticConfig
@@ -28,8 +30,7 @@ from torchtrack.data.synthetic.render import render_frame
 from torchtrack.data.synthetic.scene import Primitive, frame_pose, make_scene, pose, random_texture
 from torchtrack.factory import build_mapper, build_tracker
 from torchtrack.geometry import T_inv, make_T, so3_exp
-from torchtrack.image import lk_op
-from torchtrack.mapping import (
+from torchtrack.map import (
     PanoramaMapper,
     VoxelPointMap,
     frame_points,
@@ -39,7 +40,7 @@ from torchtrack.mapping import (
     voxel_grid,
     voxel_keys,
 )
-from torchtrack.mapping.voxel_grid import spatial_hash
+from torchtrack.map.voxel_grid import spatial_hash
 from torchtrack.run import run_tracker
 
 VOXEL = 0.02
@@ -142,13 +143,10 @@ def numpy_voxels(p: np.ndarray, c: np.ndarray, b: np.ndarray, voxel: float, seq:
 
 
 @pytest.mark.equivalence
-@pytest.mark.parametrize("backend", ["cpp", "torch"])
-def test_voxel_map_equals_a_direct_numpy_computation(backend):
-    if backend == "cpp" and not lk_op.available():
-        pytest.skip("the compiled operators do not build here")
+def test_voxel_map_equals_a_direct_numpy_computation(kernels):
     gen = torch.Generator().manual_seed(0)
     chunks = []
-    m = VoxelPointMap(voxel_size=0.03, batch_size=3, backend=backend)
+    m = VoxelPointMap(voxel_size=0.03, batch_size=3)
     for n in (300, 40, 30, 8, 20, 300, 5):  # clustered points (most voxels get several), 3 maps, 7 insertions
         centres = torch.rand(n, 3, generator=gen, dtype=torch.float64) * 2 - 1
         p = centres.repeat_interleave(20, 0) + 0.01 * torch.randn(20 * n, 3, generator=gen, dtype=torch.float64)
@@ -172,28 +170,27 @@ def test_voxel_map_equals_a_direct_numpy_computation(backend):
         assert torch.equal(loose.xyz[order], got.xyz[same]) and torch.equal(loose.count[order], got.count[same])
 
 
+@requires_ops
 def test_the_fusion_operator_equals_the_reference():
     """voxel_add (csrc/voxel.cpp) against VoxelPointMap._add_torch over a stream of additions (known and new voxels
     mixed, points out of range, the table growing) and across a clear: the same voxels created (keys, rows) and added
     to (keys, rows), the same counts, the sums equal within float round-off (the same additions in the same order:
     measured equal)."""
-    if not lk_op.available():
-        pytest.skip("the compiled operators do not build here")
     gen = torch.Generator().manual_seed(3)
-    maps = [VoxelPointMap(voxel_size=0.02, batch_size=4, backend=b) for b in ("cpp", "torch")]
+    maps = [VoxelPointMap(voxel_size=0.02, batch_size=4) for _ in range(2)]
     for i in range(12):
         p = torch.rand(3000, 3, generator=gen, dtype=torch.float64) * (0.5 + 0.2 * i)  # growing: known + new
         p[:5] += 3000.0 * (i % 3 == 0)  # out of range every third addition
         c, b = torch.rand(3000, 3, generator=gen), torch.randint(0, 4, (3000,), generator=gen)
-        made = [m.add(p, c, b) for m in maps]
+        made = [maps[0].add(p, c, b), on_reference(maps[1].add, p, c, b)]
         assert torch.equal(made[0].keys, made[1].keys) and torch.equal(made[0].rows, made[1].rows), i
         order = [torch.argsort(x.known_keys) for x in made]  # the operator's in the order the points came
         for name in ("known_keys", "known_rows"):
             got, ref = (getattr(x, name)[o] for x, o in zip(made, order, strict=True))
             assert torch.equal(got, ref), (i, name)
         if i == 6:
-            for m in maps:
-                m.clear(2)
+            maps[0].clear(2)
+            on_reference(maps[1].clear, 2)
     assert maps[0].dropped == maps[1].dropped == 20 and len(maps[0]) == len(maps[1])
     assert len(maps[0]._table) > 1024  # refilled (compiled voxel_rehash) as it grew, and at the clear
     for m in maps:  # each table finds every voxel at its row
@@ -205,9 +202,8 @@ def test_the_fusion_operator_equals_the_reference():
         torch.testing.assert_close(got.rgb, ref.rgb, atol=1e-7, rtol=0)
 
 
+@requires_ops
 def test_the_fusion_operator_schema_fallback_and_bad_inputs(monkeypatch):
-    if not lk_op.available():
-        pytest.skip("the compiled operators do not build here")
     table, keys, sums = torch.full((64,), voxel_grid.EMPTY), torch.zeros(32, dtype=torch.long), torch.zeros(32, 7)
     p = torch.tensor([[0.0, 0, 0], [0.05, 0, 0], [0.001, 0.002, 0.003], [9e3, 0, 0]], dtype=torch.float64)
     rgb, b = torch.rand(4, 3, dtype=torch.float64), torch.tensor([0, 0, 0, 1])
@@ -250,15 +246,12 @@ def test_the_fusion_operator_schema_fallback_and_bad_inputs(monkeypatch):
         torch.ops.torchtrack.pool_update(keys, xyz, args[2], none, none, new_keys, rows, 0, 1)
     with pytest.raises(RuntimeError, match="outside the sums"):
         torch.ops.torchtrack.pool_update(none, xyz[:0], args[2], none, none, new_keys[:1], rows[:1] + 99, 0, 1)
-    # where the operator does not build, "auto" is the reference
+    # where the operator does not build, the reference runs
     monkeypatch.setenv("TORCHTRACK_NO_BUILD", "1")
-    monkeypatch.setattr(lk_op, "_state", {})
+    monkeypatch.setattr(ops, "_state", {})
     m = VoxelPointMap(voxel_size=0.1)
     with pytest.warns(RuntimeWarning, match="unavailable"):
         m.add(torch.rand(50, 3, dtype=torch.float64), torch.rand(50, 3), torch.zeros(50, dtype=torch.long))
-    with pytest.raises(RuntimeError, match="could not be built"):
-        VoxelPointMap(voxel_size=0.1, backend="cpp").add(torch.zeros(1, 3, dtype=torch.float64), torch.zeros(1, 3),
-                                                         torch.zeros(1, dtype=torch.long))  # fmt: skip
 
 
 def test_clear_releases_one_map_and_keeps_the_others():
@@ -279,18 +272,15 @@ def test_clear_releases_one_map_and_keeps_the_others():
     torch.testing.assert_close(m.points(2).rgb, before[2].rgb)
 
 
-@pytest.mark.parametrize("backend", ["cpp", "torch"])
-def test_prune_keeps_the_best_supported_voxels_of_one_map(backend):
+def test_prune_keeps_the_best_supported_voxels_of_one_map(kernels):
     """Oracle: the voxels a prune keeps are the protected ones, then those with the largest counts, equal counts
     ordered by spatial hash then key (numpy on the map's own points); their means and colours are unchanged, the other
     sequence is untouched, and the compacted map fuses later points into the voxels it kept as a map built from the
     kept voxels' points would."""
-    if backend == "cpp" and not lk_op.available():
-        pytest.skip(f"compiled operator unavailable: {lk_op.error()}")
     gen = torch.Generator().manual_seed(4)
     p = torch.rand(6000, 3, generator=gen, dtype=torch.float64) ** 3  # denser near the origin: counts 1 to ~60
     c, b = torch.rand(6000, 3, generator=gen), torch.randint(0, 2, (6000,), generator=gen)
-    m = VoxelPointMap(voxel_size=0.05, batch_size=2, backend=backend)
+    m = VoxelPointMap(voxel_size=0.05, batch_size=2)
     m.add(p, c, b)
     before = [m.points(s) for s in range(2)]
     keys0 = m.voxels(0)[0]
@@ -311,7 +301,7 @@ def test_prune_keeps_the_best_supported_voxels_of_one_map(backend):
     more, c_more = torch.rand(500, 3, generator=gen, dtype=torch.float64) ** 3, torch.rand(500, 3, generator=gen)
     m.add(more, c_more, torch.zeros(500, dtype=torch.long))
     kept = torch.isin(voxel_keys(p, b, 0.05)[0], torch.from_numpy(expected)) & (b == 0)
-    fresh = VoxelPointMap(voxel_size=0.05, batch_size=2, backend=backend)
+    fresh = VoxelPointMap(voxel_size=0.05, batch_size=2)
     fresh.add(torch.cat([p[kept], more]), torch.cat([c[kept], c_more]), torch.zeros(int(kept.sum()) + 500).long())
     for field in range(3):
         torch.testing.assert_close(m.points(0)[field], fresh.points(0)[field])
@@ -343,8 +333,6 @@ def test_bad_input_raises(kwargs, message):
         m.add(args["points"], args["rgb"], args["batch"])
     with pytest.raises(ValueError, match="voxel_size"):
         VoxelPointMap(voxel_size=0.0)
-    with pytest.raises(ValueError, match="backend"):
-        VoxelPointMap(backend="numpy")
     with pytest.raises(ValueError, match="every"):
         PanoramaMapper(every=0)
 
@@ -529,7 +517,7 @@ def test_mapping_is_off_by_default_and_one_switch_turns_it_on():
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not (DATA / "sun3d_fragment1").is_dir(), reason="../shared/data absent")
+@pytest.mark.skipif(not (DATA / "sun3d_fragment1").is_dir(), reason="needs ../shared/data/sun3d_fragment1")
 def test_runner_writes_the_map_and_leaves_the_trajectory_unchanged(tmp_path):
     """The runner with a mapper: same trajectory as without; map.ply has the map's points, map.png a picture."""
     import open3d as o3d

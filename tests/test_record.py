@@ -383,10 +383,12 @@ def test_lk_residual_is_the_winners_final_window_difference(policy):
     assert bool((res.residual[0][ok] < 0.02).all())  # a pure shift: only interpolation error is left
 
 
-def test_lk_residual_opencv_backend_in_image_units():
+def test_lk_residual_of_opencv_in_image_units():
     """OpenCV's err (0..255, on 8-bit images) / 255 is on the torch back end's scale: within 8-bit rounding."""
     f0, f1, pts, _ = split_scene((1.3, -0.6))
-    cv = combined_track(f0, f1, pts, backend="opencv", with_residual=True)
+    from opencv_flow import combined_track_opencv
+
+    cv = combined_track_opencv(f0, f1, pts, with_residual=True)
     ours = combined_track(f0, f1, pts, with_residual=True)
     both = cv.valid[0] & ours.valid[0] & (cv.winner[0] == ours.winner[0])
     assert both.sum() > 60

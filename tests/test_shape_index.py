@@ -14,7 +14,15 @@ import pytest
 import torch
 from tolerances import F32_UNIT
 
-from torchtrack.image.shape_index import SIM, ShapeIndex, ShapeIndexMap, compute_sim, shape_index, sim_image
+from torchtrack.image.shape_index import (
+    SIM,
+    ShapeIndex,
+    ShapeIndexMap,
+    compute_sim,
+    compute_sim_reference,
+    shape_index,
+    sim_image,
+)
 
 H, W, FOCAL, CX, CY = 480, 640, 525.0, 319.5, 239.5
 TOL = 0.05  # the bound on interior pixels
@@ -100,7 +108,7 @@ def test_shapes_dtypes_and_range():
     assert s.si.dtype == torch.float32 and s.valid.dtype == torch.bool
     assert float(s.si.min()) >= 0.0 and float(s.si.max()) <= 1.0
     assert torch.all(s.si[~s.valid] == 0.5)  # masked pixels carry the fill
-    out = compute_sim(d, K, "torch")  # the reference, one image at a time: other shapes, so within float32 rounding
+    out = compute_sim_reference(d, K)  # the reference, one image at a time: other shapes, so within float32 rounding
     assert isinstance(out, SIM)
     torch.testing.assert_close(out.si, s.si, atol=F32_UNIT, rtol=0)
     assert torch.equal(out.valid, s.valid)  # thresholds: a flip needs a value within rounding of one (none here)
@@ -239,8 +247,8 @@ def test_batched_equals_looped():
         one = shape_index(d[b : b + 1], Ks[b : b + 1])
         assert torch.equal(one.valid, batched.valid[b : b + 1])  # thresholds: no value within rounding of one here
         torch.testing.assert_close(one.si, batched.si[b : b + 1], atol=F32_UNIT, rtol=0)
-    sim = compute_sim(
-        d, Ks, "torch"
+    sim = compute_sim_reference(
+        d, Ks
     )  # the reference, one image at a time (cache-sized temporaries): the batched map's values within rounding
     lean = shape_index(d, Ks, curvedness=False)
     torch.testing.assert_close(sim.si, lean.si, atol=F32_UNIT, rtol=0)

@@ -1,7 +1,7 @@
 """The compiled SIM operator (torch.ops.torchtrack.shape_index_map) against shape_index.py's reference (kornia's smoothing).
 
 Oracles: analytic surfaces of known shape index (sphere, bowl, cylinder, pipe: test_shape_index.py's scenes and bound);
-the reference (``compute_sim(..., backend="torch")``) on real depth frames, within tests/tolerances.py's SIM_OP_*;
+the reference (``compute_sim_reference``) on real depth frames, within tests/tolerances.py's SIM_OP_*;
 batched equals one at a time; the fallback; torch.library.opcheck for the schema and the fake kernel.
 """
 
@@ -13,14 +13,15 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from reference import requires_ops
 from test_shape_index import K1, SURFACES, TOL, as_depth, interior
 from tolerances import SIM_OP_FLIPS, SIM_OP_QUANTA, SIM_OP_SI, SIM_OP_SI_MEAN
 
-from torchtrack.image import lk_op
-from torchtrack.image.shape_index import compute_sim
+from torchtrack import ops
+from torchtrack.image.shape_index import compute_sim, compute_sim_reference
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-pytestmark = pytest.mark.skipif(not lk_op.available(), reason="the compiled operators do not build here")
+pytestmark = requires_ops
 
 
 def assert_agree(ref, op):
@@ -38,11 +39,11 @@ def assert_agree(ref, op):
 def test_analytic_surfaces_known_answer(name, decimate):
     z, expected = SURFACES[name]
     z = z()
-    op = compute_sim(as_depth(z), K1(), "cpp", decimate=decimate)
+    op = compute_sim(as_depth(z), K1(), decimate=decimate)
     core = interior(z)
     assert op.valid[0, 0][core].float().mean() > 0.95
     assert float((op.si[0, 0] - expected).abs()[op.valid[0, 0]].max()) <= TOL
-    assert_agree(compute_sim(as_depth(z), K1(), "torch", decimate=decimate), op)
+    assert_agree(compute_sim_reference(as_depth(z), K1(), decimate=decimate), op)
 
 
 @pytest.mark.equivalence
@@ -60,18 +61,18 @@ def test_real_depth_agrees_with_reference_batched(seq):
                          for n in names[:2]])[:, None]  # fmt: skip
     K = torch.tensor([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]).expand(2, 3, 3)
     for kw in (dict(), dict(smooth_sigma=0.0, decimate=3, max_incidence=70.0)):
-        ref, op = compute_sim(depth, K, "torch", **kw), compute_sim(depth, K, "cpp", **kw)
+        ref, op = compute_sim_reference(depth, K, **kw), compute_sim(depth, K, **kw)
         assert ref.valid.sum() > 10000
         assert_agree(ref, op)
-        one = compute_sim(depth[1:], K[1:], "cpp", **kw)
+        one = compute_sim(depth[1:], K[1:], **kw)
         assert torch.equal(one.si[0], op.si[1]) and torch.equal(one.valid[0], op.valid[1])  # per image: the same code
 
 
 def test_fallback_and_opcheck(monkeypatch):
     z = as_depth(SURFACES["sphere (convex cap)"][0]())
-    ref = compute_sim(z, K1(), "torch")
+    ref = compute_sim_reference(z, K1())
     monkeypatch.setenv("TORCHTRACK_NO_BUILD", "1")
-    monkeypatch.setattr(lk_op, "_state", {})
+    monkeypatch.setattr(ops, "_state", {})
     with pytest.warns(RuntimeWarning, match="unavailable"):
         out = compute_sim(z, K1())
     assert torch.equal(out.si, ref.si) and torch.equal(out.image, ref.image)

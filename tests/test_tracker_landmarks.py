@@ -18,7 +18,7 @@ from torchtrack.data.synthetic.render import render_frame
 from torchtrack.data.synthetic.scene import default_scene
 from torchtrack.factory import build_tracker
 from torchtrack.geometry import T_inv, make_T, so3_exp, transform_points
-from torchtrack.pipeline.dense_map import DenseMap
+from torchtrack.map.dense_map import DenseMap
 from torchtrack.pipeline.landmarks import LandmarkMap
 
 pytestmark = pytest.mark.slow  # whole tracked sequences: a camera that pans away and back

@@ -55,7 +55,10 @@ def test_png_decoding_gives_opencvs_pixels(tmp_path):
 
 
 @pytest.mark.data
-@pytest.mark.skipif(not (DATA / "sun3d_fragment1").is_dir() or tum_io.imagecodecs is None, reason="no data")
+@pytest.mark.skipif(
+    not (DATA / "sun3d_fragment1").is_dir() or tum_io.imagecodecs is None,
+    reason="needs ../shared/data/sun3d_fragment1 and the imagecodecs package",
+)
 def test_real_frames_decode_to_opencvs_pixels():
     for kind in ("rgb", "depth"):
         for path in sorted((DATA / "sun3d_fragment1" / kind).glob("*.png"))[:2]:

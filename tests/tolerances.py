@@ -73,7 +73,7 @@ SIM_OP_SI_MEAN = 1e-3
 SIM_OP_FLIPS = 3e-4
 SIM_OP_QUANTA = 3e-2
 
-# The compiled dense alignment (torchtrack/image/csrc/dense.cpp) vs DenseMap._fit_torch (pure torch): both float64,
+# The compiled dense alignment (torchtrack/map/csrc/dense.cpp) vs DenseMap._fit_torch (pure torch): both float64,
 # the normal equations summed over a few thousand pairs in another order (~1e3 eps relative), a 6x6 solve and a few
 # steps: measured within 8e-16 (corrections) on six 7-Scenes alignments and the room render. Culling and pairing are
 # in float64 too, so a point flips only within ~1e-16 of a boundary. What the bounds still catch: one point more or

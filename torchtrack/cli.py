@@ -258,7 +258,7 @@ def app(cfg) -> None:
         results = []
         if sequences:
             tracker = build_tracker(cfg)
-            warm_up(cfg, device)  # a first-run build of the compiled operators: here, not in the first frame's time
+            warm_up(device)  # a first-run build of the compiled operators: here, not in the first frame's time
             log.info("tracking %d sequence(s) on %s into %s", len(sequences), device, out)
             results = run_tracker(tracker, sequences, out, plots=cfg.plots, mapper=build_mapper(cfg), device=device)
     except (DataError, OSError, ValueError) as e:  # bad input, device or output folder, found before tracking

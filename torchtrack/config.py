@@ -247,10 +247,10 @@ class LandmarkConfig:
 
 @dataclass
 class DenseMapConfig:
-    """:class:`torchtrack.pipeline.dense_map.DenseMap`: the keyframes' depth as a map, the model's world pose aligned to
+    """:class:`torchtrack.map.dense_map.DenseMap`: the keyframes' depth as a map, the model's world pose aligned to
     it (the tracker's ``dense``; ``dense=none`` builds none)."""
 
-    _target_: str = "torchtrack.pipeline.dense_map.DenseMap"
+    _target_: str = "torchtrack.map.dense_map.DenseMap"
     voxel_size: float = 0.01  # m, the map's voxel edge (one point per occupied voxel)
     every: int = 1  # the camera aligned to the map every this many frames (and at every re-selection); 1: every frame
 
@@ -270,11 +270,11 @@ class RelocaliseConfig:
 
 @dataclass
 class MappingConfig:
-    """:class:`torchtrack.mapping.PanoramaMapper` (paper §IV): coloured voxel-grid map per sequence (``mapping=panorama``
+    """:class:`torchtrack.map.PanoramaMapper` (paper §IV): coloured voxel-grid map per sequence (``mapping=panorama``
     or ``mapping=tsdf``; ``mapping=none``, the default, builds none: :func:`torchtrack.factory.build_mapper`). Its depth
     range, pixel stride, flying-pixel filter and TSDF truncation are the class's documented defaults."""
 
-    _target_: str = "torchtrack.mapping.PanoramaMapper"
+    _target_: str = "torchtrack.map.PanoramaMapper"
     voxel_size: float = 0.01  # m, one point per voxel
     every: int | None = None  # also fuse every k-th frame; null: the first and the model (key) frames only
     tsdf: bool = False  # also fuse the same frames with Open3D's TSDF (tensor VoxelBlockGrid) -> mesh.ply

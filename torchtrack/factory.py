@@ -120,18 +120,16 @@ def build_tracker(cfg: DictConfig) -> Tracker:
     )
 
 
-def warm_up(cfg: DictConfig | None, device, *, announce: bool = True) -> None:
-    """Build (first run only) and load the compiled CPU operators that the tracker of ``cfg`` (None: a tracker built
-    elsewhere) runs on ``device``, so that a first-run build happens before any frame is timed; ``announce``: say so
-    on one line of stderr."""
-    wants_ops = cfg is None or not cfg.flow.lk_backend == cfg.frontend.sim_backend == "torch"
-    if torch.device(device).type == "cpu" and wants_ops:
-        from torchtrack.image import lk_op
+def warm_up(device, *, announce: bool = True) -> None:
+    """Build (first run only) and load the compiled CPU operators for a tracker on ``device``, so that a first-run
+    build happens before any frame is timed; ``announce``: say so on one line of stderr."""
+    if torch.device(device).type == "cpu":
+        from torchtrack import ops
 
         if announce:
-            lk_op.warm_up()
+            ops.warm_up()
         else:
-            lk_op.available()
+            ops.available()
 
 
 def build_landmarks(cfg: DictConfig):
@@ -141,7 +139,7 @@ def build_landmarks(cfg: DictConfig):
 
 
 def build_dense(cfg: DictConfig):
-    """The tracker's dense map (:class:`torchtrack.pipeline.dense_map.DenseMap`) from ``cfg.dense``, or None with
+    """The tracker's dense map (:class:`torchtrack.map.dense_map.DenseMap`) from ``cfg.dense``, or None with
     ``dense=none``."""
     return _stage(cfg.get("dense"))
 
@@ -158,5 +156,5 @@ def build_relocaliser(cfg: DictConfig):
 
 
 def build_mapper(cfg: DictConfig):
-    """The ``mapping`` node's :class:`torchtrack.mapping.PanoramaMapper`, or None with ``mapping=none``."""
+    """The ``mapping`` node's :class:`torchtrack.map.PanoramaMapper`, or None with ``mapping=none``."""
     return _stage(cfg.get("mapping"))

@@ -74,7 +74,6 @@ class FrontEnd:
         levels: pyramid levels of the LK tracker.
         use_sim: compute the SIM (needed by SIM-assisted tracking and lambda < 1 selection).
         sim_kwargs: keyword arguments of :func:`torchtrack.image.shape_index`.
-        sim_backend: ``auto | cpp | torch``, :func:`torchtrack.image.shape_index.compute_sim`'s ``backend``.
         ahead: :meth:`prepared_ahead` prepares frames in its thread (False: it passes the frames through, and each
             is prepared when the tracker asks for it; the same results).
         gray: the frame's (B, 1, H, W) intensity (default ``frame.gray``); the application passes
@@ -88,14 +87,12 @@ class FrontEnd:
         levels: int = 3,
         use_sim: bool = True,
         sim_kwargs: dict | None = None,
-        sim_backend: str = "auto",
         ahead: bool = True,
         gray: Callable[[FrameLike], Tensor] = _gray,
     ) -> None:
         self.levels = levels
         self.use_sim = use_sim
         self.sim_kwargs = dict(sim_kwargs or {})
-        self.sim_backend = sim_backend
         self.ahead = ahead
         self.gray = gray
         self._ready: dict[int, tuple[FrameLike, PreparedFrame | BaseException]] = {}  # by id(frame)
@@ -113,7 +110,7 @@ class FrontEnd:
         """Prepare ``frame`` now, in the calling thread."""
         gray = self.gray(frame)
         depth = depth_in_colour(frame)
-        sim = compute_sim(depth, frame.K, self.sim_backend, **self.sim_kwargs) if self.use_sim else None  # eq. (8)
+        sim = compute_sim(depth, frame.K, **self.sim_kwargs) if self.use_sim else None  # eq. (8)
         flow = prepare_frame(gray, sim.image if sim is not None else None, self.levels)
         return PreparedFrame(gray, depth, sim, flow)
 

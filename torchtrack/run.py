@@ -228,7 +228,7 @@ def run_tracker(
     """Track B sequences in lockstep on ``device``; write each one's outputs when it ends. Returns their metrics, one
     per sequence in order; a failed sequence's say ``"complete": False`` and ``"error"``. Raises OSError (one line)
     before tracking when an output folder is not writable. ``tracker``: a :class:`Tracker` (or anything with
-    ``step(FrameBatch) -> StepResult``), started anew. ``mapper`` (a :class:`torchtrack.mapping.PanoramaMapper` or
+    ``step(FrameBatch) -> StepResult``), started anew. ``mapper`` (a :class:`torchtrack.map.PanoramaMapper` or
     None) is fed every frame and writes each sequence's map when it ends."""
     if hasattr(tracker, "reset"):
         tracker.reset()

@@ -153,7 +153,7 @@ class RGBDTracker:
         self.depth_scale, self.fps = depth_scale, float(fps)
         from torchtrack.factory import warm_up
 
-        warm_up(cfg, self.device, announce=announce)  # built before any frame is timed
+        warm_up(self.device, announce=announce)  # built before any frame is timed
         self.reset()
 
     @classmethod

@@ -6,7 +6,7 @@ outside.
     python experiments/bench/bench_dense_map.py ../shared/data/7scenes_redkitchen --frames 300 --repeats 2 --also dense.every=10
 
 Prints, per configuration (``--also``: more of them, each one override; ``--reference``: the default with the
-alignment in pure torch, ``DenseMap(backend="torch")``, instead of the compiled operator), the median ms per frame
+alignment's fit in pure torch, ``DenseMap._fit_torch``, instead of the compiled operator), the median ms per frame
 over the repeats and its ratio to the tracker without the map, and for the default: the calls to
 ``DenseMap.align`` and ``DenseMap.add`` (count, ms per call, ms per frame) and its voxels at the end. One torch thread
 (the CLI's), frames decoded before timing (the tracker is measured, not the loader); wall clock on a shared machine.
@@ -63,7 +63,8 @@ def main(argv: list[str] | None = None) -> int:
     for r in range(args.repeats):
         trackers = {name: build_tracker(cfg) for name, cfg in cfgs.items()}
         if "torch alignment" in trackers:
-            trackers["torch alignment"].dense.backend = "torch"
+            dense = trackers["torch alignment"].dense
+            dense.fit = dense._fit_torch
         if r == args.repeats - 1:
             for k, log in calls.items():
                 timed(trackers["dense map"].dense, k, log)

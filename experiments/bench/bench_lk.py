@@ -1,9 +1,9 @@
 """Benchmark LK: one forward pass, then the combined LK + TIM tracker, torch vs OpenCV.
 
-One pass: 300 Shi-Tomasi corners of a 640x480 intensity pair, one forward ``lk_track_flat``: the compiled
-operator (``lk_backend=cpp``), the pure-torch reference (``torch``), and ``cv2.calcOpticalFlowPyrLK`` (uint8 images;
-it builds both pyramids and the template's derivative images inside the call). The torch rows run on prepared
-pyramids; "cpp + pyramid" adds ``build_pyramid`` of the next image, the per-frame cost that compares with OpenCV's
+One pass: 300 Shi-Tomasi corners of a 640x480 intensity pair, one forward pass: the compiled operator (``cpp``,
+``lk_track_flat``), the pure-torch reference (``torch``, ``lk_track_reference``), and ``cv2.calcOpticalFlowPyrLK``
+(uint8 images; it builds both pyramids and the template's derivative images inside the call). The torch rows run on
+prepared pyramids; "cpp + pyramid" adds ``build_pyramid`` of the next image, the per-frame cost that compares with OpenCV's
 call. Target: cpp + pyramid within 1.5x OpenCV (CPU time, 1 thread).
 
 The combined tracker runs intensity and SIM LK forward and backward (4 passes) on 300 Shi-Tomasi corners of
@@ -39,7 +39,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from torchtrack.image.flow import CombinedTracker, prepare_frame  # noqa: E402
-from torchtrack.image.lk import lk_track_flat  # noqa: E402
+from torchtrack.image.lk import lk_track_flat, lk_track_reference  # noqa: E402
 from torchtrack.image.pyramid import build_pyramid  # noqa: E402
 
 TARGET_RATIO = 1.5  # the speed target
@@ -96,10 +96,9 @@ def bench_one_pass(data, args, levels, window, repeats) -> dict:
     u0, u1 = ((g[0, 0] * 255).round().clamp(0, 255).to(torch.uint8).numpy() for g in (gray0, gray1))
     kw = dict(window=window, levels=levels, with_residual=False)
     runs = {
-        "cpp": partial(lk_track_flat, p0, p1, x0, img, x0, backend="cpp", **kw),
-        "torch": partial(lk_track_flat, p0, p1, x0, img, x0, backend="torch", **kw),
-        "cpp + pyramid": lambda: lk_track_flat(p0, build_pyramid(gray1[:1], levels, window=31), x0, img, x0,
-                                               backend="cpp", **kw),
+        "cpp": partial(lk_track_flat, p0, p1, x0, img, x0, **kw),
+        "torch": partial(lk_track_reference, p0, p1, x0, img, x0, **kw),
+        "cpp + pyramid": lambda: lk_track_flat(p0, build_pyramid(gray1[:1], levels, window=31), x0, img, x0, **kw),
         "OpenCV": partial(cv2.calcOpticalFlowPyrLK, u0, u1, x0.numpy().reshape(-1, 1, 2), None, **args),
     }  # fmt: skip
     for fn in runs.values():
@@ -161,7 +160,6 @@ def main() -> None:
     ap.add_argument("--seq", default="sun3d_fragment1", help="sequence folder in ../shared/data")
     ap.add_argument("--window", type=int, default=21, help="LK window (px)")
     ap.add_argument("--levels", type=int, default=3, help="LK pyramid levels")
-    ap.add_argument("--lk-backend", default="auto", help="the combined tracker's LK: auto | cpp | torch")
     ap.add_argument("--one-pass", action="store_true", help="only the one-pass table")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
@@ -172,7 +170,7 @@ def main() -> None:
     data = load_pairs(a.seq, 8, a.features)
     # policy min_tim: all four passes on every point, as the OpenCV side (the default fallback policy runs the SIM
     # passes only where the intensity tracker failed)
-    tracker = CombinedTracker(window=a.window, levels=a.levels, lk_backend=a.lk_backend, policy="min_tim")
+    tracker = CombinedTracker(window=a.window, levels=a.levels, policy="min_tim")
     args = dict(
         winSize=(a.window, a.window), maxLevel=a.levels - 1, minEigThreshold=1e-4,
         criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
@@ -180,7 +178,7 @@ def main() -> None:
     print_one_pass(data, args, a)
     if a.one_pass:
         return
-    print(f"\n{a.seq}, {data[4].shape[1]} features per sequence, 640x480, combined tracker (LK {a.lk_backend}) = 4 LK passes "
+    print(f"\n{a.seq}, {data[4].shape[1]} features per sequence, 640x480, combined tracker = 4 LK passes "
           f"(intensity and SIM, forward and backward). Median over {a.repeats} interleaved repeats, ms; "
           "CPU = this thread's CPU time (robust to other processes), wall = wall clock.\n")  # fmt: skip
     print("| B | torch: track (prepared frames) | torch: per frame (prepare + track) | OpenCV: 4 passes | "

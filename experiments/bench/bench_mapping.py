@@ -1,7 +1,7 @@
 """Per-frame cost and memory of the panorama point map at B=1, beside Open3D doing the same job.
 
 The frames of a real sequence are read in order (decoded in the same thread, not timed) and fed to
-:meth:`torchtrack.mapping.PanoramaMapper.add` with ground-truth poses (the tracker's output in its own world: relative
+:meth:`torchtrack.map.PanoramaMapper.add` with ground-truth poses (the tracker's output in its own world: relative
 to the first frame) and the key frames of a tracker run (``--frames-csv``: its ``reselected`` column, as the CLI's
 mapper fuses them) or every k-th frame (``--key-every``). Timed: every ``add`` call (key frames and the others), so
 the mean is the amortised per-frame cost; target under ~3 ms.
@@ -30,7 +30,7 @@ from tqdm import tqdm
 from torchtrack.data.batching import iterate_batched
 from torchtrack.data.tum import TumSequence
 from torchtrack.geometry import T_inv
-from torchtrack.mapping import PanoramaMapper
+from torchtrack.map import PanoramaMapper
 
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 

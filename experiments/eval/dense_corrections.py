@@ -3,7 +3,7 @@
     python experiments/eval/dense_corrections.py ../shared/data/visp_rbt_sequence
 
 Tracks a sequence with the default configuration (or the overrides given after the frames) and prints, for every
-alignment to the dense map (:meth:`torchtrack.pipeline.dense_map.DenseMap.align`): whether it was applied, its pairs,
+alignment to the dense map (:meth:`torchtrack.map.dense_map.DenseMap.align`): whether it was applied, its pairs,
 the camera's correction (mm, degrees), the camera's motion since the last frame (mm) and the cosine between the two
 translations. The dense term measures the camera where its depth was taken, the features where its colour was: if the
 depth lags the colour, the corrections point back along the motion (cosine near -1) and grow with it; if the

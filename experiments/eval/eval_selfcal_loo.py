@@ -248,22 +248,26 @@ def ate_table(ates: dict) -> str:
 # ----------------------------------------------------------------------------------------------- main
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """The module docstring as written, and every option's default."""
+
+
 def parse_args(argv: list[str]) -> argparse.Namespace:
     opts, overrides = (argv[: argv.index("--")], argv[argv.index("--") + 1 :]) if "--" in argv else (argv, [])
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--data", type=Path, default=DATA, help="a folder of sequence folders (with ground truth)")
     ap.add_argument("--sequences", default=None, help="comma-separated names (default: every folder in --data)")
     ap.add_argument("--max-frames", type=int, default=None, help="first N frames of every sequence")
     ap.add_argument("--synthetic", type=Path, default=default_synthetic(), help="folder of synthetic recordings")
     ap.add_argument("--synthetic-windows", type=int, default=128, help="synthetic windows added to each fold")
     ap.add_argument("--init", choices=("shipped", "scratch"), default="shipped", help="fine-tune or train anew")
-    ap.add_argument("--epochs", type=int, default=8)
-    ap.add_argument("--lr", type=float, default=5e-4)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--epochs", type=int, default=8, help="training epochs per fold")
+    ap.add_argument("--lr", type=float, default=5e-4, help="learning rate")
+    ap.add_argument("--seed", type=int, default=0, help="training seed")
     ap.add_argument("--runs", type=int, default=1, help="jittered re-runs per sequence for the ATE spread")
     ap.add_argument("--skip-ate", action="store_true", help="recordings, training and held-out NLL only")
     ap.add_argument("--reuse", action="store_true", help="keep finished models and tracker runs")
-    ap.add_argument("--out", type=Path, default=REPO / "outputs" / "selfcal_loo")
+    ap.add_argument("--out", type=Path, default=REPO / "outputs" / "selfcal_loo", help="output folder")
     args = ap.parse_args(opts)
     args.overrides = overrides
     return args

@@ -419,13 +419,17 @@ def default_cache() -> Path:
     return (Path(root) if root else Path.home() / ".cache" / "torchtrack") / "variants"
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """The module docstring as written, and every option's default."""
+
+
 def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     if "--" in argv:
         i = argv.index("--")
         opts, overrides = argv[:i], argv[i + 1 :]
     else:
         opts, overrides = split_argv(argv)
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--data", type=Path, default=DATA, help="a sequence folder or a folder of them")
     ap.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated kinds ('' or none: real only)")
     ap.add_argument("--weightings", default="fixed,paper,learned", help="comma-separated: fixed, paper, learned")
@@ -446,7 +450,7 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     ap.add_argument("--reuse", action="store_true", help="keep finished runs whose resolved config is unchanged")
     ap.add_argument("--plots", action="store_true", help="trajectory and feature pictures per run")
     ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: the config's)")
-    ap.add_argument("-v", "--verbose", action="store_true")
+    ap.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
     args = ap.parse_args(opts)
     args.variants = [v for v in args.variants.split(",") if v and v != "none"]
     args.weightings = [w for w in args.weightings.split(",") if w]

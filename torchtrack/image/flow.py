@@ -8,8 +8,8 @@ position is the caller's job.
 
 Each frame is prepared once (:func:`prepare_frame`): intensity and SIM are stacked into one pyramid, so
 the two forward passes run as one batched LK call, and so do the two backward passes; the frame's
-pyramid is the next call's template. ``backend="opencv"`` runs ``cv2.calcOpticalFlowPyrLK`` with the
-same parameters on the 8-bit images instead (a reference for comparisons).
+pyramid is the next call's template. Steps III and IV (:func:`pick_tracks`) take the per-channel passes as a
+function, so that the tests run them on OpenCV's ``calcOpticalFlowPyrLK`` as well (tests/opencv_flow.py).
 
 Defaults are torchtrack's (the improvements on); the application's schema repeats them (``FlowConfig``), and
 tests/test_defaults.py holds the two equal.
@@ -17,11 +17,11 @@ tests/test_defaults.py holds the two equal.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 from functools import partial
 from typing import Literal, NamedTuple
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -44,7 +44,6 @@ class FlowFrame:
 
     images: tuple[Tensor, ...]
     pyramid: Pyramid
-    _u8: dict = field(default_factory=dict, repr=False)
 
     @property
     def batch(self) -> int:
@@ -53,13 +52,6 @@ class FlowFrame:
     @property
     def has_sim(self) -> bool:
         return len(self.images) == 2
-
-    def u8(self, k: int, b: int) -> np.ndarray:
-        """Channel k of sequence b as an (H, W) uint8 image (for the OpenCV backend), cached."""
-        if (k, b) not in self._u8:
-            img = (self.images[k][b, 0] * 255.0).round().clamp(0, 255)
-            self._u8[(k, b)] = img.to(torch.uint8).cpu().numpy()
-        return self._u8[(k, b)]
 
 
 def prepare_frame(gray: Tensor, sim: Tensor | None = None, levels: int = 3, *, max_window: int = 31) -> FlowFrame:
@@ -136,7 +128,7 @@ def _inside(points: Tensor, h: int, w: int) -> Tensor:
     return (points >= 0).all(-1) & (points[..., 0] <= w - 1) & (points[..., 1] <= h - 1)
 
 
-def _track_torch(
+def _track_lk(
     prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tensor, channels, lk_kwargs, with_residual, init=None
 ):
     """Forward and backward LK for each channel k in channels: (fwd points, status, d_tim, forward residual), each
@@ -167,54 +159,6 @@ def _track_torch(
     return fwd_pts.view(k, b, n, 2), status.view(k, b, n), d_tim.view(k, b, n), residual.view(k, b, n)
 
 
-def _track_opencv(
-    prev: FlowFrame, next: FlowFrame, points: Tensor, valid: Tensor, channels, lk_kwargs, with_residual, init=None
-):
-    """The same with cv2.calcOpticalFlowPyrLK on uint8 images, looped over channels and sequences. The residual is
-    OpenCV's ``err`` of the forward pass (mean absolute difference over the window, 0..255 units) divided by 255, the
-    torch back end's image units; ``with_residual`` does not change the work (OpenCV always computes it). OpenCV
-    runs on the host: the results are moved to the points' device."""
-    import cv2
-
-    dev, points, valid = points.device, points.cpu(), valid.cpu()
-    init = None if init is None else init.cpu()
-    b, n = points.shape[:2]
-    h, w = prev.images[0].shape[-2:]
-    win = lk_kwargs["window"]
-    args = dict(
-        winSize=(win, win),
-        maxLevel=lk_kwargs["levels"] - 1,
-        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, lk_kwargs["iters"], lk_kwargs["eps"]),
-        minEigThreshold=lk_kwargs["min_eig"],
-    )
-    fwd_pts = points.float().expand(len(channels), b, n, 2).clone()
-    status = torch.zeros(len(channels), b, n, dtype=torch.bool, device="cpu")
-    d_tim = torch.full((len(channels), b, n), float("inf"), device="cpu")
-    residual = torch.zeros(len(channels), b, n, device="cpu")
-    for i, k in enumerate(channels):
-        for s in range(b):
-            sel = valid[s].nonzero().squeeze(1)
-            if sel.numel() == 0:
-                continue
-            x0 = points[s, sel].float().numpy().reshape(-1, 1, 2)
-            if init is None:
-                x1, st1, err = cv2.calcOpticalFlowPyrLK(prev.u8(k, s), next.u8(k, s), x0, None, **args)
-                back, st2, _ = cv2.calcOpticalFlowPyrLK(next.u8(k, s), prev.u8(k, s), x1, None, **args)
-            else:  # both passes start from the prior displacement (forward) and its reverse (backward)
-                prior = init[s, sel].float().numpy().reshape(-1, 1, 2) - x0
-                flag = dict(flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
-                x1, st1, err = cv2.calcOpticalFlowPyrLK(prev.u8(k, s), next.u8(k, s), x0, x0 + prior, **args, **flag)
-                back, st2, _ = cv2.calcOpticalFlowPyrLK(next.u8(k, s), prev.u8(k, s), x1, x1 - prior, **args, **flag)
-            x1t, backt = torch.from_numpy(x1.reshape(-1, 2)), torch.from_numpy(back.reshape(-1, 2))
-            ok_fwd = torch.from_numpy(st1[:, 0] == 1) & _inside(x1t, h, w)
-            ok_bwd = torch.from_numpy(st2[:, 0] == 1) & _inside(backt, h, w)
-            d, ok = tim_error(torch.from_numpy(x0.reshape(-1, 2)), backt, ok_fwd, ok_bwd)  # eq. (10)
-            fwd_pts[i, s, sel], status[i, s, sel], d_tim[i, s, sel] = x1t, ok, d
-            if with_residual:
-                residual[i, s, sel] = torch.where(ok, torch.from_numpy(err.reshape(-1)) / 255.0, 0.0)
-    return fwd_pts.to(dev), status.to(dev), d_tim.to(dev), residual.to(dev)
-
-
 def combined_track(
     prev: FlowFrame,
     next: FlowFrame,
@@ -229,11 +173,9 @@ def combined_track(
     eps: float = 0.01,
     min_eig: float = 1.0e-4,
     ic_iters: int = 3,
-    backend: Literal["torch", "opencv"] = "torch",
     policy: Literal["min_tim", "fallback"] = "fallback",
     with_residual: bool = False,
     init: Tensor | None = None,
-    lk_backend: Literal["auto", "cpp", "torch"] = "auto",
 ) -> TrackResult:
     """Track features from prev to next with the combined intensity + SIM tracker (§III-C, eq. (10)).
 
@@ -243,18 +185,15 @@ def combined_track(
         mode: "combined" (paper), "intensity" or "sim" (single trackers, e.g. Table II and EKF-2).
         tim_threshold: features with d_TIM above this (pixels) are dropped (step IV).
         window, levels, iters, eps, min_eig, ic_iters: LK parameters (see ``pyramidal_lk``).
-        backend: "torch" (batched) or "opencv" (cv2.calcOpticalFlowPyrLK, for comparisons).
         policy: "min_tim" (paper, step III): per feature the tracker with the smaller d_TIM; "fallback"
             (improvement, the default): the SIM tracker only where the intensity tracker failed step IV. On smooth SIM
             patches LK barely moves forward or backward, so a SIM track can have a tiny d_TIM and still be
             wrong; min_tim then prefers it over a correct intensity track.
-        with_residual: also return the winner's forward LK residual (a cue for learned weighting; the torch back
-            end samples one more window per point, the tracks are unchanged); zeros otherwise.
+        with_residual: also return the winner's forward LK residual (a cue for learned weighting; one more window
+            sample per point, the tracks are unchanged); zeros otherwise.
         init: (B, N, 2) where each forward pass starts in next (default: points, as the paper); the backward pass
             starts at the forward result minus the same prior displacement, and d_TIM is still measured against
             points.
-        lk_backend: the torch back end's LK: "cpp" (the compiled operator), "torch" (the pure-torch reference) or
-            "auto" (cpp where it builds); see :func:`torchtrack.image.lk.lk_track_flat`.
 
     Returns:
         TrackResult; d_tim_* and status_* of a tracker that did not run are +inf and False.
@@ -275,17 +214,31 @@ def combined_track(
         raise ValueError(f"combined_track: valid must be {(b, n)}, got {tuple(valid.shape)}")
     if init is not None and init.shape != points.shape:
         raise ValueError(f"combined_track: init must be {tuple(points.shape)}, got {tuple(init.shape)}")
-    channels = _CHANNELS[mode]
-    lk_kwargs = dict(window=window, levels=levels, iters=iters, eps=eps, min_eig=min_eig)
-    if backend == "torch":
-        lk_kwargs.update(ic_iters=ic_iters, backend=lk_backend)
-        track = partial(_track_torch, prev, next, points, lk_kwargs=lk_kwargs, with_residual=with_residual, init=init)
-    elif backend == "opencv":
-        track = partial(_track_opencv, prev, next, points, lk_kwargs=lk_kwargs, with_residual=with_residual, init=init)
-    else:
-        raise ValueError(f"combined_track: backend must be 'torch' or 'opencv', got {backend!r}")
+    lk_kwargs = dict(window=window, levels=levels, iters=iters, eps=eps, min_eig=min_eig, ic_iters=ic_iters)
+    track = partial(_track_lk, prev, next, points, lk_kwargs=lk_kwargs, with_residual=with_residual, init=init)
+    return pick_tracks(track, points, valid, prev.images[0].shape[-2:], mode=mode, policy=policy,
+                       tim_threshold=tim_threshold)  # fmt: skip
+
+
+def pick_tracks(
+    track: Callable[..., tuple[Tensor, Tensor, Tensor, Tensor]],
+    points: Tensor,
+    valid: Tensor,
+    size: tuple[int, int],
+    *,
+    mode: Mode = "combined",
+    policy: Literal["min_tim", "fallback"] = "fallback",
+    tim_threshold: float = 1.0,
+) -> TrackResult:
+    """Steps III and IV of §III-C over the passes ``track(valid=, channels=)``: for each channel k (0 intensity, 1 SIM)
+    of ``channels``, the forward and backward passes of the features in ``valid`` (B, N), returned as (forward points
+    (K, B, N, 2), status (K, B, N), d_TIM (K, B, N), forward residual (K, B, N)). ``points`` (B, N, 2) are the
+    features in prev, ``size`` (H, W) the images'. :func:`combined_track` passes its LK; the tests OpenCV's."""
     if policy not in ("min_tim", "fallback"):
         raise ValueError(f"combined_track: policy must be 'min_tim' or 'fallback', got {policy!r}")
+    channels = _CHANNELS[mode]
+    b, n = points.shape[:2]
+    dev = points.device
     if policy == "fallback" and len(channels) == 2:
         # the SIM tracker runs only where the intensity tracker failed step IV (its d_TIM elsewhere: inf)
         first = track(valid=valid, channels=channels[:1])
@@ -299,8 +252,7 @@ def combined_track(
     chosen = fwd.gather(0, pick[None, ..., None].expand(1, b, n, 2))[0]
     winner = torch.tensor(channels, device=dev)[pick]
     residual = residual.gather(0, pick[None])[0]
-    h, w = prev.images[0].shape[-2:]
-    keep = valid & torch.isfinite(best) & (best <= tim_threshold) & _inside(chosen, h, w)  # step IV
+    keep = valid & torch.isfinite(best) & (best <= tim_threshold) & _inside(chosen, *size)  # step IV
     full = {c: (d_tim[i], status[i]) for i, c in enumerate(channels)}
     none = (torch.full((b, n), float("inf"), device=dev), torch.zeros(b, n, dtype=torch.bool, device=dev))
     (d_int, st_int), (d_sim, st_sim) = full.get(0, none), full.get(1, none)
@@ -312,6 +264,8 @@ class CombinedTracker:
     """Holds the combined tracker's parameters; ``__call__(prev, next, points, valid, with_residual=False)`` delegates
     to :func:`combined_track` and ``prepare(gray, sim)`` to :func:`prepare_frame`."""
 
+    pyramids_only = True  # reads the frames' pyramids alone: a repeat_frame (placeholder images) serves as a frame
+
     def __init__(
         self,
         mode: Mode = "combined",
@@ -322,19 +276,15 @@ class CombinedTracker:
         eps: float = 0.01,
         min_eig: float = 1.0e-4,
         ic_iters: int = 3,
-        backend: Literal["torch", "opencv"] = "torch",
         policy: Literal["min_tim", "fallback"] = "fallback",
-        lk_backend: Literal["auto", "cpp", "torch"] = "auto",
     ) -> None:
-        for key, value, allowed in (("mode", mode, tuple(_CHANNELS)), ("backend", backend, ("torch", "opencv")),
-                                    ("policy", policy, ("min_tim", "fallback")),
-                                    ("lk_backend", lk_backend, ("auto", "cpp", "torch"))):  # fmt: skip
+        for key, value, allowed in (("mode", mode, tuple(_CHANNELS)), ("policy", policy, ("min_tim", "fallback"))):
             if value not in allowed:
                 raise ValueError(f"flow.{key} must be one of {', '.join(allowed)}, got {value!r}")
         self.levels = levels
         self.kwargs = dict(
             mode=mode, tim_threshold=tim_threshold, window=window, levels=levels, iters=iters, eps=eps,
-            min_eig=min_eig, ic_iters=ic_iters, backend=backend, policy=policy, lk_backend=lk_backend,
+            min_eig=min_eig, ic_iters=ic_iters, policy=policy,
         )  # fmt: skip
 
     def prepare(self, gray: Tensor, sim: Tensor | None = None) -> FlowFrame:

@@ -21,10 +21,10 @@ fixed point; tracks agree to about 0.0002 px on real frames) is in the stopping:
 On CPU the per-iteration cost is dominated by the number of tensor operations, not by arithmetic, so the
 stopping rules matter as much as the sampling: they cut the iterations of a 300-point call from ~90 to ~20.
 
-Two implementations of the same arithmetic (``backend``; ``flow.lk_backend`` in the application): ``"cpp"``, the compiled operator
-``torch.ops.torchtrack.lk_track`` (csrc/lk.cpp, one C++ loop per point over all points, built on first use:
-:mod:`torchtrack.image.lk_op`), and ``"torch"``, the pure-torch functions below, the reference and the fallback
-(``"auto"``: the operator where it builds). Tracks agree within tests/tolerances.py's LK_OP_PX.
+The inner loop runs as the compiled operator ``torch.ops.torchtrack.lk_track`` (csrc/lk.cpp, one C++ loop per point
+over all points; :mod:`torchtrack.ops` builds it and decides where it runs) and as the pure-torch functions below
+(:func:`lk_track_reference`), the reference and the path on other devices. Tracks agree within tests/tolerances.py's
+LK_OP_PX.
 
 References: J.-Y. Bouguet, "Pyramidal Implementation of the Lucas Kanade Feature Tracker", Intel, 2000;
 S. Baker, I. Matthews, "Lucas-Kanade 20 Years On", IJCV 2004; R. Liu et al., "Online Determination of
@@ -38,7 +38,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.image import lk_op
+from torchtrack import ops
 from torchtrack.image.lk_window import Sampler, iterate, template, window_residual
 from torchtrack.image.pyramid import Pyramid, build_pyramid
 
@@ -77,17 +77,15 @@ def lk_track_flat(
     ic_iters: int = 3,
     with_residual: bool = True,
     chunk: int = _CHUNK,
-    backend: str = "auto",
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Pyramidal LK on a flat list of P points, each in its own image of the pyramids' batch.
+    """Pyramidal LK on a flat list of P points, each in its own image of the pyramids' batch: the compiled operator
+    where it runs (:func:`torchtrack.ops.compiled`), else :func:`lk_track_reference`.
 
     Args:
         prev, next: pyramids of equal geometry (built with a window at least ``window``).
         points: (P, 2) level-0 positions in prev. image_index: (P,) int64 batch index of each point.
         init: (P, 2) initial guess of the positions in next.
-        chunk: points tracked together at most (each point's track is independent of the others; torch backend).
-        backend: "cpp" (the compiled operator, CPU tensors), "torch" (the reference) or "auto" (cpp where it builds;
-            the reference for tensors on another device).
+        chunk: points tracked together at most by the reference (each point's track is independent of the others).
 
     Returns:
         points (P, 2) in next (the input where not tracked), status (P,) bool, residual (P,) (zeros unless
@@ -96,8 +94,32 @@ def lk_track_flat(
     if chunk < 1:
         raise ValueError(f"lk_track_flat: chunk must be >= 1, got {chunk}")
     kwargs = dict(window=window, levels=levels, iters=iters, eps=eps, min_eig=min_eig, ic_iters=ic_iters)
-    if use_cpp(backend) and points.device.type == "cpu":  # the operator has a CPU kernel only
+    if ops.compiled(points):
         return _track_op(prev, next, points, image_index, init, **kwargs, with_residual=with_residual)
+    return lk_track_reference(prev, next, points, image_index, init, **kwargs, with_residual=with_residual, chunk=chunk)
+
+
+def lk_track_reference(
+    prev: Pyramid,
+    next: Pyramid,
+    points: Tensor,
+    image_index: Tensor,
+    init: Tensor,
+    *,
+    window: int = 21,
+    levels: int = 3,
+    iters: int = 30,
+    eps: float = 0.01,
+    min_eig: float = 1.0e-4,
+    ic_iters: int = 3,
+    with_residual: bool = True,
+    chunk: int = _CHUNK,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`lk_track_flat` in pure torch, in equal chunks of at most ``chunk`` points: the compiled operator's
+    reference, and the path on devices other than the CPU."""
+    if chunk < 1:
+        raise ValueError(f"lk_track_flat: chunk must be >= 1, got {chunk}")
+    kwargs = dict(window=window, levels=levels, iters=iters, eps=eps, min_eig=min_eig, ic_iters=ic_iters)
     if points.shape[0] <= chunk:
         return _track_chunk(prev, next, points, image_index, init, **kwargs, with_residual=with_residual)
     size = -(-points.shape[0] // -(-points.shape[0] // chunk))  # equal chunks of at most ``chunk`` points
@@ -107,17 +129,6 @@ def lk_track_flat(
         for i in range(0, points.shape[0], size)
     ]  # fmt: skip
     return tuple(torch.cat(x) for x in zip(*parts, strict=True))
-
-
-def use_cpp(backend: str) -> bool:
-    """Whether ``backend`` ("auto", "cpp", "torch") runs the compiled operator; "cpp" raises where it cannot."""
-    if backend not in ("auto", "cpp", "torch"):
-        raise ValueError(f"lk: backend must be 'auto', 'cpp' or 'torch', got {backend!r}")
-    if backend == "torch":
-        return False
-    if not lk_op.available() and backend == "cpp":
-        raise RuntimeError(f"lk: backend 'cpp' asked, but the operator could not be built: {lk_op.error()}")
-    return lk_op.available()
 
 
 class _OpTables:
@@ -145,11 +156,10 @@ def _track_op(prev, next, points, image_index, init, *, window, levels, iters, e
     tables_prev, tables_next = _OpTables.of(prev, levels), _OpTables.of(next, levels)
     base_prev, base_next, sizes = tables_prev.base, tables_next.base, tables_prev.sizes
     f32 = dict(dtype=torch.float32, memory_format=torch.contiguous_format)
-    return lk_op.lk_track(
+    return torch.ops.torchtrack.lk_track(
         prev.flat.contiguous(), next.flat.contiguous(), base_prev, base_next, sizes, points.to(**f32),
-        image_index.to(torch.int64).contiguous(), init.to(**f32), stride=prev.stride, plane=prev.plane,
-        pad=prev.pad, window=window, iters=iters, ic_iters=ic_iters, eps=eps, min_eig=min_eig,
-        with_residual=with_residual,
+        image_index.to(torch.int64).contiguous(), init.to(**f32), prev.stride, prev.plane, prev.pad, window, iters,
+        ic_iters, eps, min_eig, with_residual,
     )  # fmt: skip
 
 
@@ -221,7 +231,6 @@ def pyramidal_lk(
     min_eig: float = 1.0e-4,
     ic_iters: int = 3,
     with_residual: bool = True,
-    backend: str = "auto",
 ) -> LKResult:
     """Track points from prev to next with pyramidal Lucas–Kanade (translation per window).
 
@@ -235,7 +244,6 @@ def pyramidal_lk(
         min_eig: threshold on the gradient matrix's smallest eigenvalue in OpenCV's units (minEigThreshold).
         ic_iters: inverse-compositional iterations per level before Newton steps (see the module docstring).
         with_residual: compute the residual (one more window sample per point); zeros otherwise.
-        backend: "cpp" (compiled operator), "torch" (reference) or "auto" (cpp where it builds); see lk_track_flat.
 
     Returns:
         LKResult(points (B, N, 2), status (B, N), residual (B, N)).
@@ -266,7 +274,7 @@ def pyramidal_lk(
     out[sel], status[sel], residual[sel] = lk_track_flat(
         prev_p, next_p, pts[sel], image_index[sel], guess[sel],
         window=window, levels=levels, iters=iters, eps=eps, min_eig=min_eig, ic_iters=ic_iters,
-        with_residual=with_residual, backend=backend,
+        with_residual=with_residual,
     )  # fmt: skip
     return LKResult(out.view(b, n, 2).to(points.dtype), status.view(b, n), residual.view(b, n))
 

@@ -51,6 +51,8 @@ from kornia.filters import filter2d_separable
 from kornia.filters.kernels import get_pascal_kernel_1d
 from torch import Tensor
 
+from torchtrack import ops
+
 
 class ShapeIndex(NamedTuple):
     """Shape index map of a depth batch (all (B, 1, H, W), the input's grid).
@@ -262,29 +264,31 @@ def sim_image(sim: ShapeIndex | Tensor, valid: Tensor | None = None, *, fill: fl
 _SIM_DEFAULTS = {k: p.default for k, p in inspect.signature(shape_index).parameters.items() if p.kind == p.KEYWORD_ONLY}
 
 
-def compute_sim(depth: Tensor, K: Tensor, backend: str = "auto", **kwargs) -> SIM:
-    """One call for the per-frame pipeline: ``shape_index(depth, K, **kwargs)`` and its ``sim_image``.
+def compute_sim(depth: Tensor, K: Tensor, **kwargs) -> SIM:
+    """One call for the per-frame pipeline: ``shape_index(depth, K, **kwargs)`` and its ``sim_image``, as the compiled
+    operator ``torch.ops.torchtrack.shape_index_map`` (csrc/sim.cpp, the same stages in one pass each) where it runs
+    (:func:`torchtrack.ops.compiled`), else as :func:`compute_sim_reference`."""
+    _check(depth, K)
+    if not ops.compiled(depth):
+        return compute_sim_reference(depth, K, **kwargs)
+    if set(kwargs) - set(_SIM_DEFAULTS) | ({"curvedness"} & set(kwargs)):
+        raise TypeError(f"compute_sim: unexpected arguments {sorted(kwargs)}")
+    p = {**_SIM_DEFAULTS, **kwargs}
+    si, valid, image = torch.ops.torchtrack.shape_index_map(
+        depth.float().contiguous(), K.float().contiguous(), p["smooth_sigma"], p["min_curvature"], p["max_step"],
+        p["min_support"], p["max_incidence"], p["decimate"], p["fill"],
+    )  # fmt: skip
+    return SIM(si=si, valid=valid, image=image)
 
-    ``backend``: "cpp" runs the compiled operator ``torch.ops.torchtrack.shape_index_map`` (csrc/sim.cpp, the same
-    stages in one pass each; :mod:`torchtrack.image.lk_op`), "torch" the functions above (the reference), "auto" the
-    operator where it builds (``frontend.sim_backend=torch`` selects the reference in a run).
+
+def compute_sim_reference(depth: Tensor, K: Tensor, **kwargs) -> SIM:
+    """:func:`compute_sim` by the functions above: the operator's reference, and the path on other devices.
     A batch is computed one image at a time (the same values within float error: other shapes sum in other orders;
     tests/tolerances.py): the temporaries of one 640x480 image stay in the CPU's
     cache, those of eight do not (measured at B=8: 52 ms instead of 75 ms per step)."""
     _check(depth, K)
-    from torchtrack.image.lk import use_cpp  # the operators' one switch (import here: lk imports this package)
-
-    if use_cpp(backend) and depth.device.type == "cpu":
-        if set(kwargs) - set(_SIM_DEFAULTS) | ({"curvedness"} & set(kwargs)):
-            raise TypeError(f"compute_sim: unexpected arguments {sorted(kwargs)}")
-        p = {**_SIM_DEFAULTS, **kwargs}
-        si, valid, image = torch.ops.torchtrack.shape_index_map(
-            depth.float().contiguous(), K.float().contiguous(), p["smooth_sigma"], p["min_curvature"], p["max_step"],
-            p["min_support"], p["max_incidence"], p["decimate"], p["fill"],
-        )  # fmt: skip
-        return SIM(si=si, valid=valid, image=image)
     if depth.shape[0] > 1:
-        parts = [compute_sim(depth[i : i + 1], K[i : i + 1], "torch", **kwargs) for i in range(depth.shape[0])]
+        parts = [compute_sim_reference(depth[i : i + 1], K[i : i + 1], **kwargs) for i in range(depth.shape[0])]
         return SIM(*(torch.cat(x) for x in zip(*parts, strict=True)))
     s = shape_index(depth, K, **kwargs, curvedness=False)
     image = (s.si * 255.0).round_().div_(255.0)  # SI and fill are in [0, 1]: sim_image without its clamp
@@ -303,9 +307,7 @@ class ShapeIndexMap:
         max_incidence: float = 60.0,
         decimate: int = 2,
         fill: float = 0.5,
-        backend: str = "auto",
     ) -> None:
-        self.backend = backend
         self.kwargs = dict(
             smooth_sigma=smooth_sigma,
             min_curvature=min_curvature,
@@ -317,4 +319,4 @@ class ShapeIndexMap:
         )
 
     def __call__(self, depth: Tensor, K: Tensor) -> SIM:
-        return compute_sim(depth, K, self.backend, **self.kwargs)
+        return compute_sim(depth, K, **self.kwargs)

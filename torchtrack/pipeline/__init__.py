@@ -11,9 +11,9 @@
   (``landmarks``);
 - :mod:`~torchtrack.pipeline.relocalise`: the loss check and relocalisation (``relocalise``).
 
-The per-frame stages it is composed of besides (front end, region, selection, LK, weighting, back end) live with
-their kind: :mod:`torchtrack.frontend`, :mod:`torchtrack.image`, :mod:`torchtrack.filter`,
-:mod:`torchtrack.estimators`. Each stage is built by :func:`torchtrack.factory.build_tracker` from its own config
+The per-frame stages it is composed of besides (front end, region, selection, LK, weighting, back end, dense map)
+live with their kind: :mod:`torchtrack.frontend`, :mod:`torchtrack.image`, :mod:`torchtrack.filter`,
+:mod:`torchtrack.estimators`, :mod:`torchtrack.map`. Each stage is built by :func:`torchtrack.factory.build_tracker` from its own config
 group; each takes plain keyword arguments whose defaults equal its schema's (:mod:`torchtrack.config`,
 ``tests/test_config.py``).
 """

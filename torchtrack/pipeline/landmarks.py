@@ -228,7 +228,7 @@ class LandmarkMap:
         S, P = store.size, self.P
         slot = index // P
         kf_pix = self.pixels.reshape(B, S * P, 2).gather(1, index[..., None].expand(-1, -1, 2))
-        if self.per_slot or getattr(flow, "kwargs", {}).get("backend") != "torch":
+        if self.per_slot or not getattr(flow, "pyramids_only", False):  # a flow of its own may read the images
             pixels, good, residual = self._track_per_slot(flow, cur, slot, ok, kf_pix, proj)
         else:
             pixels, good, residual = self._track_batched(flow, cur, slot, ok, kf_pix, proj)
@@ -268,7 +268,7 @@ class LandmarkMap:
                         proj: Tensor) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
         """The candidates ``ok`` (B, C) re-tracked from their keyframe slots ``slot`` (B, C) with one ``flow`` call per
         slot (batched over B): pixels (B, C, 2) (the projection ``proj`` where not tracked), good (B, C), residual
-        (B, C) (inf where not tracked). The reference of :meth:`_track_batched`; the path of the OpenCV back end."""
+        (B, C) (inf where not tracked). The reference of :meth:`_track_batched`; the path of a flow other than the combined tracker."""
         pixels, good = proj.clone(), torch.zeros_like(ok)
         residual = torch.full(ok.shape, float("inf"), device=ok.device)
         for s in slot[ok].unique().tolist():  # one LK call per keyframe slot, batched over B

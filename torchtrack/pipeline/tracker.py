@@ -30,7 +30,7 @@ from torchtrack.filter.weighting import Variances, WeightingInputs, pixel_only_v
 from torchtrack.frontend import FrontEnd, PreparedFrame, is_registered
 from torchtrack.geometry import T_inv, make_T, project, se3_exp, se3_log, transform_points
 from torchtrack.image.flow import TrackResult
-from torchtrack.pipeline.dense_map import DenseMap
+from torchtrack.map.dense_map import DenseMap
 from torchtrack.pipeline.keyframes import KeyframeStore
 from torchtrack.pipeline.landmarks import LandmarkMap
 from torchtrack.pipeline.outliers import ResidualDrop, feature_residuals

@@ -1,19 +1,24 @@
-"""The compiled operators ``torch.ops.torchtrack.lk_track`` (csrc/lk.cpp, the LK inner loop),
-``torch.ops.torchtrack.shape_index_map`` (csrc/sim.cpp, the SIM), ``torch.ops.torchtrack.dense_fit`` and
-``depth_points`` (csrc/dense.cpp, the dense map's alignment and the points a keyframe adds) and
-``torch.ops.torchtrack.voxel_add``, ``voxel_rehash``, ``pool_update`` (csrc/voxel.cpp,
-the voxel map's fusion, its table's refill, the alignment's pool after a fusion): one library, built on first use,
-cached, with fake kernels; :mod:`torchtrack.image.lk`, :mod:`torchtrack.image.shape_index`,
-:mod:`torchtrack.pipeline.dense_map` and :mod:`torchtrack.mapping.voxel_grid` fall back to their pure-torch references
-where it cannot be built.
+"""The compiled CPU operators, built and loaded in one place, and the one decision whether they run.
+
+One library, ``torch.ops.torchtrack``, from four sources, each beside the Python it speeds up:
+``lk_track`` (image/csrc/lk.cpp, the LK inner loop of :mod:`torchtrack.image.lk`), ``shape_index_map``
+(image/csrc/sim.cpp, the SIM of :mod:`torchtrack.image.shape_index`), ``dense_fit`` and ``depth_points``
+(map/csrc/dense.cpp, the alignment and a keyframe's points of :mod:`torchtrack.map.dense_map`), ``voxel_add``,
+``voxel_rehash`` and ``pool_update`` (map/csrc/voxel.cpp, the fusion of :mod:`torchtrack.map.voxel_grid` and the
+alignment's pool). Each keeps its pure-torch reference beside it, and the tests hold the two equal.
+
+:func:`compiled` decides, per tensor, which runs: the operator for a CPU tensor where the library is built, the
+reference for tensors on any other device and where it cannot be built (no compiler or ninja,
+``TORCHTRACK_NO_BUILD=1``: one warning line, once).
 
 Build: ``torch.utils.cpp_extension.load`` (ninja, the system C++ compiler, ``-O3``) into
-``$TORCHTRACK_CACHE/ext/lk_<hash>`` (default ``~/.cache/torchtrack``), where the hash covers the source, the flags
+``$TORCHTRACK_CACHE/ext/ops_<hash>`` (default ``~/.cache/torchtrack``), where the hash covers the sources, the flags
 and the torch version: a changed source builds anew, an unchanged one loads in milliseconds. Concurrent first use
 (two pytest workers, CI) is safe: torch's loader holds a file baton (``lock`` in the build folder) while one process
-builds; the others wait for it and then load the same library. Nothing is built at pip-install time (an isolated
-build environment would fetch another torch). ``TORCHTRACK_NO_BUILD=1`` disables the build (the fallback, tested).
-A first build takes tens of seconds: :func:`warm_up` runs it before a run's timed loop and says so on one line.
+builds; the others wait for it and then load the same library. A process loads the library once: a second copy (the
+same build from another cache folder) would register the operators again, which torch answers by aborting the
+process. Nothing is built at pip-install time (an isolated build environment would fetch another torch). A first
+build takes tens of seconds: :func:`warm_up` runs it before a run's timed loop and says so on one line.
 """
 
 from __future__ import annotations
@@ -29,12 +34,20 @@ from typing import TextIO
 import torch
 from torch import Tensor
 
-SOURCE = Path(__file__).with_name("csrc") / "lk.cpp"
-SOURCES = [SOURCE, SOURCE.with_name("sim.cpp"), SOURCE.with_name("dense.cpp"), SOURCE.with_name("voxel.cpp")]
+_ROOT = Path(__file__).parent
+SOURCES = [_ROOT / "image/csrc/lk.cpp", _ROOT / "image/csrc/sim.cpp", _ROOT / "map/csrc/dense.cpp",
+           _ROOT / "map/csrc/voxel.cpp"]  # fmt: skip
 # -fopenmp compiles at::parallel_for's OpenMP region; it is not linked: the symbols resolve to torch's own OpenMP
 # runtime (linking the system libgomp would load a second one).
 CFLAGS = ["-O3", "-fopenmp", "-fno-math-errno"]
-_state: dict = {}
+_state: dict = {}  # the decision: ok, error, build_s
+_fakes: list = []  # the fake kernels registered (once per process, like the library)
+
+
+def compiled(x: Tensor) -> bool:
+    """Whether the compiled operator runs on ``x``: a CPU tensor and the library built (on the first call); the
+    pure-torch reference runs otherwise."""
+    return x.device.type == "cpu" and available()
 
 
 def cache_dir() -> Path:
@@ -51,8 +64,8 @@ def build_key() -> str:
 def _library() -> tuple[Path, Path]:
     """(build folder, library file) of this source's build."""
     key = build_key()
-    folder = cache_dir() / "ext" / f"lk_{key}"
-    return folder, folder / f"torchtrack_lk_{key}.so"
+    folder = cache_dir() / "ext" / f"ops_{key}"
+    return folder, folder / f"torchtrack_ops_{key}.so"
 
 
 def _finished(folder: Path, library: Path) -> bool:
@@ -60,12 +73,20 @@ def _finished(folder: Path, library: Path) -> bool:
     return library.is_file() and not (folder / "lock").exists()
 
 
-def _build() -> float:
-    """Build (or load the cached build of) the operator; returns the seconds it took. A finished build loads directly:
-    torch's loader would import cpp_extension and run the compiler's and ninja's checks first (~0.5-1 s of start-up)."""
-    folder, library = _library()
-    key = folder.name[len("lk_") :]
+def loaded() -> bool:
+    """Whether this process holds the operators already (from whichever cache folder they were loaded)."""
+    return hasattr(torch.ops.torchtrack, "lk_track")
+
+
+def _load() -> float:
+    """Load the operators, building them first where no finished build is cached; returns the seconds it took. Never a
+    second copy: where this process holds them already (say, loaded from another ``TORCHTRACK_CACHE``), nothing.
+    A finished build loads directly: torch's loader would import cpp_extension and run the compiler's and ninja's
+    checks first (~0.5-1 s of start-up)."""
     t0 = time.perf_counter()
+    if loaded():
+        return 0.0
+    folder, library = _library()
     if _finished(folder, library):
         try:
             torch.ops.load_library(str(library))
@@ -75,31 +96,31 @@ def _build() -> float:
     from torch.utils.cpp_extension import load
 
     folder.mkdir(parents=True, exist_ok=True)
-    load(name=f"torchtrack_lk_{key}", sources=[str(s) for s in SOURCES], extra_cflags=CFLAGS, build_directory=str(folder),
+    load(name=library.stem, sources=[str(s) for s in SOURCES], extra_cflags=CFLAGS, build_directory=str(folder),
          is_python_module=False, verbose=False)  # fmt: skip
     return time.perf_counter() - t0
 
 
 def available() -> bool:
-    """Whether the operator is loaded, building it on the first call; where it cannot be built (no compiler, no
-    ninja, ``TORCHTRACK_NO_BUILD=1``) one warning line, once, and False."""
+    """Whether the operators are loaded, building them on the first call; where they cannot be built (no compiler,
+    no ninja, ``TORCHTRACK_NO_BUILD=1``) one warning line, once, and False."""
     if "ok" not in _state:
         try:
             if os.environ.get("TORCHTRACK_NO_BUILD", "") not in ("", "0"):
                 raise RuntimeError("TORCHTRACK_NO_BUILD is set")
-            _state["build_s"] = _build()
+            _state["build_s"] = _load()
             _register_fake()
             _state["ok"] = True
-        except Exception as e:  # any build failure: the reference path still works
+        except Exception as e:  # any build failure: the references still work
             _state["ok"], _state["error"] = False, f"{type(e).__name__}: {str(e).strip().splitlines()[-1:]}"
-            warnings.warn(f"torchtrack: compiled LK operator unavailable ({_state['error']}); using the pure-torch "
-                          "LK, SIM and alignment (slower)", RuntimeWarning, stacklevel=3)  # fmt: skip
+            warnings.warn(f"torchtrack: compiled operators unavailable ({_state['error']}); using the pure-torch "
+                          "LK, SIM and dense map (slower)", RuntimeWarning, stacklevel=3)  # fmt: skip
     return _state["ok"]
 
 
 def needs_build() -> bool:
-    """Whether :func:`available` would compile the operators now (first use of this source, torch and flags here)."""
-    if "ok" in _state or os.environ.get("TORCHTRACK_NO_BUILD", "") not in ("", "0"):
+    """Whether :func:`available` would compile the operators now (first use of these sources, torch and flags here)."""
+    if "ok" in _state or os.environ.get("TORCHTRACK_NO_BUILD", "") not in ("", "0") or loaded():
         return False
     return not _finished(*_library())
 
@@ -110,12 +131,8 @@ def warm_up(stream: TextIO | None = None) -> bool:
     if not needs_build():
         return available()
     stream = stream if stream is not None else sys.stderr
-    print(
-        "torchtrack: building the compiled LK, SIM and alignment operators (first run only)... ",
-        end="",
-        file=stream,
-        flush=True,
-    )
+    print("torchtrack: building the compiled LK, SIM and dense-map operators (first run only)... ", end="",
+          file=stream, flush=True)  # fmt: skip
     t0 = time.perf_counter()
     with warnings.catch_warnings():  # this line says it instead
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -124,19 +141,19 @@ def warm_up(stream: TextIO | None = None) -> bool:
     done = (
         f"done in {took:.0f} s"
         if ok
-        else f"failed after {took:.0f} s ({error()}); using the pure-torch LK, SIM and alignment"
+        else f"failed after {took:.0f} s ({error()}); using the pure-torch LK, SIM and dense map"
     )
     print(done, file=stream, flush=True)
     return ok
 
 
 def error() -> str | None:
-    """Why the operator is unavailable (None where it loaded or was not tried)."""
+    """Why the operators are unavailable (None where they loaded or were not tried)."""
     return _state.get("error")
 
 
 def _register_fake() -> None:
-    if _state.get("fake"):
+    if _fakes:
         return
 
     @torch.library.register_fake("torchtrack::lk_track")
@@ -172,42 +189,4 @@ def _register_fake() -> None:
         m = torch.library.get_ctx().new_dynamic_size()
         return keys.new_empty(m), xyz.new_empty(m, 3)
 
-    _state["fake"] = True
-
-
-def lk_track(
-    prev_flat: Tensor,
-    next_flat: Tensor,
-    base_prev: Tensor,
-    base_next: Tensor,
-    sizes: Tensor,
-    points: Tensor,
-    image_index: Tensor,
-    init: Tensor,
-    *,
-    stride: int,
-    plane: int,
-    pad: int,
-    window: int,
-    iters: int,
-    ic_iters: int,
-    eps: float,
-    min_eig: float,
-    with_residual: bool,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """``torch.ops.torchtrack.lk_track``: pyramidal LK of P points, each in its own image of the pyramids' batch.
-
-    Args:
-        prev_flat, next_flat: the pyramids' flat float32 buffers (``Pyramid.flat``), equal geometry (one channel:
-            of any lengths, each point's image addressed by the base tables).
-        base_prev, base_next: (L, B) int64 flat index of pixel (0, 0) of level l of image b.
-        sizes: (L, 2) int64 (H_l, W_l). points, init: (P, 2) float32 level-0 start and guess. image_index: (P,) int64.
-
-    Returns:
-        points (P, 2) in next (the input where not tracked), status (P,) bool, residual (P,) (zeros unless
-        with_residual).
-    """  # fmt: skip
-    return torch.ops.torchtrack.lk_track(
-        prev_flat, next_flat, base_prev, base_next, sizes, points, image_index, init,
-        stride, plane, pad, window, iters, ic_iters, eps, min_eig, with_residual,
-    )  # fmt: skip
+    _fakes.append(True)

@@ -1,4 +1,4 @@
-"""The strided grid of a depth image and its surface: what the dense map (:mod:`torchtrack.pipeline.dense_map`) fuses
+"""The strided grid of a depth image and its surface: what the dense map (:mod:`torchtrack.map.dense_map`) fuses
 and aligns to, and the torch form of what its compiled alignment (csrc/dense.cpp) computes per pixel."""
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
-// The voxel map's CPU operators (torchtrack/mapping/voxel_grid.py): a frame's fusion, torchtrack::voxel_add
+// The voxel map's CPU operators (torchtrack/map/voxel_grid.py): a frame's fusion, torchtrack::voxel_add
 // (VoxelPointMap.add; VoxelPointMap._add_torch is the reference, tests/test_mapping.py), the table's refill,
 // torchtrack::voxel_rehash, and the dense alignment's pool after a fusion, torchtrack::pool_update (DenseMap._updated
-// in torchtrack/pipeline/dense_map.py is its reference). The map's index is a hash
+// in torchtrack/map/dense_map.py is its reference). The map's index is a hash
 // table with open addressing and linear probing, slot -> row of the voxel (-1: free), the voxel's key read from the
 // rows' keys; the slot of a key: Fibonacci hashing, the top log2(size) bits of key x 0x9E3779B97F4A7C15 (wrapping),
 // as the reference computes it in int64.
@@ -182,7 +182,7 @@ void voxel_rehash_cpu(at::Tensor& table, const at::Tensor& keys, int64_t n) {
   for (int64_t r = 0; r < n; ++r) t[free_slot(t, slot_of(k[r], shift, mask), mask)] = r;
 }
 
-// A sequence's pool of map points (torchtrack/pipeline/dense_map.py: DenseMap._updated is the reference) after an add:
+// A sequence's pool of map points (torchtrack/map/dense_map.py: DenseMap._updated is the reference) after an add:
 // its voxels' keys (M,) ascending and means xyz (M, 3); of the add's voxels those of sequence b that the spatial hash
 // picks (every > 1: hash % every == 0, voxel_grid.spatial_hash) enter it: the known ones (in the pool already) get
 // their means anew from sums (C, 7), the new ones (keys ascending) are merged in. Returns the pool's keys and xyz.

@@ -23,7 +23,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.image.lk import use_cpp
+from torchtrack import ops
 
 AXIS_BITS = 18
 BATCH_BITS = 63 - 3 * AXIS_BITS  # 9: up to 512 sequences
@@ -84,8 +84,8 @@ class VoxelPointMap:
         voxel_size: edge of a voxel, metres.
         batch_size: B, the number of maps (<= 512).
         device: where the sums and the index live; the points added must be on it (the tracker's frames' device).
-        backend: the fusion: "cpp" the compiled ``torch.ops.torchtrack.voxel_add``, "torch" its reference
-            (:meth:`_add_torch`), "auto" the operator where it builds (on CPU).
+            The fusion runs as the compiled ``torch.ops.torchtrack.voxel_add`` where it runs on that device
+            (:func:`torchtrack.ops.compiled`), else as its reference :meth:`_add_torch`.
     """
 
     def __init__(
@@ -94,17 +94,13 @@ class VoxelPointMap:
         voxel_size: float = 0.01,
         batch_size: int = 1,
         device: torch.device | str = "cpu",
-        backend: str = "auto",
     ) -> None:
         if voxel_size <= 0:
             raise ValueError(f"VoxelPointMap: voxel_size must be > 0, got {voxel_size}")
         if not 1 <= batch_size <= MAX_BATCH:
             raise ValueError(f"VoxelPointMap: batch_size must be in [1, {MAX_BATCH}], got {batch_size}")
-        if backend not in ("auto", "cpp", "torch"):
-            raise ValueError(f"VoxelPointMap: backend must be 'auto', 'cpp' or 'torch', got {backend!r}")
         self.voxel_size = float(voxel_size)
         self.batch_size = batch_size
-        self.backend = backend
         self.dropped = 0  # points outside the representable range
         self._n = 0  # rows used in the buffers
         self._sums = torch.empty(0, 7, dtype=torch.float64, device=device)  # by row: sum of x, y, z, r, g, b; count
@@ -143,7 +139,7 @@ class VoxelPointMap:
             raise ValueError(
                 f"VoxelPointMap.add: batch indices must be in [0, {self.batch_size}), got {batch.unique()}"
             )
-        if use_cpp(self.backend) and self.device.type == "cpu":
+        if ops.compiled(self._sums):
             self._reserve(self._n + len(points))  # room for every point as a new voxel
             *out, dropped = torch.ops.torchtrack.voxel_add(
                 self._table, self._keys, self._sums, self._n, points.double().contiguous(),
@@ -233,7 +229,7 @@ class VoxelPointMap:
         """A table of ``size`` slots holding the map's voxels (the compiled ``voxel_rehash`` where the fusion runs
         compiled: at a doubling the torch probing costs ~0.1 s for 300,000 voxels)."""
         self._table = torch.empty((size,), dtype=torch.int64, device=self.device)
-        if use_cpp(self.backend) and self.device.type == "cpu":
+        if ops.compiled(self._sums):
             torch.ops.torchtrack.voxel_rehash(self._table, self._keys, self._n)
             return
         self._table.fill_(EMPTY)

@@ -1,4 +1,4 @@
-// Point-to-plane alignment of one depth camera to its dense map: torchtrack/pipeline/dense_map.py's DenseMap._fit_torch
+// Point-to-plane alignment of one depth camera to its dense map: torchtrack/map/dense_map.py's DenseMap._fit_torch
 // (the reference and test oracle, tests/test_dense_op.py) as one CPU operator, torchtrack::dense_fit, and the points
 // a keyframe adds to the map, torchtrack::depth_points (below). The reference spends ~30 ms per alignment in ~150
 // tensor operations on a few thousand points; here each stage is one loop.

@@ -1,6 +1,6 @@
 """A dense map that remembers, and the model placed on it (frame-to-model, point-to-plane).
 
-The map (:class:`DenseMap`) is one :class:`~torchtrack.mapping.voxel_grid.VoxelPointMap` per sequence: the depth of
+The map (:class:`DenseMap`) is one :class:`~torchtrack.map.voxel_grid.VoxelPointMap` per sequence: the depth of
 the keyframes, placed by their poses, averaged per voxel (one point per occupied voxel, so memory grows with the
 volume seen, not with the frames; an index in space). Every ``every`` frames and at every re-selection, the tracker's
 current camera is aligned to it (:meth:`DenseMap.align`): the map points predicted visible from the camera are
@@ -25,10 +25,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchtrack.geometry import backproject_depth, hat, transform_points
-from torchtrack.image.lk import use_cpp
-from torchtrack.mapping.voxel_grid import AXIS_BITS, Added, VoxelPointMap, spatial_hash
-from torchtrack.pipeline.depth_grid import MAX_STEP, grid, surface
+from torchtrack import ops
+from torchtrack.geometry import T_inv, backproject_depth, se3_exp, transform_points
+from torchtrack.map.depth_grid import MAX_STEP, grid, surface
+from torchtrack.map.voxel_grid import AXIS_BITS, Added, VoxelPointMap, spatial_hash
 
 
 class Alignment(NamedTuple):
@@ -86,11 +86,11 @@ class DenseMap:
         max_voxels: the most voxels a sequence's map holds, so that memory is bounded however far the camera goes:
             beyond it the map is pruned to three quarters of it (so that a full map is pruned every few keyframes,
             not at each; at least ``min_pairs``), the voxels that averaged the fewest points first, those the frame
-            that filled it saw last (:meth:`~torchtrack.mapping.voxel_grid.VoxelPointMap.prune`).
-        backend: "cpp" the compiled ``torch.ops.torchtrack.dense_fit``, ``depth_points`` (csrc/dense.cpp) and
-            ``pool_update`` (csrc/voxel.cpp), "torch" their references (:meth:`_fit_torch`, :meth:`_points_torch`,
-            :meth:`_updated`), "auto" the operators
-            where they build (the LK operator's switch, ``lk.use_cpp``; the voxel map's fusion follows its own).
+            that filled it saw last (:meth:`~torchtrack.map.voxel_grid.VoxelPointMap.prune`).
+
+    The fit, a keyframe's points and the pool's upkeep run as the compiled ``dense_fit``, ``depth_points``
+    (csrc/dense.cpp) and ``pool_update`` (csrc/voxel.cpp) where they run (:func:`torchtrack.ops.compiled`), else as
+    their references :meth:`_fit_torch`, :meth:`_points_torch` and :meth:`_updated`'s torch path.
     """
 
     def __init__(
@@ -114,7 +114,6 @@ class DenseMap:
         tolerance: float = 1e-4,
         weak: float = 3.0,
         max_voxels: int = 1_000_000,
-        backend: str = "auto",
     ) -> None:
         if voxel_size <= 0 or min(every, stride, iterations, max_points) < 1 or 3 * max_voxels // 4 < min_pairs:
             raise ValueError(f"DenseMap: need voxel_size > 0, every, stride, iterations, max_points >= 1 and 3/4 of "
@@ -124,10 +123,7 @@ class DenseMap:
         self.iterations, self.max_distance_m, self.huber_m, self.sigma_m = iterations, max_distance_m, huber_m, sigma_m
         self.prior_m, self.prior_deg, self.min_pairs = prior_m, prior_deg, min_pairs
         self.max_correction_m, self.max_correction_deg, self.max_depth = max_correction_m, max_correction_deg, max_depth
-        self.converged, self.tolerance, self.weak, self.backend = converged, tolerance, weak, backend
-        self.max_voxels = max_voxels
-        if backend not in ("auto", "cpp", "torch"):  # here, not at the first alignment (the operator builds then)
-            raise ValueError(f"DenseMap: backend must be 'auto', 'cpp' or 'torch', got {backend!r}")
+        self.converged, self.tolerance, self.weak, self.max_voxels = converged, tolerance, weak, max_voxels
         self.map: VoxelPointMap | None = None
         self.since: Tensor | None = None  # frames since each sequence's last alignment
         self._pools: list[_Pool | None] = []  # per sequence: the map's points an alignment draws from
@@ -154,7 +150,7 @@ class DenseMap:
         nothing; only inside ``region`` (B, 1, H, W) bool where given)."""
         if self.map is None:
             raise ValueError("DenseMap: call reset(B) before add")
-        if use_cpp(self.backend) and depth.device.type == "cpu":
+        if ops.compiled(depth):
             world, b = torch.ops.torchtrack.depth_points(
                 depth.float().contiguous(), None if region is None else region.contiguous(), K.double().contiguous(),
                 T_world_cam.double().contiguous(), mask.contiguous(), self.stride, self.max_depth,
@@ -189,33 +185,32 @@ class DenseMap:
         if self.map is None:
             raise ValueError("DenseMap: call reset(B) before align")
         B = len(mask)
-        T_out = T_world_cam.double().cpu().numpy().copy()
+        T_in = T_world_cam.double().cpu()
+        T_cw = T_inv(T_in)
+        delta = torch.eye(4, dtype=torch.float64, device="cpu").repeat(B, 1, 1)  # the corrections, on the host
         applied, pairs = [False] * B, [0] * B
         if bool(mask.any()):
-            # Per sequence a handful of 4x4 and 6x6 products: in numpy, whose per-call cost is a fraction of torch's.
             d, Ks = grid(depth, K, self.stride, region, clean=False)  # the fit finds no surface where depth is not > 0
             for b in mask.nonzero().squeeze(1).tolist():
                 world = self._pool(b)
                 if world is None:
                     continue
-                T_cw = _inv(T_out[b])
-                fit = self.fit(world, d[b], Ks[b], torch.from_numpy(T_cw).to(world.device))
+                fit = self.fit(world, d[b], Ks[b], T_cw[b].to(world.device))
                 pairs[b] = fit.pairs
                 if fit.step == math.inf:  # too few pairs left: no correction
                     continue
-                delta = self._gated(fit)  # the correction, in the camera
-                cos = (np.trace(delta[:3, :3]) - 1.0) / 2.0
+                delta[b] = self._gated(fit)  # the correction, in the camera
+                cos = (float(delta[b, :3, :3].trace()) - 1.0) / 2.0
                 applied[b] = (
                     fit.pairs >= self.min_pairs
                     and fit.step < self.converged  # else a wrong basin, or a partial correction
-                    and float(np.linalg.norm(delta[:3, 3])) <= self.max_correction_m
+                    and float(delta[b, :3, 3].norm()) <= self.max_correction_m
                     and math.acos(max(-1.0, min(1.0, cos))) <= math.radians(self.max_correction_deg)
                 )
-                if applied[b]:
-                    T_out[b] = _inv(delta @ T_cw)
         dev = mask.device
-        return Alignment(torch.from_numpy(T_out).to(dev), torch.tensor(applied, dtype=torch.bool, device=dev),
-                         torch.tensor(pairs, dtype=torch.long, device=dev))  # fmt: skip
+        done = torch.tensor(applied, dtype=torch.bool, device="cpu")
+        T_out = torch.where(done[:, None, None], T_inv(delta @ T_cw), T_in) if any(applied) else T_in
+        return Alignment(T_out.to(dev), done.to(dev), torch.tensor(pairs, dtype=torch.long, device=dev))
 
     def _pool(self, b: int) -> Tensor | None:
         """Sequence b's map points an alignment draws from (M, 3) float64: about 8 ``max_points`` of its voxels, picked
@@ -237,11 +232,11 @@ class DenseMap:
         """Sequence b's pool after an add (None: picked anew at the next alignment, where the thinning changed): the
         means of its voxels that took points recomputed, the new voxels the hash picks merged into the sorted keys; the
         same points in the same order as picked anew (tests/test_dense_map.py), at the cost of what the add touched,
-        not of the pool's ~50,000 means scattered over the map. Compiled (``pool_update``) where the backend runs it."""
+        not of the pool's ~50,000 means scattered over the map. Compiled (``pool_update``) where it runs."""
         pool = self._pools[b]
         if pool is None or self.map.size(b) < self.min_pairs or pool.every != self._every(b):
             return None
-        if use_cpp(self.backend) and pool.xyz.device.type == "cpu":
+        if ops.compiled(pool.xyz):
             keys, xyz = torch.ops.torchtrack.pool_update(pool.keys, pool.xyz, self.map.sums, added.known_keys,
                                                          added.known_rows, added.keys, added.rows, b, pool.every)  # fmt: skip
             return _Pool(keys, xyz, pool.every)
@@ -262,8 +257,8 @@ class DenseMap:
         """Gauss-Newton on the world-to-camera pose from ``T_cw`` (4, 4), the map points ``world`` (M, 3) (the
         :meth:`_pool`) against the surface of the depth grid (h, w) (any strides; no depth where 0, negative or NaN)
         seen through K (3, 3) (:func:`surface`), by the compiled ``torch.ops.torchtrack.dense_fit`` (csrc/dense.cpp)
-        where the backend runs it, else by :meth:`_fit_torch`. Stops early once a step is below ``tolerance``."""
-        if not (use_cpp(self.backend) and depth.device.type == "cpu"):
+        where it runs, else by :meth:`_fit_torch`. Stops early once a step is below ``tolerance``."""
+        if not ops.compiled(depth):
             return self._fit_torch(world, depth, K, T_cw)
         delta, xi, info, stats = torch.ops.torchtrack.dense_fit(
             world.double().contiguous(), depth.float(), K.double().contiguous(),
@@ -322,12 +317,12 @@ class DenseMap:
             Jw = J * wgt
             step = -torch.linalg.solve(torch.addmm(prior, Jw, J.T), Jw @ r + prior @ xi)
             xi = xi + step
-            delta = _exp(step) @ delta  # left perturbation
+            delta = se3_exp(step[None])[0] @ delta  # left perturbation
             if float(step.abs().max()) < self.tolerance:
                 break
         return Fit(delta, xi, Jw @ J.T, n_pairs, float(step.abs().max()), k + 1)
 
-    def _gated(self, fit: Fit) -> np.ndarray:
+    def _gated(self, fit: Fit) -> Tensor:
         """The fit's correction (4, 4) float64, projected off every pose direction in which the data's information is
         below ``weak`` times the prior's."""
         # A direction in which the depth holds less than ``weak`` times the prior's information (half a surface, a
@@ -336,15 +331,15 @@ class DenseMap:
         # The 6x6 eigenproblem in numpy: on a matrix this small torch's per-call overhead (eigh, boolean indexing,
         # small tensors) is most of the cost, and this runs every frame.
         if not fit.weak:  # the operator's Cholesky test: the eigenproblem (~0.3 ms, caches cold) would find none
-            return fit.delta.cpu().numpy()
+            return fit.delta.cpu()
         rad = math.radians(self.prior_deg)
         sd = np.array([self.prior_m] * 3 + [rad] * 3)
         ratio, vec = np.linalg.eigh(fit.info.cpu().numpy() * sd[:, None] * sd[None, :])  # whitened: information ratios
         weak = vec[:, ratio < self.weak]
         if not weak.shape[1]:
-            return fit.delta.cpu().numpy()
+            return fit.delta.cpu()
         y = fit.xi.cpu().numpy() / sd
-        return _exp(torch.from_numpy(sd * (y - weak @ (weak.T @ y)))).numpy()
+        return se3_exp(torch.from_numpy(sd * (y - weak @ (weak.T @ y)))[None])[0]
 
 
 class _Pool(NamedTuple):
@@ -361,20 +356,3 @@ def _merge(old: tuple[Tensor, ...], new: tuple[Tensor, ...]) -> tuple[Tensor, ..
     equal length each (the torch reference of ``pool_update``'s merge)."""
     order = torch.argsort(torch.cat([old[0], new[0]]))
     return tuple(torch.cat([a, b])[order] for a, b in zip(old, new, strict=True))
-
-
-def _inv(T: np.ndarray) -> np.ndarray:
-    """The inverse of a rigid transform (4, 4) (:func:`~torchtrack.geometry.T_inv` in numpy)."""
-    out = np.eye(4)
-    out[:3, :3] = T[:3, :3].T
-    out[:3, 3] = -(T[:3, :3].T @ T[:3, 3])
-    return out
-
-
-def _exp(xi: Tensor) -> Tensor:
-    """The SE(3) exponential of one twist (6,) = (v, omega) as the matrix exponential of its 4x4 matrix: one call,
-    where :func:`~torchtrack.geometry.se3_exp` (batched, written for the filter's autograd) costs ~1 ms at B = 1."""
-    twist = torch.zeros(4, 4, dtype=xi.dtype, device=xi.device)
-    twist[:3, :3] = hat(xi[3:])
-    twist[:3, 3] = xi[:3]
-    return torch.linalg.matrix_exp(twist)

@@ -23,9 +23,9 @@ from torchtrack.frontend import depth_in_colour, smooth_depth_mask
 from torchtrack.geometry import backproject, transform_points
 from torchtrack.geometry.rig import color_poses, tracker_world
 from torchtrack.io import write_atomic, write_json
-from torchtrack.mapping.render import perspective_view, top_down_view
-from torchtrack.mapping.tsdf import TsdfFusion
-from torchtrack.mapping.voxel_grid import MapPoints, VoxelPointMap
+from torchtrack.map.render import perspective_view, top_down_view
+from torchtrack.map.tsdf import TsdfFusion
+from torchtrack.map.voxel_grid import MapPoints, VoxelPointMap
 
 log = logging.getLogger(__name__)
 
