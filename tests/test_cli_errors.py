@@ -62,12 +62,20 @@ def test_a_key_of_another_option_is_found_beside_that_options_other_keys(tmp_pat
         ("flow.policy=best", "flow.policy must be one of min_tim, fallback, got 'best'"),
         ("filter.gate=1.5", "FusionEKF: gate is a probability in (0, 1), got 1.5"),
         ("weighting=learned", None),
+        (
+            "frontend.use_sim=false",
+            "frontend.use_sim=false leaves flow.mode=combined without the SIM it tracks on: use flow.mode=intensity",
+        ),
     ],
 )
 def test_a_stage_value_out_of_range_is_one_line_before_any_data(override, message):
     """The stages' own range checks run in the pre-check (the tracker is built once, without data): one line, the
     stage's message, instead of a traceback after the sequence is loaded."""
     assert check_overrides("config", [override]) == message
+
+
+def test_a_front_end_without_the_sim_builds_for_a_flow_that_does_not_track_on_it():
+    assert check_overrides("config", ["frontend.use_sim=false", "flow.mode=intensity"]) is None
 
 
 def test_no_suggestion_for_a_name_unlike_any():

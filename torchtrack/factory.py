@@ -2,7 +2,8 @@
 and the mapper. The command line and the streaming API both build here; no frame passes through.
 
 Every object is built by its node's ``_target_`` (schemas in :mod:`torchtrack.config`); the only knob derived here
-is the front end's pyramid levels, which are the LK tracker's (``flow.levels``).
+is the front end's pyramid levels, which are the LK tracker's (``flow.levels``); the one check across stages: a flow
+that tracks on the SIM needs a front end that computes it.
 """
 
 from __future__ import annotations
@@ -104,7 +105,12 @@ def load_sequences(data: DictConfig) -> Sequences:
 
 
 def build_tracker(cfg: DictConfig) -> Tracker:
-    """The pipeline (``cfg.pipeline``) composed of its stages, each built from its own node."""
+    """The pipeline (``cfg.pipeline``) composed of its stages, each built from its own node. ValueError where the front
+    end computes no SIM for a flow that tracks on it (a frame's step would fail)."""
+    mode = cfg.flow.get("mode", "intensity")
+    if not cfg.frontend.get("use_sim", True) and mode != "intensity":
+        raise ValueError(f"frontend.use_sim=false leaves flow.mode={mode} without the SIM it tracks on: "
+                         "use flow.mode=intensity")  # fmt: skip
     return instantiate(
         cfg.pipeline,
         frontend=instantiate(cfg.frontend, levels=cfg.flow.levels, gray=frame_gray),  # the loader's luminance
