@@ -2,7 +2,8 @@
 and the mapper. The command line and the streaming API both build here; no frame passes through.
 
 Every object is built by its node's ``_target_`` (schemas in :mod:`torchtrack.config`); the only knob derived here
-is the front end's pyramid levels, which are the LK tracker's (``flow.levels``).
+is the front end's pyramid levels, which are the LK tracker's (``flow.levels``). Keys that contradict each other are
+refused here, before any data (:func:`build_tracker`).
 """
 
 from __future__ import annotations
@@ -104,7 +105,9 @@ def load_sequences(data: DictConfig) -> Sequences:
 
 
 def build_tracker(cfg: DictConfig) -> Tracker:
-    """The pipeline (``cfg.pipeline``) composed of its stages, each built from its own node."""
+    """The pipeline (``cfg.pipeline``) composed of its stages, each built from its own node. ValueError (one line)
+    where two keys contradict each other so that the first frames would fail (:func:`_contradictions`)."""
+    _contradictions(cfg)
     return instantiate(
         cfg.pipeline,
         frontend=instantiate(cfg.frontend, levels=cfg.flow.levels, gray=frame_gray),  # the loader's luminance
@@ -118,6 +121,19 @@ def build_tracker(cfg: DictConfig) -> Tracker:
         relocaliser=build_relocaliser(cfg),
         dense=build_dense(cfg),
     )
+
+
+def _contradictions(cfg: DictConfig) -> None:
+    """ValueError for keys that the stages would refuse together only when a frame runs: a front end without the SIM
+    for a flow that tracks on it; a fixed grid of patches (``select.grid``) with patches sized to the region
+    (``select.roi_fraction``)."""
+    mode = cfg.flow.get("mode", "intensity")
+    if not cfg.frontend.get("use_sim", True) and mode != "intensity":
+        raise ValueError(f"frontend.use_sim=false leaves flow.mode={mode} without the SIM it tracks on: "
+                         "use flow.mode=intensity")  # fmt: skip
+    if cfg.select.get("grid") is not None and cfg.select.get("roi_fraction") is not None:
+        raise ValueError("select.grid fixes the patches, select.roi_fraction sizes them to the region: give "
+                         "select.roi_fraction=null with select.grid")  # fmt: skip
 
 
 def warm_up(device, *, announce: bool = True) -> None:

@@ -446,7 +446,7 @@ def parse_args(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
     ap.add_argument("--runs", type=int, default=0, help="R jittered re-runs per real sequence: run-to-run spread")
     ap.add_argument("--out", type=Path, default=REPO / "outputs" / "eval_weighting", help="output folder")
     ap.add_argument("--cache", type=Path, default=default_cache(), help="where the variants are written")
-    ap.add_argument("--results", type=Path, default=None, help="markdown file whose issue-11 section is replaced")
+    ap.add_argument("--results", type=Path, default=None, help="markdown file whose table section is replaced")
     ap.add_argument("--reuse", action="store_true", help="keep finished runs whose resolved config is unchanged")
     ap.add_argument("--plots", action="store_true", help="trajectory and feature pictures per run")
     ap.add_argument("--threads", type=int, default=None, help="torch.set_num_threads (default: the config's)")

@@ -28,7 +28,7 @@ import torch
 from torch import Tensor
 
 from torchtrack.filter.models import Linearization, MotionModel, _linearization, constant_velocity
-from torchtrack.geometry import hat, make_T, so3_exp, so3_exp_and_left_jacobian, so3_left_jacobian
+from torchtrack.geometry import make_T, so3_exp, so3_exp_and_left_jacobian, so3_left_jacobian
 
 
 def transition(dt: Tensor, omega: Tensor, sigma_ang_acc: float, sigma_lin_acc: float) -> MotionModel:
@@ -56,21 +56,6 @@ def predict_nominal(T_cam_obj: Tensor, velocity: Tensor, dt: Tensor, turn: Tenso
 def inject(T_cam_obj: Tensor, dx: Tensor) -> Tensor:
     """The retraction ``T (+) dx = (Exp(dtheta) R, t + dt)``: nominal pose (B, 4, 4), error state (B, 12) -> (B, 4, 4)."""
     return make_T(so3_exp(dx[:, :3]) @ T_cam_obj[:, :3, :3], T_cam_obj[:, :3, 3] + dx[:, 3:6])
-
-
-def left_twist_covariance(cov_pose: Tensor, T_cam_obj: Tensor) -> Tensor:
-    """(B, 6, 6) covariance of the left SE(3) twist ``xi = (v, omega)``, ``exp(xi) T``, of the pose whose error state
-    (dtheta, dt) has covariance ``cov_pose`` (B, 6, 6) at the nominal ``T_cam_obj`` (B, 4, 4): to first order
-    ``exp(xi) T = T (+) dx`` for ``omega = dtheta``, ``v = dt + t x dtheta`` (the retraction rotates about the
-    object's centre t, the exponential about the camera's origin), i.e. ``xi = A dx``, ``A = [[hat(t), I], [I, 0]]``,
-    and the covariance is ``A P A^T``. The same twist perturbs ``T_cam_obj @ C`` for any fixed C (the world camera of a
-    keyframe window)."""
-    t = T_cam_obj[:, :3, 3].to(cov_pose.dtype)
-    H = hat(t)
-    eye = torch.eye(3, dtype=t.dtype, device=t.device).expand_as(H)
-    A = torch.cat([torch.cat([H, eye], -1), torch.cat([eye, torch.zeros_like(H)], -1)], -2)
-    out = A @ cov_pose @ A.transpose(-1, -2)
-    return 0.5 * (out + out.transpose(-1, -2))
 
 
 def reset_jacobian(dx: Tensor) -> Tensor:

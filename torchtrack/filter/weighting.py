@@ -26,7 +26,6 @@ class WeightingInputs(NamedTuple):
         points_d: (B, N, 3) measured 3D points X_d in the depth camera, metres.
         valid: (B, N) bool.
         focal: (B,) depth-camera focal length in pixels (f of eq. (12)).
-        cornerness: (B, N) selection score (eq. (9)); unused by the paper's weighting, for learned ones.
         cues: (B, N, C) per-feature cues in :data:`torchtrack.filter.cues.CUE_NAMES` order, for learned
             weightings; the tracker fills it only when the weighting (or an observer of its step) has
             ``needs_cues = True``.
@@ -37,7 +36,6 @@ class WeightingInputs(NamedTuple):
     points_d: Tensor
     valid: Tensor
     focal: Tensor
-    cornerness: Tensor | None = None
     cues: Tensor | None = None
 
 

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 from torch import Tensor
 
+from torchtrack.geometry import T_inv
 from torchtrack.io import write_atomic
 
 
@@ -62,7 +63,7 @@ class TsdfFusion:
         depth_im = Image(o3c.Tensor(np.ascontiguousarray(depth.float().numpy())))
         colour_im = Image(o3c.Tensor(np.ascontiguousarray(rgb.permute(1, 2, 0).float().clamp(0, 1).numpy())))
         intr = o3c.Tensor(K.double().numpy())
-        extr = o3c.Tensor(np.linalg.inv(T_world_color.double().numpy()))  # world -> camera
+        extr = o3c.Tensor(T_inv(T_world_color.double()).numpy())  # world -> camera
         mult = self.trunc / self.voxel_size
         blocks = grid.compute_unique_block_coordinates(depth_im, intr, extr, 1.0, self.max_depth, mult)
         grid.integrate(blocks, depth_im, colour_im, intr, extr, 1.0, self.max_depth, mult)
