@@ -54,3 +54,31 @@ def test_held_out_families_by_pattern():
     assert held_out(seqs, []) == []
     with pytest.raises(DataError, match="no recorded sequence matches"):
         held_out(seqs, ["*-none-*"])
+
+
+def test_training_replays_the_online_scale_when_asked():
+    """train.noise_scale: the loss is the rollout's NLL with the filter's scale (R = k R0, k from the windows' recorded
+    start) or without it; the two differ where k is not 1."""
+    import torch
+
+    from torchtrack.filter import PaperWeighting
+    from torchtrack.filter.fusion import FusionEKF
+    from torchtrack.learn.oracle import oracle_windows
+    from torchtrack.learn.rollout import nll_loss, rollout
+    from torchtrack.learn.train import TrainConfig, window_loss
+
+    win = oracle_windows(B=4, T=3, N=12, seed=5).windows
+    win.start_noise = torch.full_like(win.start_noise, 3.0)  # the tracker's scale at the windows' start
+    win.start_noise_dof = torch.full_like(win.start_noise_dof, 100.0)
+    ekf, w = FusionEKF(jacobian="analytic"), PaperWeighting()
+    for on in (True, False):
+        cfg = TrainConfig(window=3, loss="nll", noise_scale=on)
+        with torch.no_grad():
+            loss = window_loss(ekf, w, win, cfg)[0]
+            want = nll_loss(rollout(ekf, w, win, gate=cfg.gate, refit=cfg.refit, with_nll=True,
+                                    noise_scale=ekf.noise if on else None))  # fmt: skip
+        assert float(loss) == float(want)
+    with torch.no_grad():
+        scaled = window_loss(ekf, w, win, TrainConfig(window=3, loss="nll"))[0]
+        plain = window_loss(ekf, w, win, TrainConfig(window=3, loss="nll", noise_scale=False))[0]
+    assert abs(float(scaled) - float(plain)) > 0.1

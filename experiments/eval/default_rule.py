@@ -29,7 +29,8 @@ def read(label: str) -> dict[str, float]:
 
 
 def family(case: str) -> str:
-    return re.sub(r"(_j\d+|(?<=[a-z])\d)$", "", case)
+    case = re.sub(r"_j\d+$", "", case)
+    return re.sub(r"\d$", "", case) if case.startswith(("box", "scene")) else case
 
 
 def main() -> None:

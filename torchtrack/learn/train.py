@@ -69,6 +69,8 @@ class TrainConfig:
             :class:`~torchtrack.learn.model.LearnedWeighting`) and its constructor arguments, null ones left to
             their defaults (:func:`~torchtrack.learn.checkpoint.build_weighting`).
         max_windows: cap on the training windows per epoch (random subset each epoch; None = all).
+        noise_scale: replay the filter's online noise scale as the tracker runs it (R = k R0, k from the scale the
+            tracker had at the window's start; needs a filter with the scale on), else the weighting's R0 alone.
     """
 
     window: int = 8
@@ -86,6 +88,7 @@ class TrainConfig:
     jacobian: str = "analytic"
     seed: int = 0
     max_windows: int | None = None
+    noise_scale: bool = True
     model: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -172,7 +175,8 @@ def window_loss(ekf: FusionEKF, model: Callable, win: Windows, cfg: TrainConfig)
     own count (measurements for nll, frames with ground truth for supervised), the pose errors over the frames with
     ground truth, the NLL over the used measurements. :func:`summarise` turns them into means."""
     nll = cfg.loss == "nll"
-    out = rollout(ekf, model, win, gate=cfg.gate, refit=cfg.refit, with_nll=nll, noise_scale=ekf.noise)
+    out = rollout(ekf, model, win, gate=cfg.gate, refit=cfg.refit, with_nll=nll,
+                  noise_scale=ekf.noise if cfg.noise_scale else None)  # fmt: skip
     loss = nll_loss(out) if nll else supervised_loss(out, win, cfg.w_trans, cfg.w_rot)
     with torch.no_grad():
         e_t, e_r = pose_errors(out.T_cam_obj, win.T_cam_obj_gt.to(out.T_cam_obj.dtype))
