@@ -170,17 +170,17 @@ Records the training set's front end once (the synthetic set by default: no real
 windows of recorded frames through the filter and fits a small network that maps per-feature cues to pixel and 3D
 variances. The run folder gets metrics.csv, loss.png, last.pt and best.pt; track with the result:
 torchtrack weighting=learned weighting.checkpoint=RUN/best.pt.
-The default set is 60 synthetic sequences of 60 frames at 640x480 (five sensor models: conf/dataset/synthetic.yaml).
+The default set is 128 synthetic sequences of 60 frames at 640x480 (eight sensor models: conf/dataset/synthetic.yaml).
 The first run renders and records them into the cache ($TORCHTRACK_CACHE, else ~/.cache/torchtrack) and then trains
-30 epochs: about half an hour on 2 loaded cores (half of it, seed 0: 8 min recording, 7 min training). Later runs
-reuse the cache.
+30 epochs; a quarter of it (seed 0, medium speed: 32 sequences) took 12 min rendering, 3 min recording and 9 min
+training on 2 loaded cores. Later runs reuse the cache.
 
 Usage: torchtrack-train [key=value ...]   (or: python -m torchtrack.learn.train_app ...)
 
 == Examples ==
   torchtrack-train
       the default: the synthetic set, 30 epochs of the innovation likelihood (train.loss=nll)
-  torchtrack-train 'dataset.seeds=[0]' '~dataset.modes.object' '~dataset.speeds.fast' '~dataset.noises.kinect3x_flying' '~dataset.noises.misregistered' '~dataset.noises.blur_light' '~dataset.noises.none' train.epochs=1 val_fraction=0.5
+  torchtrack-train 'dataset.seeds=[0]' '~dataset.modes.object' '~dataset.modes.near' '~dataset.speeds.fast' '~dataset.noises.kinect3x_flying' '~dataset.noises.misregistered' '~dataset.noises.blur_light' '~dataset.noises.none' '~dataset.noises.depthnoise_low' '~dataset.noises.depthnoise_high' '~dataset.noises.rig' train.epochs=1 val_fraction=0.5
       a small run: 2 synthetic sequences (a scene and a bare object, medium speed, Kinect noise), one epoch (minutes)
   torchtrack-train train.loss=supervised export=runs/supervised.pt
       the pose-error loss against ground truth; best.pt also copied to runs/supervised.pt
@@ -192,8 +192,8 @@ Usage: torchtrack-train [key=value ...]   (or: python -m torchtrack.learn.train_
       Validation reports the held-out NLL; pose errors only where ground truth exists
 
 == Keys ==
-  dataset=synthetic         the synthetic set recorded and trained on: synthetic (60 sequences: 2 seeds x scene,
-                            object, bare object x medium, fast x 5 sensor models) | synthetic_tiny (2
+  dataset=synthetic         the synthetic set recorded and trained on: synthetic (128 sequences: 2 seeds x scene,
+                            object, bare object, near small object x medium, fast x 8 sensor models) | synthetic_tiny (2
                             sequences of 6 frames at 160x120, for tests: set train.window to 3, stride to 1); keys:
                             dataset.seeds, dataset.modes, dataset.speeds, dataset.noises (~dataset.KEY.NAME drops
                             an entry), dataset.base.width|height|frames, dataset.batch, dataset.render_workers
@@ -219,6 +219,8 @@ Usage: torchtrack-train [key=value ...]   (or: python -m torchtrack.learn.train_
   train.stride=4            frames between window starts
   train.batch=32            windows per optimiser step
   train.max_windows=null    a random subset of this many training windows per epoch (null: all)
+  train.noise_scale=true    replay the filter's online noise scale as the tracker runs it (false: the weighting's R
+                            alone; with train.model.mode=absolute the model gives the level)
   train.gate=0.999          the filter's chi-square gate during training, as in the tracker; train.refit=0.999 likewise
   train.jacobian=analytic   the filter's Jacobian while training (forward: autograd, equal to 1e-10, slower)
   train.seed=0              initialisation, window order and the validation split
