@@ -73,10 +73,11 @@ def binned(x: torch.Tensor, y: torch.Tensor, bins: int = 12) -> tuple[list, list
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--observations", type=Path, required=True)
-    ap.add_argument("--checkpoint", type=Path, default=SHIPPED)
-    ap.add_argument("--out", type=Path, default=Path("learned-weighting-cues.png"))
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)  # fmt: skip
+    ap.add_argument("--observations", type=Path, required=True, help="a folder of observation caches (*.pt)")
+    ap.add_argument("--checkpoint", type=Path, default=SHIPPED, help="a torchtrack-train checkpoint")
+    ap.add_argument("--out", type=Path, default=Path("learned-weighting-cues.png"), help="the figure")
     args = ap.parse_args()
     files = sorted(args.observations.glob("*.pt"))
     if not files:
