@@ -396,8 +396,10 @@ def test_synthetic_set_definition():
     near = {(v.config.object, v.config.object_distance_m) for v in variants if v.name.startswith("near-")}
     assert near == {("small", 0.45)}
     perturbed = {v.name.split("-")[2]: v.perturb for v in variants if v.perturb}
-    assert perturbed == {"depthnoise_low": {"kind": "depth_noise", "sigma_k": 1.5e-3},
-                         "depthnoise_high": {"kind": "depth_noise", "sigma_k": 5e-3}}
+    assert perturbed == {
+        "depthnoise_low": {"kind": "depth_noise", "sigma_k": 1.5e-3},
+        "depthnoise_high": {"kind": "depth_noise", "sigma_k": 5e-3},
+    }
     assert all(v.config.noise == "none" for v in variants if v.perturb)  # the perturbation is the only noise
     rig = {v.config.depth_camera["fx"] for v in variants if "-rig-" in v.name}
     assert rig == {580.0} and all(v.config.depth_camera is None for v in variants if "-rig-" not in v.name)

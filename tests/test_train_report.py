@@ -6,14 +6,13 @@ import math
 
 import pytest
 from hydra import compose, initialize_config_dir
+from test_cache import random_observations
 
 from torchtrack.config import CONF_DIR
 from torchtrack.data.errors import DataError
 from torchtrack.learn.cache import save_observations
 from torchtrack.learn.train import epoch_report, worse_than
 from torchtrack.learn.train_app import held_out, train_from_config
-
-from test_cache import random_observations
 
 
 def learn_config(*overrides: str):
@@ -48,7 +47,9 @@ def test_worse_than_names_each_baseline_not_beaten():
 
 def test_held_out_families_by_pattern():
     seqs = [random_observations(T=5) for _ in range(3)]
-    for s, name in zip(seqs, ["scene-medium-kinect-seed0", "near-medium-rig-seed0", "scene-medium-rig-seed0"]):
+    for s, name in zip(
+        seqs, ["scene-medium-kinect-seed0", "near-medium-rig-seed0", "scene-medium-rig-seed0"], strict=True
+    ):
         s.sequence = name
     assert [s.sequence for s in held_out(seqs, ["*-rig-*"])] == ["near-medium-rig-seed0", "scene-medium-rig-seed0"]
     assert held_out(seqs, []) == []

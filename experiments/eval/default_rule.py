@@ -46,8 +46,10 @@ def main() -> None:
         med = {f: statistics.median(r) for f, r in fams.items()}
         bad = {f: m for f, m in med.items() if m > FAMILY_MAX}
         ok = geo <= GEOMEAN_MAX and not bad and len(ratios) == len(base)
-        print(f"{label} vs {base_label}: geometric mean {geo:.3f} over {len(ratios)} of {len(base)} cases; "
-              f"worst family {max(med, key=med.get)} {max(med.values()):.2f}; rule {'MET' if ok else 'NOT met'}")
+        print(
+            f"{label} vs {base_label}: geometric mean {geo:.3f} over {len(ratios)} of {len(base)} cases; "
+            f"worst family {max(med, key=med.get)} {max(med.values()):.2f}; rule {'MET' if ok else 'NOT met'}"
+        )
         for f in sorted(med):
             print(f"  {f:32s} {med[f]:.2f}  ({', '.join(f'{r:.2f}' for r in fams[f])})")
 

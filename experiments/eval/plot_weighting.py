@@ -53,7 +53,9 @@ def variances(files: list[Path], weightings: dict) -> tuple[dict[str, torch.Tens
                     out[name][0].append(var.var_pix[0][v])
                     out[name][1].append(var.var_xyz[0][v])
     c = torch.cat(cues)
-    return {n: c[:, i] for i, (n, _, _) in enumerate(CUES)}, {n: (torch.cat(p), torch.cat(x)) for n, (p, x) in out.items()}
+    return {n: c[:, i] for i, (n, _, _) in enumerate(CUES)}, {
+        n: (torch.cat(p), torch.cat(x)) for n, (p, x) in out.items()
+    }
 
 
 def binned(x: torch.Tensor, y: torch.Tensor, bins: int = 12) -> tuple[list, list, list, list]:
@@ -88,7 +90,7 @@ def main() -> None:
     fig, axes = plt.subplots(2, len(CUES), figsize=(4 * len(CUES), 6.5), sharey="row")
     for j, (name, label, unit) in enumerate(CUES):
         x = cues[name].clamp_min(1e-3) if name == "d_tim" else cues[name]  # log axis: d_TIM of 0 shown at 1e-3 px
-        for i, (block, ylabel, scale) in enumerate((("pix", "pixel sd (px)", 1.0), ("xyz", "3D sd (mm)", 1e3))):
+        for i, (ylabel, scale) in enumerate((("pixel sd (px)", 1.0), ("3D sd (mm)", 1e3))):
             ax = axes[i, j]
             for wname, style in (("learned", "C0"), ("eqs. 11-14", "C1")):
                 y = var[wname][i].sqrt() * scale

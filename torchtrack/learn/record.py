@@ -49,8 +49,16 @@ RECORDED_GROUPS = (
     "relocalise",
 )
 _DATA_LOCATION = ("root", "cache_dir")
-_PER_FRAME = ("timestamp", "T_world_color_gt", "gt_valid", "reselected", "T_cam_obj_est", "model_T_cam_obj",
-              "noise_scale", "noise_dof")
+_PER_FRAME = (
+    "timestamp",
+    "T_world_color_gt",
+    "gt_valid",
+    "reselected",
+    "T_cam_obj_est",
+    "model_T_cam_obj",
+    "noise_scale",
+    "noise_dof",
+)
 
 
 def recording_config(cfg: DictConfig) -> str:

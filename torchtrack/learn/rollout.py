@@ -96,7 +96,14 @@ def concat_windows(parts: list[Windows]) -> Windows:
     return Windows(**out)
 
 
-PER_WINDOW = ("start_T_cam_obj", "K", "T_color_depth", "focal", "start_noise", "start_noise_dof")  # (B, ...); else (T, B, ...)
+PER_WINDOW = (
+    "start_T_cam_obj",
+    "K",
+    "T_color_depth",
+    "focal",
+    "start_noise",
+    "start_noise_dof",
+)  # (B, ...); else (T, B, ...)
 
 
 def _pad_features(x: Tensor, n: int) -> Tensor:

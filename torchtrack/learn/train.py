@@ -353,7 +353,9 @@ def plot_losses(path: Path, history: list[dict]) -> None:
         for split in ("train", "val"):
             if f"{split}_{key}" in history[-1]:
                 ax.plot(epochs, [h[f"{split}_{key}"] for h in history], marker="o", ms=3, label=split)
-        others = [k[: -len(key) - 1] for k in history[-1] if k.endswith(f"_{key}") and not k.startswith(("train_", "val_"))]
+        others = [
+            k[: -len(key) - 1] for k in history[-1] if k.endswith(f"_{key}") and not k.startswith(("train_", "val_"))
+        ]
         for name, style in zip(others, (":", "--", "-."), strict=False):  # the baselines on the validation windows
             ax.axhline(history[-1][f"{name}_{key}"], color="k", ls=style, lw=1, label=f"val, {name}")
         ax.set_xlabel("epoch")
