@@ -201,7 +201,7 @@ Usage: torchtrack-train [key=value ...]   (or: python -m torchtrack.learn.train_
   leave_out=[]              sequence names or patterns (the .pt file names; a family: '*-depthnoise_high-*') never
                             trained or validated on; the best model and eqs. 11-14 are reported on them at the end
   val_fraction=0.2          of the sequences, held out for validation (drawn with train.seed); best.pt is the epoch
-                            with the lowest validation loss; none left is an error (val_fraction=0: no validation,
+                            with the lowest validation loss; none left is an error (a fraction of 0: no validation,
                             best.pt by the training loss). Each epoch's line puts the model beside eqs. 11-14
                             (paper) and the fixed weighting on the same validation windows
   export=null               copy best.pt to this path at the end
@@ -220,7 +220,7 @@ Usage: torchtrack-train [key=value ...]   (or: python -m torchtrack.learn.train_
   train.batch=32            windows per optimiser step
   train.max_windows=null    a random subset of this many training windows per epoch (null: all)
   train.noise_scale=true    replay the filter's online noise scale as the tracker runs it (false: the weighting's R
-                            alone; with train.model.mode=absolute the model gives the level)
+                            alone; an absolute model, train.model.mode, then gives the level)
   train.gate=0.999          the filter's chi-square gate during training, as in the tracker; train.refit=0.999 likewise
   train.jacobian=analytic   the filter's Jacobian while training (forward: autograd, equal to 1e-10, slower)
   train.seed=0              initialisation, window order and the validation split
