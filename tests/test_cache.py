@@ -51,6 +51,8 @@ def random_observations(T: int = 5, N: int = 7, seed: int = 0) -> SequenceObserv
         cues=f32(T, N, len(CUE_NAMES)), var_pix=f32(T, N),
         var_xyz=f32(T, N), reselected=reselected, model_T_cam_obj=M, model_frame=model_frame, T_world_color_gt=G,
         gt_valid=gt_valid, T_cam_obj_gt=T_gt, T_cam_obj_gt_valid=gt_ok, T_cam_obj_est=random_pose(g, T),
+        noise_scale=torch.rand(T, 2, generator=g, dtype=torch.float64) + 0.5,
+        noise_dof=torch.rand(T, 2, generator=g, dtype=torch.float64) * 50,
     )  # fmt: skip
 
 

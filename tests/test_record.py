@@ -420,8 +420,18 @@ def test_resume_skips_an_up_to_date_file_and_re_records_another_config(seq, tmp_
 def test_synthetic_set_definition():
     variants = synthetic_variants(config("+dataset=synthetic", name="record").dataset)
     names = [v.name for v in variants]
-    assert len(names) == len(set(names)) == 2 * 3 * 2 * 5
+    assert len(names) == len(set(names)) == 2 * 4 * 2 * 8
     assert {v.config.mode for v in variants} == {"scene", "object"}
+    near = {(v.config.object, v.config.object_distance_m) for v in variants if v.name.startswith("near-")}
+    assert near == {("small", 0.45)}
+    perturbed = {v.name.split("-")[2]: v.perturb for v in variants if v.perturb}
+    assert perturbed == {
+        "depthnoise_low": {"kind": "depth_noise", "sigma_k": 1.5e-3},
+        "depthnoise_high": {"kind": "depth_noise", "sigma_k": 5e-3},
+    }
+    assert all(v.config.noise == "none" for v in variants if v.perturb)  # the perturbation is the only noise
+    rig = {v.config.depth_camera["fx"] for v in variants if "-rig-" in v.name}
+    assert rig == {580.0} and all(v.config.depth_camera is None for v in variants if "-rig-" not in v.name)
     assert {v.region for v in variants if v.config.mode == "object"} == {"object"}
     assert {v.config.background for v in variants if v.name.startswith("object_bare")} == {False}
     noisy = [v.config for v in variants if "kinect3x_flying" in v.name]

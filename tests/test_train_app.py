@@ -57,7 +57,7 @@ def validation_numbers(weighting, sequence: Path, config: dict) -> dict[str, flo
     win = sequence_windows(seq, tc["window"], tc["stride"])
     ekf = instantiate(OmegaConf.create(config["filter"]), jacobian=tc["jacobian"])
     with torch.no_grad():
-        out = rollout(ekf, weighting, win, gate=tc["gate"], refit=tc["refit"], with_nll=True)
+        out = rollout(ekf, weighting, win, gate=tc["gate"], refit=tc["refit"], with_nll=True, noise_scale=ekf.noise)
     T_est, T_gt, m = out.T_cam_obj, win.T_cam_obj_gt.to(out.T_cam_obj.dtype), win.gt_valid
     trans = (T_est[..., :3, 3] - T_gt[..., :3, 3]).norm(dim=-1)  # || t_est - t_gt || = || t(T_gt^-1 T_est) ||
     R = T_gt[..., :3, :3].transpose(-1, -2) @ T_est[..., :3, :3]
@@ -125,11 +125,12 @@ def test_train_export_and_track(tmp_path):
     assert trajectories[0] != trajectories[1]
 
 
-def test_replay_of_a_recording_equals_the_tracker(tmp_path):
+@pytest.mark.parametrize("scale", ["false", "true"])
+def test_replay_of_a_recording_equals_the_tracker(tmp_path, scale):
     """The rollout of a recorded sequence with the recording's weighting reproduces the tracker's poses: replay is
-    the tracker's back end (windows from frame 0: the first model's exact pose). The rollout takes the recorded
-    variances as R (training learns them), so the recording runs without the online noise scale."""
-    cfg = tiny_config(tmp_path, [], "filter.noise_scale=false")
+    the tracker's back end (windows from frame 0: the first model's exact pose), with the online noise scale as the
+    tracker ran it (on: R = k x the recorded variances, k from the recorded start and the replayed residuals)."""
+    cfg = tiny_config(tmp_path, [], f"filter.noise_scale={scale}")
     (path, _) = build_synthetic_set(cfg, tmp_path / "obs", progress=False)
     seq = load_observations(path)
     win = sequence_windows(seq, window=seq.frames - 1, stride=seq.frames)  # one window: all the updates
@@ -141,8 +142,10 @@ def test_replay_of_a_recording_equals_the_tracker(tmp_path):
         t = next(calls)
         return seq.variances(t)
 
-    out = rollout(ekf, recorded, win, gate=cfg.filter.gate, refit=cfg.filter.refit)
+    out = rollout(ekf, recorded, win, gate=cfg.filter.gate, refit=cfg.filter.refit, noise_scale=ekf.noise)
     torch.testing.assert_close(out.T_cam_obj[:, 0], seq.T_cam_obj_est[1:], rtol=0, atol=1e-9)
+    moved = bool((seq.noise_scale[1:] != 1).any())
+    assert moved == (scale == "true") and bool((seq.noise_dof[1:] > 0).all()) == (scale == "true")
 
 
 def test_training_on_recorded_caches_alone_composes(tmp_path):

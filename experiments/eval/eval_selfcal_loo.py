@@ -158,7 +158,8 @@ def window_nll(ekf, weighting, win, tc: TrainConfig) -> tuple[torch.Tensor, torc
     with torch.no_grad():
         for i in range(0, win.dt.shape[1], tc.batch):
             idx = torch.arange(i, min(i + tc.batch, win.dt.shape[1]))
-            out = rollout(ekf, weighting, select_windows(win, idx), gate=tc.gate, refit=tc.refit, with_nll=True)
+            out = rollout(ekf, weighting, select_windows(win, idx), gate=tc.gate, refit=tc.refit, with_nll=True,
+                          noise_scale=ekf.noise)  # as training evaluates
             sums.append(out.nll.sum(0).double())
             counts.append(out.n_used.sum(0).double())
     return torch.cat(sums), torch.cat(counts)

@@ -39,11 +39,13 @@ T_cam_obj_gt           (T, 4, 4)     float64   inv(G[t]) @ G[m] @ model_T_cam_ob
                                                not valid)
 T_cam_obj_gt_valid     (T,)          bool      gt_valid[t] & gt_valid[m]
 T_cam_obj_est          (T, 4, 4)     float64   the tracker's estimate (the back end's output; row 0: the model pose)
+noise_scale            (T, 2)        float64   the online noise scale k [pix, xyz] after frame t (1 when off; row 0: 1)
+noise_dof              (T, 2)        float64   ... and the redundancy behind it (0 when off; row 0: 0)
 =====================  ============  ========  =========================================================================
 
 Rows t >= 1 are the back end's input exactly as the tracker passed it (``points_obj``, ``points_d``, ``pixels``,
 ``valid``, ``has_depth``, ``dt``, ``K``, ``T_color_depth``: :meth:`SequenceObservations.observation`), with its
-variances (:meth:`SequenceObservations.variances`). A frame t with ``reselected[t]`` is an update of the OLD model (its row
+variances (:meth:`SequenceObservations.variances`) and the noise scale the tracker had before it (row t - 1's). A frame t with ``reselected[t]`` is an update of the OLD model (its row
 belongs to model ``model_frame[t]``); the back end is reset to ``model_T_cam_obj[t]`` after it. Replaying the back
 end thus reproduces ``T_cam_obj_est``.
 
@@ -69,7 +71,7 @@ from torchtrack.geometry.rig import T_world_depth_from_color
 from torchtrack.io import write_atomic
 
 FORMAT = "torchtrack-observations"
-VERSION = 3  # 3: has_depth (pixel-only features); 2: T_world_color_gt, T_cam_obj_gt from the depth camera's
+VERSION = 4  # 4: noise_scale, noise_dof; 3: has_depth (pixel-only features); 2: T_world_color_gt, T_cam_obj_gt from the depth camera's
 _META = ("sequence", "source", "config", "weighting")
 
 
@@ -102,6 +104,8 @@ class SequenceObservations:
     T_cam_obj_gt: Tensor
     T_cam_obj_gt_valid: Tensor
     T_cam_obj_est: Tensor
+    noise_scale: Tensor
+    noise_dof: Tensor
 
     @property
     def frames(self) -> int:
@@ -177,6 +181,7 @@ def _shapes(T: int, N: int) -> dict[str, tuple[tuple[int, ...], str]]:
     per_frame = {k: ((T,), "f") for k in ("timestamp", "dt")}
     per_frame |= {k: ((T,), "b") for k in ("reselected", "gt_valid", "T_cam_obj_gt_valid")}
     per_frame |= {k: ((T, 4, 4), "f") for k in ("model_T_cam_obj", "T_world_color_gt", "T_cam_obj_gt", "T_cam_obj_est")}
+    per_frame |= {k: ((T, 2), "f") for k in ("noise_scale", "noise_dof")}
     features = {"points_obj": ((T, N, 3), "f"), "points_d": ((T, N, 3), "f"), "pixels": ((T, N, 2), "f")}
     features |= {"valid": ((T, N), "b"), "has_depth": ((T, N), "b"), "cues": ((T, N, C), "f")}
     features |= {"var_pix": ((T, N), "f"), "var_xyz": ((T, N), "f")}

@@ -13,8 +13,10 @@ variants (file, region, full SyntheticConfig). Missing renders are made by ``ren
 
 A noise entry is a sensor model: :class:`~torchtrack.data.synthetic.KinectNoise` parameters and the renderer's
 real-sensor effects (``effects``: :class:`~torchtrack.data.synthetic.config.SensorEffects`: misregistration, flying
-pixels, motion blur, a lighting gain over time). The sequences of ``photometric_seeds`` are recorded from their
-photometric variant (:mod:`torchtrack.data.perturb`) instead.
+pixels, motion blur, a lighting gain over time), and optionally ``perturb``: a :mod:`torchtrack.data.perturb` kind
+with its parameters applied to the render (e.g. ``{kind: depth_noise, sigma_k: 1.5e-3}``: i.i.d. axial noise growing
+with z^2, dropout and hole blobs, on exact rendered depth). The sequences of ``photometric_seeds`` are recorded from
+their photometric variant (:mod:`torchtrack.data.perturb`) instead.
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ class Variant:
     config: SyntheticConfig
     region: str
     photometric: bool = False  # recorded from the photometric variant of the render (torchtrack.data.perturb)
+    perturb: dict | None = None  # {kind, **params}: a torchtrack.data.perturb variant of the render, applied first
 
 
 def synthetic_variants(spec: DictConfig | dict) -> list[Variant]:
@@ -59,10 +62,11 @@ def synthetic_variants(spec: DictConfig | dict) -> list[Variant]:
         kind = spec.modes[mode].get("mode", "scene")
         parts = (spec.base, spec.modes[mode], spec.speeds[speed][kind], spec.noises[noise])
         params = OmegaConf.to_container(OmegaConf.merge(OmegaConf.create(), *parts), resolve=True)
+        perturb = params.pop("perturb", None)
         cfg = SyntheticConfig(**params, seed=int(seed))
         photo = int(seed) in set(spec.get("photometric_seeds") or [])
         name = f"{mode}-{speed}-{noise}-seed{seed}" + ("-photometric" if photo else "")
-        out.append(Variant(name, cfg, spec.regions[cfg.mode], photo))
+        out.append(Variant(name, cfg, spec.regions[cfg.mode], photo, perturb))
     return out
 
 
@@ -92,13 +96,16 @@ def build_synthetic_set(cfg: DictConfig, out_dir: str | Path, progress: bool = T
     cache, workers = Path(spec.cache_dir).expanduser(), int(spec.get("render_workers") or 1)
     folders = render_variants(variants, cache, workers, progress)
     for i, v in enumerate(variants):  # perturb's photometric walk, beside the renderer's own lighting effect
+        if v.perturb:
+            p = dict(v.perturb)
+            folders[i] = make_variant(folders[i], p.pop("kind"), cache / "perturbed", seed=v.config.seed, **p)
         if v.photometric:
             folders[i] = make_variant(folders[i], "photometric", cache / "perturbed", seed=v.config.seed)
     paths: list[Path | None] = [None] * len(variants)
     for region in dict.fromkeys(v.region for v in variants):
         group = [i for i, v in enumerate(variants) if v.region == region]
         files = record_sequences(
-            _with_region(cfg, region), [TumSequence(folders[i]) for i in group], out_dir,
+            _with_region(cfg, region), [TumSequence(folders[i], **_rig(variants[i].config)) for i in group], out_dir,
             names=[variants[i].name for i in group], batch=spec.get("batch"), progress=progress,
         )  # fmt: skip
         for i, f in zip(group, files, strict=True):
@@ -106,12 +113,20 @@ def build_synthetic_set(cfg: DictConfig, out_dir: str | Path, progress: bool = T
     index = {
         "name": spec.name,
         "variants": [
-            {"name": v.name, "file": p.name, "region": v.region, "synthetic": v.config.to_dict()}
+            {"name": v.name, "file": p.name, "region": v.region, "synthetic": v.config.to_dict(), "perturb": v.perturb}
             for v, p in zip(variants, paths, strict=True)
         ],
     }
     write_json(out_dir / "dataset.json", index, indent=1)
     return paths
+
+
+def _rig(config: SyntheticConfig) -> dict:
+    """TumSequence's arguments for a render with a depth camera of its own (its intrinsics and extrinsic), else none."""
+    cam = config.depth_camera
+    if cam is None:
+        return {}
+    return {"intrinsics_depth": (cam["fx"], cam["fy"], cam["cx"], cam["cy"]), "T_color_depth": cam["T_color_depth"]}
 
 
 def _with_region(cfg: DictConfig, region: str) -> DictConfig:

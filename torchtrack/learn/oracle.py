@@ -107,6 +107,8 @@ def oracle_windows(
         model_T_cam_obj=torch.eye(4, dtype=F64, device="cpu").expand(T, B, 4, 4).clone(),
         T_cam_obj_gt=poses,
         gt_valid=torch.ones(T, B, dtype=torch.bool, device="cpu"),
+        start_noise=torch.ones(B, 2, dtype=F64, device="cpu"),
+        start_noise_dof=torch.zeros(B, 2, dtype=F64, device="cpu"),
     )
     return OracleWindows(win, torch.stack(var_pix), torch.stack(var_xyz), flagged)
 

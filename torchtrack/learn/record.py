@@ -49,7 +49,16 @@ RECORDED_GROUPS = (
     "relocalise",
 )
 _DATA_LOCATION = ("root", "cache_dir")
-_PER_FRAME = ("timestamp", "T_world_color_gt", "gt_valid", "reselected", "T_cam_obj_est", "model_T_cam_obj")
+_PER_FRAME = (
+    "timestamp",
+    "T_world_color_gt",
+    "gt_valid",
+    "reselected",
+    "T_cam_obj_est",
+    "model_T_cam_obj",
+    "noise_scale",
+    "noise_dof",
+)
 
 
 def recording_config(cfg: DictConfig) -> str:
@@ -87,6 +96,7 @@ class ObservationLog:
             timestamp=frame.timestamp[b].double(), T_world_color_gt=frame.T_world_color_gt[b].double(),
             gt_valid=frame.gt_valid[b], reselected=res.reselected[b], T_cam_obj_est=res.T_cam_obj[b].double(),
             model_T_cam_obj=res.model_T_cam_obj[b].double() if bool(res.reselected[b]) else eye,
+            **_scale_state(res, b),
         )  # fmt: skip
         obs = res.observation
         if obs is not None:
@@ -129,6 +139,16 @@ class ObservationLog:
             **self.meta, **self.camera, **per_frame, **features,
             model_frame=model_frame, T_cam_obj_gt=T_cam_obj_gt, T_cam_obj_gt_valid=gt_ok,
         )  # fmt: skip
+
+
+def _scale_state(res: StepResult, b: int) -> dict[str, Tensor]:
+    """Row b's online noise scale after this frame (:class:`~torchtrack.filter.noise_scale.ScaleState`): k = 1 with no
+    weight where the scale is off or before the first update, as the back end starts it."""
+    noise = getattr(res.estimate, "noise", None)
+    if noise is None:
+        off = torch.ones(2, dtype=torch.float64, device="cpu")
+        return {"noise_scale": off, "noise_dof": torch.zeros_like(off)}
+    return {"noise_scale": noise.scale[b].double(), "noise_dof": noise.dof[b].double()}
 
 
 def _is_current(path: Path, config: str, source: str) -> bool:

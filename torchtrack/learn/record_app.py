@@ -53,12 +53,12 @@ Usage: torchtrack-record out=DIR [data=tum data.root=...] [key=value ...]   (or:
   torchtrack-record data=tum 'data.root=[../shared/data/sun3d_fragment1,../shared/data/sun3d_fragment2]' out=runs/obs
       two folders, tracked in lockstep
   torchtrack-record +dataset=synthetic out=runs/obs_synthetic
-      torchtrack-train's default synthetic set (54 sequences, rendered once into the cache) instead of data
+      torchtrack-train's default synthetic set (128 sequences, rendered once into the cache) instead of data
 
 == Keys ==
   out=DIR            (required) the cache folder: one <sequence>.pt per sequence
   batch=4            sequences tracked in lockstep (they must share the image size)
-  +dataset=NAME      record a synthetic set instead of data: synthetic (54 sequences of 60 frames at 640x480) |
+  +dataset=NAME      record a synthetic set instead of data: synthetic (128 sequences of 60 frames at 640x480) |
                      synthetic_tiny (2 sequences of 6 frames at 160x120); its keys: dataset.seeds, dataset.modes,
                      dataset.speeds, dataset.noises, dataset.base.width|height|frames, dataset.batch,
                      dataset.render_workers, dataset.cache_dir (where the renders go)

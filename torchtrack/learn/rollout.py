@@ -24,6 +24,7 @@ from torch import Tensor
 from torchtrack.filter.cues import CUE_INDEX
 from torchtrack.filter.frame import Observation, ekf_frame
 from torchtrack.filter.fusion import FusionEKF
+from torchtrack.filter.noise_scale import NoiseScale, ScaleState
 from torchtrack.filter.weighting import Variances, WeightingInputs, pixel_only_variances
 from torchtrack.geometry import T_inv
 
@@ -42,6 +43,8 @@ class Windows:
         reselected: (T, B) bool, the model was re-selected after frame t's update; model_T_cam_obj: (T, B, 4, 4)
             the pose the filter is then reset to.
         T_cam_obj_gt: (T, B, 4, 4) ground truth of each frame's update; gt_valid: (T, B) bool.
+        start_noise: (B, 2) the tracker's online noise scale k [pix, xyz] before the window's first update, and
+            start_noise_dof (B, 2) the redundancy behind it (:class:`~torchtrack.filter.noise_scale.ScaleState`).
     """
 
     start_T_cam_obj: Tensor
@@ -59,6 +62,8 @@ class Windows:
     model_T_cam_obj: Tensor
     T_cam_obj_gt: Tensor
     gt_valid: Tensor
+    start_noise: Tensor
+    start_noise_dof: Tensor
 
     @property
     def frames(self) -> int:
@@ -91,7 +96,14 @@ def concat_windows(parts: list[Windows]) -> Windows:
     return Windows(**out)
 
 
-PER_WINDOW = ("start_T_cam_obj", "K", "T_color_depth", "focal")  # (B, ...); else (T, B, ...)
+PER_WINDOW = (
+    "start_T_cam_obj",
+    "K",
+    "T_color_depth",
+    "focal",
+    "start_noise",
+    "start_noise_dof",
+)  # (B, ...); else (T, B, ...)
 
 
 def _pad_features(x: Tensor, n: int) -> Tensor:
@@ -125,16 +137,22 @@ def rollout(
     gate: float | None = None,
     refit: float | None = None,
     with_nll: bool = False,
+    noise_scale: NoiseScale | None = None,
 ) -> Rollout:
     """Run ``weighting`` and :func:`~torchtrack.filter.frame.ekf_frame` over the T frames of ``win``.
 
-    Each window starts at ``win.start_T_cam_obj`` with zero velocity."""
+    Each window starts at ``win.start_T_cam_obj`` with zero velocity. With ``noise_scale`` (the filter's online
+    scale, ``ekf.noise``) every frame uses ``R = k R0`` as the tracker does, k starting at the tracker's recorded
+    scale (``win.start_noise``) and updated from the replayed residuals (without gradient); None: R0 as given."""
     state = ekf.initial_state(win.start_T_cam_obj)
+    scale = None if noise_scale is None else ScaleState(win.start_noise, win.start_noise_dof)
     poses, nll, n_used, vp, vx = [], [], [], [], []
     for t in range(win.frames):
         inputs = win.weighting_inputs(t)  # over the features with depth, as in the tracker
         var = pixel_only_variances(weighting(inputs), win.valid[t], inputs.valid)
-        out = ekf_frame(ekf, state, win.observation(t), var, gate=gate, refit=refit, with_nll=with_nll)
+        out = ekf_frame(ekf, state, win.observation(t), var, gate=gate, refit=refit, with_nll=with_nll,
+                        noise_scale=noise_scale, scale_state=scale)  # fmt: skip
+        scale = out.noise
         poses.append(out.T_cam_obj)
         nll.append(out.nll)
         n_used.append(3 * out.used_xyz.sum(-1) + 2 * out.used_pix.sum(-1))

@@ -69,6 +69,8 @@ class TrainConfig:
             :class:`~torchtrack.learn.model.LearnedWeighting`) and its constructor arguments, null ones left to
             their defaults (:func:`~torchtrack.learn.checkpoint.build_weighting`).
         max_windows: cap on the training windows per epoch (random subset each epoch; None = all).
+        noise_scale: replay the filter's online noise scale as the tracker runs it (R = k R0, k from the scale the
+            tracker had at the window's start; needs a filter with the scale on), else the weighting's R0 alone.
     """
 
     window: int = 8
@@ -86,6 +88,7 @@ class TrainConfig:
     jacobian: str = "analytic"
     seed: int = 0
     max_windows: int | None = None
+    noise_scale: bool = True
     model: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -133,6 +136,8 @@ def sequence_windows(
         model_T_cam_obj=seq.model_T_cam_obj[rows],
         T_cam_obj_gt=seq.T_cam_obj_gt[rows],
         gt_valid=seq.T_cam_obj_gt_valid[rows],
+        start_noise=seq.noise_scale[s],
+        start_noise_dof=seq.noise_dof[s],
     )
     if not need_ground_truth:
         return win
@@ -170,7 +175,8 @@ def window_loss(ekf: FusionEKF, model: Callable, win: Windows, cfg: TrainConfig)
     own count (measurements for nll, frames with ground truth for supervised), the pose errors over the frames with
     ground truth, the NLL over the used measurements. :func:`summarise` turns them into means."""
     nll = cfg.loss == "nll"
-    out = rollout(ekf, model, win, gate=cfg.gate, refit=cfg.refit, with_nll=nll)
+    out = rollout(ekf, model, win, gate=cfg.gate, refit=cfg.refit, with_nll=nll,
+                  noise_scale=ekf.noise if cfg.noise_scale else None)  # fmt: skip
     loss = nll_loss(out) if nll else supervised_loss(out, win, cfg.w_trans, cfg.w_rot)
     with torch.no_grad():
         e_t, e_r = pose_errors(out.T_cam_obj, win.T_cam_obj_gt.to(out.T_cam_obj.dtype))
@@ -221,9 +227,14 @@ def fit(
     extra: dict | None = None,
     progress: bool = True,
     spec: Mapping[str, Any] | None = None,
+    baselines: Mapping[str, Mapping[str, float]] | None = None,
 ) -> list[dict]:
     """Train ``model`` (a weighting: WeightingInputs -> Variances, with parameters) on the windows ``train``; returns
     one dict of metrics per epoch.
+
+    ``baselines``: other weightings' :func:`evaluate` on the same validation windows (name -> metrics, e.g. eqs.
+    11-14 and the fixed weighting): each epoch's log line and metrics.csv row put the model beside them
+    (:func:`epoch_report`).
 
     With ``out_dir``: metrics.csv, loss.png, last.pt (resumed from when present) and best.pt (lowest validation
     loss, or training loss without ``val``) are written there; ``extra`` (e.g. the resolved config) goes into both
@@ -259,8 +270,11 @@ def fit(
         if val is not None:
             row.update({f"val_{k}": v for k, v in evaluate(ekf, model, val, cfg).items()})
         row["select"] = row["val_loss"] if val is not None else row["train_loss"]
+        for name, metrics in (baselines or {}).items():
+            row.update({f"{name}_{k}": v for k, v in metrics.items()})
         history.append(row)
         epochs.set_postfix(loss=f"{row['train_loss']:.4g}", val=f"{row.get('val_loss', float('nan')):.4g}")
+        log.info("%s", epoch_report(row, cfg.epochs, baselines))
         if out_dir is not None:
             meta = {"history": history, **(extra or {})}
             if row["select"] < best:
@@ -270,6 +284,30 @@ def fit(
             save_checkpoint(out_dir / "last.pt", model, spec=spec, extra=last)
             write_metrics(out_dir, history)
     return history
+
+
+def epoch_report(row: Mapping[str, float], epochs: int, baselines: Mapping[str, Mapping[str, float]] | None) -> str:
+    """One line: the epoch's training and validation loss and drift, each validation number beside the baselines'
+    on the same windows."""
+    line = f"epoch {int(row['epoch'])}/{epochs}: train loss {row['train_loss']:.4g}"
+    if "val_loss" not in row:
+        return line
+    for key, label, fmt in (("loss", "val loss", ".4g"), ("trans_mm", "drift mm", ".3f"), ("rot_deg", "deg", ".3f")):
+        others = ", ".join(f"{name} {m[key]:{fmt}}" for name, m in (baselines or {}).items() if key in m)
+        line += f"; {label} {row[f'val_{key}']:{fmt}}" + (f" ({others})" if others else "")
+    return line
+
+
+def worse_than(best: Mapping[str, float], baselines: Mapping[str, Mapping[str, float]]) -> list[str]:
+    """The baselines whose validation loss or drift the best epoch's row does not beat: one phrase each (empty: it
+    beats them all)."""
+    out = []
+    for name, m in baselines.items():
+        for key, what in (("loss", "loss"), ("trans_mm", "drift")):
+            ours, theirs = best.get(f"val_{key}", math.nan), m.get(key, math.nan)
+            if math.isfinite(ours) and math.isfinite(theirs) and ours >= theirs:
+                out.append(f"{what} {ours:.4g} vs {name} {theirs:.4g}")
+    return out
 
 
 def _resume(
@@ -315,6 +353,11 @@ def plot_losses(path: Path, history: list[dict]) -> None:
         for split in ("train", "val"):
             if f"{split}_{key}" in history[-1]:
                 ax.plot(epochs, [h[f"{split}_{key}"] for h in history], marker="o", ms=3, label=split)
+        others = [
+            k[: -len(key) - 1] for k in history[-1] if k.endswith(f"_{key}") and not k.startswith(("train_", "val_"))
+        ]
+        for name, style in zip(others, (":", "--", "-."), strict=False):  # the baselines on the validation windows
+            ax.axhline(history[-1][f"{name}_{key}"], color="k", ls=style, lw=1, label=f"val, {name}")
         ax.set_xlabel("epoch")
         ax.set_ylabel({"loss": "loss", "trans_mm": "mean translation error over windows (mm)"}[key])
         ax.grid(alpha=0.3)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 import shutil
 import sys
+from fnmatch import fnmatch
 from pathlib import Path
 
 import hydra
@@ -28,8 +29,8 @@ from torchtrack.config import CONF_DIR, load_option
 from torchtrack.data.errors import DataError
 from torchtrack.io import write_atomic
 from torchtrack.learn.cache import SequenceObservations, load_observations
-from torchtrack.learn.checkpoint import build_weighting
-from torchtrack.learn.train import TrainConfig, evaluate, fit, windows_of
+from torchtrack.learn.checkpoint import build_weighting, load_checkpoint
+from torchtrack.learn.train import TrainConfig, evaluate, fit, windows_of, worse_than
 from torchtrack.runtime import configure
 
 log = logging.getLogger("torchtrack.train")
@@ -50,11 +51,18 @@ def observation_files(cfg: DictConfig) -> list[Path]:
     return files
 
 
+def held_out(sequences: list[SequenceObservations], patterns) -> list[SequenceObservations]:
+    """The sequences whose name matches one of ``patterns`` (fnmatch: a name, or a family such as
+    ``*-depthnoise_high-*``); DataError for a pattern that matches none."""
+    if missing := [p for p in patterns if not any(fnmatch(s.sequence, p) for s in sequences)]:
+        raise DataError(f"leave_out: no recorded sequence matches {missing}")
+    return [s for s in sequences if any(fnmatch(s.sequence, p) for p in patterns)]
+
+
 def split(sequences: list[SequenceObservations], cfg: DictConfig) -> tuple[list, list]:
     """(train, validation) after dropping ``leave_out``; validation: ``val_fraction`` of them, drawn with the seed."""
-    left = [s for s in sequences if s.sequence not in set(cfg.leave_out)]
-    if missing := set(cfg.leave_out) - {s.sequence for s in sequences}:
-        raise DataError(f"leave_out: no recorded sequence named {sorted(missing)}")
+    out = {id(s) for s in held_out(sequences, cfg.leave_out)}
+    left = [s for s in sequences if id(s) not in out]
     g = torch.Generator().manual_seed(int(cfg.train.seed))
     order = torch.randperm(len(left), generator=g).tolist()
     n_val = int(round(cfg.val_fraction * len(left))) if len(left) > 1 else 0
@@ -73,8 +81,10 @@ def train_from_config(cfg: DictConfig, out: Path, progress: bool = True) -> list
     if train_w is None:
         raise DataError(_no_window(train_seqs, tc, "training"))
     val_w = windows_of(val_seqs, tc.window, tc.stride, need_ground_truth=need_gt)
-    if val_w is None and val_seqs:
-        log.warning("%s", _no_window(val_seqs, tc, "validation"))
+    if val_w is None and cfg.val_fraction > 0:  # best.pt would be chosen on the training loss without saying so
+        raise DataError(_no_window(val_seqs, tc, "validation") if val_seqs else
+                        f"no validation sequence: val_fraction={cfg.val_fraction} of {len(train_seqs)} sequence(s) "
+                        "rounds to none; give more sequences, or val_fraction=0 to choose best.pt on the training loss")  # fmt: skip
     log.info("training on %d windows of %d sequences, validating on %d windows of %d sequences",
              train_w.dt.shape[1], len(train_seqs), 0 if val_w is None else val_w.dt.shape[1], len(val_seqs))  # fmt: skip
     for name, w in (("training", train_w), ("validation", val_w)):
@@ -87,15 +97,37 @@ def train_from_config(cfg: DictConfig, out: Path, progress: bool = True) -> list
         "train_sequences": [s.sequence for s in train_seqs],
         "val_sequences": [s.sequence for s in val_seqs],
     }
+    baselines = {}
     if val_w is not None:  # what the learned model has to beat, on the same validation windows
         for name in ("paper", "fixed"):
-            base = instantiate(load_option("weighting", name))
-            extra[f"val_{name}"] = evaluate(ekf, base, val_w, tc)
-            log.info("validation, weighting=%s: %s", name, _fmt(extra[f"val_{name}"]))
-    history = fit(model, ekf, train_w, tc, val=val_w, out_dir=out, extra=extra, progress=progress, spec=tc.model)
+            baselines[name] = evaluate(ekf, instantiate(load_option("weighting", name)), val_w, tc)
+            extra[f"val_{name}"] = baselines[name]
+            log.info("validation, weighting=%s: %s", name, _fmt(baselines[name]))
+    history = fit(model, ekf, train_w, tc, val=val_w, out_dir=out, extra=extra, progress=progress, spec=tc.model,
+                  baselines=baselines)  # fmt: skip
+    if history and baselines:
+        best = min(history, key=lambda h: h["select"])
+        if worse := worse_than(best, baselines):
+            log.warning("the best epoch (%d) is not better than the baselines on the validation windows: %s",
+                        best["epoch"], "; ".join(worse))  # fmt: skip
+    if history and (left := held_out(sequences, cfg.leave_out)):
+        report_held_out(ekf, out / "best.pt", left, tc, need_gt)
     if cfg.get("export"):
         export(out / "best.pt", Path(cfg.export))
     return history
+
+
+def report_held_out(ekf, best: Path, sequences: list[SequenceObservations], tc: TrainConfig, need_gt: bool) -> None:
+    """Log the best model and the baselines on the windows of the left-out sequences (a held-out family)."""
+    win = windows_of(sequences, tc.window, tc.stride, need_ground_truth=need_gt)
+    if win is None:
+        log.warning("%s", _no_window(sequences, tc, "held-out"))
+        return
+    model = load_checkpoint(best)[0].eval()
+    rows = {"learned": evaluate(ekf, model, win, tc)}
+    rows |= {name: evaluate(ekf, instantiate(load_option("weighting", name)), win, tc) for name in ("paper", "fixed")}
+    log.info("held out (%d windows of %d sequences): %s", win.dt.shape[1], len(sequences),
+             "; ".join(f"{name} {_fmt(r)}" for name, r in rows.items()))  # fmt: skip
 
 
 def _no_window(sequences: list[SequenceObservations], tc: TrainConfig, split: str) -> str:
@@ -127,7 +159,8 @@ def app(cfg: DictConfig) -> None:
         sys.exit(2)
     if history:
         best = min(history, key=lambda h: h["select"])
-        log.info("best epoch %d: %s", best["epoch"], _fmt({k: v for k, v in best.items() if k != "epoch"}))
+        mine = {k: v for k, v in best.items() if k.startswith(("train_", "val_"))}
+        log.info("best epoch %d: %s", best["epoch"], _fmt(mine))
     log.info("run folder: %s", out)
 
 
@@ -137,17 +170,17 @@ Records the training set's front end once (the synthetic set by default: no real
 windows of recorded frames through the filter and fits a small network that maps per-feature cues to pixel and 3D
 variances. The run folder gets metrics.csv, loss.png, last.pt and best.pt; track with the result:
 torchtrack weighting=learned weighting.checkpoint=RUN/best.pt.
-The default set is 60 synthetic sequences of 60 frames at 640x480 (five sensor models: conf/dataset/synthetic.yaml).
+The default set is 128 synthetic sequences of 60 frames at 640x480 (eight sensor models: conf/dataset/synthetic.yaml).
 The first run renders and records them into the cache ($TORCHTRACK_CACHE, else ~/.cache/torchtrack) and then trains
-30 epochs: about half an hour on 2 loaded cores (half of it, seed 0: 8 min recording, 7 min training). Later runs
-reuse the cache.
+30 epochs; a quarter of it (seed 0, medium speed: 32 sequences) took 12 min rendering, 3 min recording and 9 min
+training on 2 loaded cores. Later runs reuse the cache.
 
 Usage: torchtrack-train [key=value ...]   (or: python -m torchtrack.learn.train_app ...)
 
 == Examples ==
   torchtrack-train
       the default: the synthetic set, 30 epochs of the innovation likelihood (train.loss=nll)
-  torchtrack-train 'dataset.seeds=[0]' '~dataset.modes.object' '~dataset.speeds.fast' '~dataset.noises.kinect3x_flying' '~dataset.noises.misregistered' '~dataset.noises.blur_light' '~dataset.noises.none' train.epochs=1 val_fraction=0.5
+  torchtrack-train 'dataset.seeds=[0]' '~dataset.modes.object' '~dataset.modes.near' '~dataset.speeds.fast' '~dataset.noises.kinect3x_flying' '~dataset.noises.misregistered' '~dataset.noises.blur_light' '~dataset.noises.none' '~dataset.noises.depthnoise_low' '~dataset.noises.depthnoise_high' '~dataset.noises.rig' train.epochs=1 val_fraction=0.5
       a small run: 2 synthetic sequences (a scene and a bare object, medium speed, Kinect noise), one epoch (minutes)
   torchtrack-train train.loss=supervised export=runs/supervised.pt
       the pose-error loss against ground truth; best.pt also copied to runs/supervised.pt
@@ -159,15 +192,18 @@ Usage: torchtrack-train [key=value ...]   (or: python -m torchtrack.learn.train_
       Validation reports the held-out NLL; pose errors only where ground truth exists
 
 == Keys ==
-  dataset=synthetic         the synthetic set recorded and trained on: synthetic (60 sequences: 2 seeds x scene,
-                            object, bare object x medium, fast x 5 sensor models) | synthetic_tiny (2
+  dataset=synthetic         the synthetic set recorded and trained on: synthetic (128 sequences: 2 seeds x scene,
+                            object, bare object, near small object x medium, fast x 8 sensor models) | synthetic_tiny (2
                             sequences of 6 frames at 160x120, for tests: set train.window to 3, stride to 1); keys:
                             dataset.seeds, dataset.modes, dataset.speeds, dataset.noises (~dataset.KEY.NAME drops
                             an entry), dataset.base.width|height|frames, dataset.batch, dataset.render_workers
   extra_observations=[]     more folders of .pt files from torchtrack-record (e.g. real sequences), added to the set
-  leave_out=[]              sequence names (the .pt file names) never trained or validated on: leave-one-sequence-out
+  leave_out=[]              sequence names or patterns (the .pt file names; a family: '*-depthnoise_high-*') never
+                            trained or validated on; the best model and eqs. 11-14 are reported on them at the end
   val_fraction=0.2          of the sequences, held out for validation (drawn with train.seed); best.pt is the epoch
-                            with the lowest validation loss (training loss without validation sequences)
+                            with the lowest validation loss; none left is an error (a fraction of 0: no validation,
+                            best.pt by the training loss). Each epoch's line puts the model beside eqs. 11-14
+                            (paper) and the fixed weighting on the same validation windows
   export=null               copy best.pt to this path at the end
   observations=DIR          where the dataset's recordings go (default $TORCHTRACK_CACHE/observations/<dataset.name>)
   threads=1                 torch intra-op threads
@@ -183,6 +219,8 @@ Usage: torchtrack-train [key=value ...]   (or: python -m torchtrack.learn.train_
   train.stride=4            frames between window starts
   train.batch=32            windows per optimiser step
   train.max_windows=null    a random subset of this many training windows per epoch (null: all)
+  train.noise_scale=true    replay the filter's online noise scale as the tracker runs it (false: the weighting's R
+                            alone; an absolute model, train.model.mode, then gives the level)
   train.gate=0.999          the filter's chi-square gate during training, as in the tracker; train.refit=0.999 likewise
   train.jacobian=analytic   the filter's Jacobian while training (forward: autograd, equal to 1e-10, slower)
   train.seed=0              initialisation, window order and the validation split
