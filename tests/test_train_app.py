@@ -55,7 +55,7 @@ def validation_numbers(weighting, sequence: Path, config: dict) -> dict[str, flo
     tc = config["train"]
     seq = load_observations(sequence)
     win = sequence_windows(seq, tc["window"], tc["stride"])
-    ekf = instantiate(OmegaConf.create(config["filter"]), jacobian=tc["jacobian"])
+    ekf = instantiate(OmegaConf.create(config["filter"]))
     with torch.no_grad():
         out = rollout(ekf, weighting, win, gate=tc["gate"], refit=tc["refit"], with_nll=True, noise_scale=ekf.noise)
     T_est, T_gt, m = out.T_cam_obj, win.T_cam_obj_gt.to(out.T_cam_obj.dtype), win.gt_valid

@@ -63,7 +63,6 @@ class TrainConfig:
         epochs, lr, weight_decay, clip: Adam and the gradient-norm clip.
         loss: "supervised" or "nll"; w_trans (1/m), w_rot (1/rad): the supervised loss's weights.
         gate, refit: the back end's chi-square quantiles during training (None = off), as in the tracker.
-        jacobian: the filter's Jacobian mode while training ("analytic": the same numbers as autograd, faster).
         seed: torch seed of the initialisation and the window order.
         model: the weighting's config node: ``_target_`` (a dotted path; absent: the shipped
             :class:`~torchtrack.learn.model.LearnedWeighting`) and its constructor arguments, null ones left to
@@ -85,7 +84,6 @@ class TrainConfig:
     w_rot: float = 1.0
     gate: float | None = 0.999
     refit: float | None = 0.999
-    jacobian: str = "analytic"
     seed: int = 0
     max_windows: int | None = None
     noise_scale: bool = True

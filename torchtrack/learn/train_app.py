@@ -91,7 +91,7 @@ def train_from_config(cfg: DictConfig, out: Path, progress: bool = True) -> list
         if w is not None and (n := int((~w.gt_valid.any(0)).sum())):
             log.info("%d of the %d %s windows have no ground truth: they start from the tracker's recorded estimate "
                      "and report the NLL only", n, w.dt.shape[1], name)  # fmt: skip
-    ekf = instantiate(cfg.filter, jacobian=tc.jacobian)
+    ekf = instantiate(cfg.filter)
     extra = {
         "config": OmegaConf.to_yaml(cfg, resolve=True),
         "train_sequences": [s.sequence for s in train_seqs],
@@ -222,7 +222,6 @@ Usage: torchtrack-train [key=value ...]   (or: python -m torchtrack.learn.train_
   train.noise_scale=true    replay the filter's online noise scale as the tracker runs it (false: the weighting's R
                             alone; an absolute model, train.model.mode, then gives the level)
   train.gate=0.999          the filter's chi-square gate during training, as in the tracker; train.refit=0.999 likewise
-  train.jacobian=analytic   the filter's Jacobian while training (forward: autograd, equal to 1e-10, slower)
   train.seed=0              initialisation, window order and the validation split
   train.model._target_=torchtrack.learn.model.LearnedWeighting  the weighting trained: any torch module
                             WeightingInputs -> Variances importable by that dotted path (docs/extending.md); the
