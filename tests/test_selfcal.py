@@ -91,7 +91,7 @@ def held_out_nll(weighting, config: dict, cache: Path) -> float:
     tc = config["train"]
     seq = load_observations(cache / f"{HELD_OUT}.pt")
     win = sequence_windows(seq, tc["window"], tc["stride"], need_ground_truth=False)
-    ekf = instantiate(OmegaConf.create(config["filter"]), jacobian=tc["jacobian"])
+    ekf = instantiate(OmegaConf.create(config["filter"]))
     with torch.no_grad():
         return float(nll_loss(rollout(ekf, weighting, win, gate=tc["gate"], refit=tc["refit"], with_nll=True)))
 

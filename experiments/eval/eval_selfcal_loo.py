@@ -101,7 +101,7 @@ def train_config(args) -> tuple[TrainConfig, object]:
     train = OmegaConf.to_container(cfg.train, resolve=True)
     train.update(epochs=args.epochs, lr=args.lr, seed=args.seed)
     tc = TrainConfig(**train)
-    return tc, instantiate(cfg.filter, jacobian=tc.jacobian)
+    return tc, instantiate(cfg.filter)
 
 
 def synthetic_windows(folder: Path, tc: TrainConfig, n: int, seed: int):
