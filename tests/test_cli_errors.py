@@ -63,10 +63,6 @@ def test_a_key_of_another_option_is_found_beside_that_options_other_keys(tmp_pat
         ("filter.gate=1.5", "FusionEKF: gate is a probability in (0, 1), got 1.5"),
         ("weighting=learned", None),
         (
-            "frontend.use_sim=false",
-            "frontend.use_sim=false leaves flow.mode=combined without the SIM it tracks on: use flow.mode=intensity",
-        ),
-        (
             "select.grid=[4,4]",
             "select.grid fixes the patches, select.roi_fraction sizes them to the region: give select.roi_fraction=null "
             "with select.grid",
@@ -80,7 +76,6 @@ def test_a_stage_value_out_of_range_is_one_line_before_any_data(override, messag
 
 
 def test_keys_that_agree_build():
-    assert check_overrides("config", ["frontend.use_sim=false", "flow.mode=intensity"]) is None
     assert check_overrides("config", ["select.grid=[4,4]", "select.roi_fraction=null"]) is None
 
 

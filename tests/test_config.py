@@ -310,6 +310,19 @@ def test_the_old_group_name_in_a_key_or_a_users_folder_is_one_line_naming_the_ne
     assert error.startswith("the tracker= group is now estimator=") and "\n" not in error
 
 
+@pytest.mark.parametrize(
+    "overrides, use_sim",
+    [((), True), (("flow.mode=intensity",), True), (("select.lam=1.0",), True), (("+experiment=ekf2",), True),
+     (("+experiment=[ekf1,ekf2]",), False), (("+experiment=[ekf1,ekf2]", "weighting=learned"), True),
+     (("flow.mode=sim", "select.lam=1.0"), True)],
+)  # fmt: skip
+def test_the_sim_is_computed_where_a_stage_reads_it(overrides, use_sim):
+    """SIM-assisted tracking, lambda < 1 selection (eq. 9) or a weighting's cues: no key, derived in one place."""
+    assert build_tracker(config(*overrides)).frontend.use_sim is use_sim
+    with pytest.raises(ConfigCompositionException):
+        config("frontend.use_sim=false")
+
+
 def test_the_front_end_levels_are_the_flow_levels():
     assert build_tracker(config("flow.levels=2")).frontend.levels == 2
     with pytest.raises(ConfigCompositionException):

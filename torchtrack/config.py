@@ -85,7 +85,6 @@ class FrontendConfig:
     """:class:`torchtrack.frontend.FrontEnd`; its pyramid levels come from ``flow.levels`` (in the factory)."""
 
     _target_: str = "torchtrack.frontend.FrontEnd"
-    use_sim: bool = True  # compute the SIM (SIM-assisted tracking, lambda < 1 selection)
     sim_kwargs: dict[str, Any] | None = None
     ahead: bool = True  # prepare the next frame (SIM, pyramids) in a thread while this one is tracked; same results
 

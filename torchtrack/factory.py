@@ -108,11 +108,14 @@ def build_tracker(cfg: DictConfig) -> Tracker:
     """The pipeline (``cfg.pipeline``) composed of its stages, each built from its own node. ValueError (one line)
     where two keys contradict each other so that the first frames would fail (:func:`_contradictions`)."""
     _contradictions(cfg)
+    weighting = instantiate(cfg.weighting)
+    # the SIM (eq. 8) only where a stage reads it: SIM-assisted tracking, lambda < 1 selection, a weighting's cues
+    use_sim = cfg.flow.mode != "intensity" or cfg.select.lam < 1 or getattr(weighting, "needs_cues", False)
     return instantiate(
         cfg.pipeline,
-        frontend=instantiate(cfg.frontend, levels=cfg.flow.levels, gray=frame_gray),  # the loader's luminance
+        frontend=instantiate(cfg.frontend, levels=cfg.flow.levels, gray=frame_gray, use_sim=use_sim),
         flow=instantiate(cfg.flow),
-        weighting=instantiate(cfg.weighting),
+        weighting=weighting,
         backend=instantiate(cfg.estimator),
         reselect=instantiate(cfg.reselect, region=instantiate(cfg.region), select=instantiate(cfg.select)),
         outliers=instantiate(cfg.outliers),
@@ -124,13 +127,8 @@ def build_tracker(cfg: DictConfig) -> Tracker:
 
 
 def _contradictions(cfg: DictConfig) -> None:
-    """ValueError for keys that the stages would refuse together only when a frame runs: a front end without the SIM
-    for a flow that tracks on it; a fixed grid of patches (``select.grid``) with patches sized to the region
-    (``select.roi_fraction``)."""
-    mode = cfg.flow.get("mode", "intensity")
-    if not cfg.frontend.get("use_sim", True) and mode != "intensity":
-        raise ValueError(f"frontend.use_sim=false leaves flow.mode={mode} without the SIM it tracks on: "
-                         "use flow.mode=intensity")  # fmt: skip
+    """ValueError for keys that the stages would refuse together only when a frame runs: a fixed grid of patches
+    (``select.grid``) with patches sized to the region (``select.roi_fraction``)."""
     if cfg.select.get("grid") is not None and cfg.select.get("roi_fraction") is not None:
         raise ValueError("select.grid fixes the patches, select.roi_fraction sizes them to the region: give "
                          "select.roi_fraction=null with select.grid")  # fmt: skip
