@@ -44,6 +44,11 @@ _state: dict = {}  # the decision: ok, error, build_s
 _fakes: list = []  # the fake kernels registered (once per process, like the library)
 
 
+def _no_build() -> bool:
+    """``TORCHTRACK_NO_BUILD`` set (to anything but 0): the references run, nothing is built."""
+    return os.environ.get("TORCHTRACK_NO_BUILD", "") not in ("", "0")
+
+
 def compiled(x: Tensor) -> bool:
     """Whether the compiled operator runs on ``x``: a CPU tensor and the library built (on the first call); the
     pure-torch reference runs otherwise."""
@@ -106,7 +111,7 @@ def available() -> bool:
     no ninja, ``TORCHTRACK_NO_BUILD=1``) one warning line, once, and False."""
     if "ok" not in _state:
         try:
-            if os.environ.get("TORCHTRACK_NO_BUILD", "") not in ("", "0"):
+            if _no_build():
                 raise RuntimeError("TORCHTRACK_NO_BUILD is set")
             _state["build_s"] = _load()
             _register_fake()
@@ -120,7 +125,7 @@ def available() -> bool:
 
 def needs_build() -> bool:
     """Whether :func:`available` would compile the operators now (first use of these sources, torch and flags here)."""
-    if "ok" in _state or os.environ.get("TORCHTRACK_NO_BUILD", "") not in ("", "0") or loaded():
+    if "ok" in _state or _no_build() or loaded():
         return False
     return not _finished(*_library())
 
